@@ -1,0 +1,34 @@
+"""lieax: Lie groups and manifolds for JAX, with closed-form Jacobians injected through custom_jvp.
+
+Conventions (right perturbation, wxyz quaternions, translation-first tangents) are listed in the
+README's "Conventions" section.
+"""
+
+from ._autodiff import grad, jacobian, value_and_grad, value_and_jacobian
+from ._base import AbstractGroup
+from ._manifold import (
+    flatten_tangents,
+    rminus,
+    rplus,
+    tangent_dim,
+    unflatten_tangents,
+    zero_tangents,
+)
+from ._so3 import SO3
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "AbstractGroup",
+    "SO3",
+    "flatten_tangents",
+    "grad",
+    "jacobian",
+    "rminus",
+    "rplus",
+    "tangent_dim",
+    "unflatten_tangents",
+    "value_and_grad",
+    "value_and_jacobian",
+    "zero_tangents",
+]

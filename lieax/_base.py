@@ -1,0 +1,210 @@
+"""The shared base of every lieax group: a frozen pytree around one parameter array.
+
+Conventions (fixed for the whole library, see the README's "Conventions"):
+right perturbation $X \\oplus \\xi = X\\,\\mathrm{Exp}(\\xi)$, $X \\ominus Y = \\mathrm{Log}(Y^{-1} X)$,
+adjoint $X\\,\\mathrm{Exp}(\\xi)\\,X^{-1} = \\mathrm{Exp}(\\mathrm{Ad}_X \\xi)$, and
+$\\mathrm{Exp}(\\xi + \\delta) \\approx \\mathrm{Exp}(\\xi)\\,\\mathrm{Exp}(J_r(\\xi)\\,\\delta)$.
+
+A concrete group supplies its array kernels (each a `jax.custom_jvp` function with a closed-form
+rule) as static methods; this base class validates inputs once, at trace time, and implements
+`between`, `rplus`, `rminus`, `interpolate` and the operators from those kernels, so their
+derivatives compose from the kernels' closed-form blocks.
+"""
+
+from typing import ClassVar
+
+import jax
+import jax.numpy as jnp
+
+from ._checks import as_float_array, broadcast_batch, check_last_axis, check_matrix
+
+
+class AbstractGroup:
+    """A batch of elements of one matrix Lie group, stored as `parameters()` of shape
+    `(*batch_shape, parameters_dim)`; a JAX pytree with that one array as its leaf."""
+
+    tangent_dim: ClassVar[int]
+    parameters_dim: ClassVar[int]
+    space_dim: ClassVar[int]
+    matrix_dim: ClassVar[int]
+    parameters_layout: ClassVar[str]
+
+    __slots__ = ("_params",)
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        jax.tree_util.register_pytree_node(cls, _flatten, lambda _, leaves: cls._wrap(leaves[0]))
+
+    def __init__(self, parameters):
+        """Wraps parameters as given (after checking shape and dtype); see `normalize()`."""
+        name = f"{type(self).__name__} parameters"
+        params = check_last_axis(parameters, self.parameters_dim, name, self.parameters_layout)
+        object.__setattr__(self, "_params", params)
+
+    @classmethod
+    def _wrap(cls, params):
+        """An element around `params` without checks (pytree unflattening, kernel outputs)."""
+        element = object.__new__(cls)
+        object.__setattr__(element, "_params", params)
+        return element
+
+    def __setattr__(self, name, value):
+        raise AttributeError(f"{type(self).__name__} is immutable.")
+
+    def __repr__(self):
+        return f"{type(self).__name__}({self._params!r})"
+
+    # ---- array kernels, supplied by each group -----------------------------------------------
+    # _exp, _log, _compose, _inverse, _act, _adjoint, _as_matrix, _from_matrix, _normalize,
+    # _hat, _vee, _right_jacobian, _right_jacobian_inverse: parameter and tangent arrays in/out.
+    # _local_from_ambient(params, params_dot) -> tangent and _ambient_from_local(params, tangent)
+    # -> params_dot map derivatives of the parameters to right-local tangents and back.
+
+    # ---- construction ------------------------------------------------------------------------
+    @classmethod
+    def identity(cls, batch_shape=(), dtype=None):
+        """The identity element, repeated over `batch_shape`."""
+        params = cls._exp(jnp.zeros((*batch_shape, cls.tangent_dim), dtype=dtype))
+        return cls._wrap(params)
+
+    @classmethod
+    def exp(cls, tangent):
+        """$\\mathrm{Exp}(\\xi)$ for tangents of shape `(*batch, tangent_dim)`."""
+        tangent = check_last_axis(tangent, cls.tangent_dim, f"{cls.__name__}.exp tangent")
+        return cls._wrap(cls._exp(tangent))
+
+    @classmethod
+    def from_matrix(cls, matrix):
+        """The element nearest to a homogeneous matrix (rotations are re-orthogonalized)."""
+        matrix = check_matrix(matrix, cls.matrix_dim, f"{cls.__name__}.from_matrix matrix")
+        return cls._wrap(cls._from_matrix(matrix))
+
+    @classmethod
+    def sample_uniform(cls, key, batch_shape=(), dtype=None):
+        """Random elements: rotations uniform (Haar), translations uniform in [-1, 1]."""
+        return cls._wrap(cls._sample_uniform(key, tuple(batch_shape), dtype))
+
+    # ---- accessors ---------------------------------------------------------------------------
+    def parameters(self) -> jax.Array:
+        """The parameter array, layout `parameters_layout`."""
+        return self._params
+
+    @property
+    def batch_shape(self) -> tuple:
+        return tuple(self._params.shape[:-1])
+
+    @property
+    def dtype(self):
+        return self._params.dtype
+
+    def __getitem__(self, index):
+        index = index if isinstance(index, tuple) else (index,)
+        return self._wrap(self._params[(*index, slice(None))])
+
+    # ---- group operations --------------------------------------------------------------------
+    def log(self) -> jax.Array:
+        """$\\mathrm{Log}(X)$, the tangent of shape `(*batch, tangent_dim)`."""
+        return self._log(self._params)
+
+    def inverse(self):
+        """$X^{-1}$."""
+        return self._wrap(self._inverse(self._params))
+
+    def compose(self, other):
+        """$X \\cdot Y$, broadcasting batch shapes."""
+        self._check_same_group(other, "compose")
+        broadcast_batch(f"{type(self).__name__} compose", self.batch_shape, other.batch_shape)
+        return self._wrap(self._compose(self._params, other._params))
+
+    def act(self, points) -> jax.Array:
+        """$X \\cdot p$ for points of shape `(*batch, space_dim)`, broadcasting against the group's
+        batch shape (a single element acts on a whole cloud)."""
+        name = f"{type(self).__name__} acting on points"
+        points = check_last_axis(points, self.space_dim, name, f"{self.space_dim}D points")
+        broadcast_batch(name, self.batch_shape, points.shape[:-1])
+        return self._act(self._params, points)
+
+    def __matmul__(self, other):
+        if isinstance(other, AbstractGroup):
+            return self.compose(other)
+        return self.act(other)
+
+    def between(self, other):
+        """$X^{-1} Y$: `other` expressed in the frame of `self`."""
+        return self.inverse().compose(other)
+
+    def adjoint(self) -> jax.Array:
+        """$\\mathrm{Ad}_X$, shape `(*batch, tangent_dim, tangent_dim)`, with
+        $X\\,\\mathrm{Exp}(\\xi)\\,X^{-1} = \\mathrm{Exp}(\\mathrm{Ad}_X \\xi)$."""
+        return self._adjoint(self._params)
+
+    def as_matrix(self) -> jax.Array:
+        """The homogeneous matrix, shape `(*batch, matrix_dim, matrix_dim)`."""
+        return self._as_matrix(self._params)
+
+    def normalize(self):
+        """The nearest valid element (unit rotation parameters); parameters given to the
+        constructor are used as given, so call this on data that may have drifted."""
+        return self._wrap(self._normalize(self._params))
+
+    def rplus(self, tangent):
+        """$X \\oplus \\xi = X\\,\\mathrm{Exp}(\\xi)$."""
+        return self.compose(type(self).exp(tangent))
+
+    def rminus(self, other) -> jax.Array:
+        """$X \\ominus Y = \\mathrm{Log}(Y^{-1} X)$, so that `Y.rplus(X.rminus(Y)) == X`."""
+        self._check_same_group(other, "rminus")
+        return other.between(self).log()
+
+    def interpolate(self, other, t):
+        """$X \\oplus t\\,(Y \\ominus X)$: `self` at `t = 0`, `other` at `t = 1`, along the geodesic."""
+        t = as_float_array(t, "interpolate t")
+        return self.rplus(other.rminus(self) * t[..., None])
+
+    # ---- tangent-space maps ------------------------------------------------------------------
+    @classmethod
+    def hat(cls, tangent) -> jax.Array:
+        """The Lie algebra matrix of a tangent, shape `(*batch, matrix_dim, matrix_dim)`."""
+        return cls._hat(check_last_axis(tangent, cls.tangent_dim, f"{cls.__name__}.hat tangent"))
+
+    @classmethod
+    def vee(cls, algebra) -> jax.Array:
+        """The tangent of a Lie algebra matrix; inverse of `hat`."""
+        return cls._vee(check_matrix(algebra, cls.matrix_dim, f"{cls.__name__}.vee matrix"))
+
+    @classmethod
+    def right_jacobian(cls, tangent) -> jax.Array:
+        """$J_r(\\xi)$ with $\\mathrm{Exp}(\\xi + \\delta) \\approx \\mathrm{Exp}(\\xi)\\,\\mathrm{Exp}(J_r\\delta)$."""
+        return cls._right_jacobian(cls._check_tangent(tangent))
+
+    @classmethod
+    def right_jacobian_inverse(cls, tangent) -> jax.Array:
+        """$J_r(\\xi)^{-1}$, the derivative of Log: $\\mathrm{Log}(X\\,\\mathrm{Exp}(\\delta)) \\approx
+        \\mathrm{Log}(X) + J_r^{-1}\\delta$."""
+        return cls._right_jacobian_inverse(cls._check_tangent(tangent))
+
+    @classmethod
+    def left_jacobian(cls, tangent) -> jax.Array:
+        """$J_l(\\xi) = J_r(-\\xi)$, with $\\mathrm{Exp}(\\xi + \\delta) \\approx \\mathrm{Exp}(J_l\\delta)\\,\\mathrm{Exp}(\\xi)$."""
+        return cls._right_jacobian(-cls._check_tangent(tangent))
+
+    @classmethod
+    def left_jacobian_inverse(cls, tangent) -> jax.Array:
+        """$J_l(\\xi)^{-1} = J_r(-\\xi)^{-1}$."""
+        return cls._right_jacobian_inverse(-cls._check_tangent(tangent))
+
+    # ---- helpers -----------------------------------------------------------------------------
+    @classmethod
+    def _check_tangent(cls, tangent):
+        return check_last_axis(tangent, cls.tangent_dim, f"{cls.__name__} tangent")
+
+    def _check_same_group(self, other, operation):
+        if type(other) is not type(self):
+            raise TypeError(
+                f"{type(self).__name__}.{operation} needs another {type(self).__name__}, "
+                f"got {type(other).__name__}."
+            )
+
+
+def _flatten(element):
+    return (element._params,), None

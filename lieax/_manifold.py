@@ -1,0 +1,122 @@
+"""Tangent spaces of pytrees that mix groups and arrays.
+
+A pytree's manifold is the product of its leaves': a group leaf contributes its tangent space
+(shape `(*batch, tangent_dim)`), a floating array leaf its own shape (for arrays $\\oplus$ is $+$).
+`rplus`, `rminus`, `zero_tangents`, `tangent_dim` and `flatten_tangents` / `unflatten_tangents`
+act leaf by leaf; the solvers and `lieax.jacobian` are built on them.
+"""
+
+import math
+
+import jax
+import jax.numpy as jnp
+
+from ._base import AbstractGroup
+
+
+def _is_leaf(x) -> bool:
+    return isinstance(x, AbstractGroup) or x is None
+
+
+def manifold_leaves(tree, what: str = "argument"):
+    """The leaves of `tree` (groups count as leaves) and its structure, every leaf checked:
+    groups and floating arrays are accepted; anything else raises a `TypeError` naming its path."""
+    with_paths, treedef = jax.tree_util.tree_flatten_with_path(tree, is_leaf=_is_leaf)
+    leaves = []
+    for path, leaf in with_paths:
+        where = f"{what}{jax.tree_util.keystr(path)}"
+        if leaf is None:
+            raise TypeError(f"{where} is None; lieax differentiates groups and float arrays only.")
+        if not isinstance(leaf, AbstractGroup):
+            dtype = getattr(leaf, "dtype", None) or jnp.asarray(leaf).dtype
+            if not jnp.issubdtype(dtype, jnp.floating):
+                raise TypeError(
+                    f"{where} has dtype {dtype}; lieax differentiates groups and float arrays "
+                    "only (pass integer data through a non-differentiated argument)."
+                )
+            leaf = jnp.asarray(leaf)
+        leaves.append(leaf)
+    return leaves, treedef
+
+
+def leaf_tangent_shape(leaf) -> tuple:
+    if isinstance(leaf, AbstractGroup):
+        return (*leaf.batch_shape, leaf.tangent_dim)
+    return tuple(jnp.shape(leaf))
+
+
+def leaf_local_from_ambient(leaf, ambient):
+    """Right-local tangent of a parameter (or array) tangent at `leaf`."""
+    if isinstance(leaf, AbstractGroup):
+        return leaf._local_from_ambient(leaf.parameters(), ambient)
+    return ambient
+
+
+def leaf_ambient_from_local(leaf, local):
+    """Parameter (or array) tangent of a right-local tangent at `leaf`."""
+    if isinstance(leaf, AbstractGroup):
+        return leaf._ambient_from_local(leaf.parameters(), local)
+    return local
+
+
+def leaf_ambient(leaf):
+    """The array that carries a leaf's derivatives: a group's parameters, or the array."""
+    return leaf.parameters() if isinstance(leaf, AbstractGroup) else leaf
+
+
+def rplus(tree, tangents):
+    """$X \\oplus \\delta$ leaf by leaf: `X.rplus(δ)` for groups, `x + δ` for arrays."""
+    leaves, treedef = manifold_leaves(tree, "tree")
+    deltas = treedef.flatten_up_to(tangents)
+    moved = [
+        leaf.rplus(d) if isinstance(leaf, AbstractGroup) else leaf + d
+        for leaf, d in zip(leaves, deltas)
+    ]
+    return treedef.unflatten(moved)
+
+
+def rminus(tree_a, tree_b):
+    """$A \\ominus B$ leaf by leaf (`a.rminus(b)` for groups, `a - b` for arrays), so that
+    `rplus(tree_b, rminus(tree_a, tree_b)) == tree_a`."""
+    leaves_a, treedef = manifold_leaves(tree_a, "tree_a")
+    leaves_b = treedef.flatten_up_to(tree_b)
+    differences = [
+        a.rminus(b) if isinstance(a, AbstractGroup) else a - b for a, b in zip(leaves_a, leaves_b)
+    ]
+    return treedef.unflatten(differences)
+
+
+def zero_tangents(tree):
+    """Zero tangents shaped like `tree`'s tangent space (groups become `(*batch, tangent_dim)`)."""
+    leaves, treedef = manifold_leaves(tree, "tree")
+    return treedef.unflatten(
+        [jnp.zeros(leaf_tangent_shape(leaf), dtype=leaf_ambient(leaf).dtype) for leaf in leaves]
+    )
+
+
+def tangent_dim(tree) -> int:
+    """The total number of tangent coordinates of `tree`."""
+    leaves, _ = manifold_leaves(tree, "tree")
+    return sum(math.prod(leaf_tangent_shape(leaf)) for leaf in leaves)
+
+
+def flatten_tangents(tangents) -> jax.Array:
+    """One vector of all tangent coordinates, leaves in pytree order, each raveled row-major."""
+    leaves = jax.tree_util.tree_leaves(tangents)
+    if not leaves:
+        return jnp.zeros((0,))
+    return jnp.concatenate([jnp.ravel(t) for t in leaves])
+
+
+def unflatten_tangents(tree, vector):
+    """Tangents of `tree` from one vector laid out as `flatten_tangents` lays it out."""
+    leaves, treedef = manifold_leaves(tree, "tree")
+    pieces, start = [], 0
+    for leaf in leaves:
+        shape = leaf_tangent_shape(leaf)
+        size = math.prod(shape)
+        pieces.append(jnp.reshape(vector[start : start + size], shape))
+        start += size
+    if start != vector.shape[-1]:
+        raise ValueError(f"unflatten_tangents: expected a vector of {start} entries, got {vector.shape}.")
+    return treedef.unflatten(pieces)

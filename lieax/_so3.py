@@ -1,0 +1,364 @@
+"""SO(3), rotations in 3D, stored as unit quaternions $q = (w, x, y, z)$ (Hamilton, wxyz).
+
+Tangent $\\omega \\in \\mathbb{R}^3$, right perturbation $q \\oplus \\omega = q \\otimes \\mathrm{Exp}(\\omega)$.
+The derivative of the parameters along a right-local tangent is $\\dot q = q \\otimes (0, \\omega/2)$,
+and back $\\omega = 2\\,\\mathrm{Im}(\\bar q \\otimes \\dot q)$: every kernel's rule converts the
+incoming parameter tangents to local tangents once, applies the closed-form block, and converts
+the result back, so code that touches the quaternion itself still gets correct derivatives.
+
+Formulas: Solà, Deray, Atchuthan, "A micro Lie theory for state estimation in robotics" (2018),
+Sec. IV-B and App. B; the coefficients are the $g_n$ of `lieax._series`.
+"""
+
+import jax
+import jax.numpy as jnp
+
+from . import _rules
+from ._base import AbstractGroup
+from ._checks import as_float_array, check_last_axis
+from ._series import g
+
+# ---- vector and quaternion algebra on the last axis ---------------------------------------------
+
+
+def cross(a, b):
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return jnp.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
+def dot(a, b):
+    return jnp.sum(a * b, axis=-1)
+
+
+def matvec(matrix, x):
+    return jnp.sum(matrix * x[..., None, :], axis=-1)
+
+
+def skew(v):
+    """$[v]_\\times$, with $[v]_\\times x = v \\times x$."""
+    v0, v1, v2 = v[..., 0], v[..., 1], v[..., 2]
+    zero = jnp.zeros_like(v0)
+    rows = [[zero, -v2, v1], [v2, zero, -v0], [-v1, v0, zero]]
+    return jnp.stack([jnp.stack(row, axis=-1) for row in rows], axis=-2)
+
+
+def unskew(m):
+    """The vector of the skew part of `m`: $\\mathrm{vee}((m - m^\\top)/2)$."""
+    return 0.5 * jnp.stack(
+        [m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]],
+        axis=-1,
+    )
+
+
+def quat_multiply(a, b):
+    """Hamilton product $a \\otimes b$ of wxyz quaternions."""
+    aw, ax, ay, az = (a[..., i] for i in range(4))
+    bw, bx, by, bz = (b[..., i] for i in range(4))
+    return jnp.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        axis=-1,
+    )
+
+
+def quat_conjugate(q):
+    return q * jnp.array([1.0, -1.0, -1.0, -1.0], dtype=q.dtype)
+
+
+def quat_rotate(q, p):
+    """$R(q)\\,p = p + w\\,t + u \\times t$ with $t = 2\\,u \\times p$ (unit $q = (w, u)$)."""
+    w, u = q[..., :1], q[..., 1:]
+    t = 2.0 * cross(u, p)
+    return p + w * t + cross(u, t)
+
+
+def quat_to_matrix(q):
+    """$R(q) = (w^2 - u^\\top u) I + 2 u u^\\top + 2 w [u]_\\times$, written out."""
+    w, x, y, z = (q[..., i] for i in range(4))
+    xx, yy, zz = x * x, y * y, z * z
+    xy, xz, yz, wx, wy, wz = x * y, x * z, y * z, w * x, w * y, w * z
+    rows = [
+        [1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy)],
+        [2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx)],
+        [2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy)],
+    ]
+    return jnp.stack([jnp.stack(row, axis=-1) for row in rows], axis=-2)
+
+
+def to_local(q, q_dot):
+    """$\\omega = 2\\,\\mathrm{Im}(\\bar q \\otimes \\dot q) = 2 (w \\dot u - \\dot w u - u \\times \\dot u)$."""
+    w, u = q[..., :1], q[..., 1:]
+    w_dot, u_dot = q_dot[..., :1], q_dot[..., 1:]
+    return 2.0 * (w * u_dot - w_dot * u - cross(u, u_dot))
+
+
+def from_local(q, omega):
+    """$\\dot q = q \\otimes (0, \\omega / 2) = (-u^\\top\\omega,\\; w\\omega + u \\times \\omega) / 2$."""
+    w, u = q[..., :1], q[..., 1:]
+    return 0.5 * jnp.concatenate([-dot(u, omega)[..., None], w * omega + cross(u, omega)], axis=-1)
+
+
+# ---- coefficient matrices -----------------------------------------------------------------------
+
+
+def jr_inverse_coefficient(s):
+    """$D(\\theta) = 1/\\theta^2 - (1 + \\cos\\theta) / (2\\theta\\sin\\theta) = (g_3 - 2g_4) / (2g_2)$
+    (finite up to $\\theta < 2\\pi$; $1/12$ at zero)."""
+    return (g(3, s) - 2.0 * g(4, s)) / (2.0 * g(2, s))
+
+
+def right_jacobian(omega):
+    """$J_r(\\omega) = I - g_2 [\\omega]_\\times + g_3 [\\omega]_\\times^2$ (Solà eq. 143)."""
+    s = dot(omega, omega)[..., None, None]
+    w = skew(omega)
+    return jnp.eye(3, dtype=omega.dtype) - g(2, s) * w + g(3, s) * (w @ w)
+
+
+def right_jacobian_inverse(omega):
+    """$J_r^{-1}(\\omega) = I + \\tfrac12 [\\omega]_\\times + D(\\theta) [\\omega]_\\times^2$ (Solà eq. 144)."""
+    s = dot(omega, omega)[..., None, None]
+    w = skew(omega)
+    return jnp.eye(3, dtype=omega.dtype) + 0.5 * w + jr_inverse_coefficient(s) * (w @ w)
+
+
+def apply_right_jacobian(omega, x):
+    """$J_r(\\omega)\\,x$ without forming the matrix."""
+    s = dot(omega, omega)[..., None]
+    wx = cross(omega, x)
+    return x - g(2, s) * wx + g(3, s) * cross(omega, wx)
+
+
+def apply_right_jacobian_inverse(omega, x):
+    """$J_r^{-1}(\\omega)\\,x$ without forming the matrix."""
+    s = dot(omega, omega)[..., None]
+    wx = cross(omega, x)
+    return x + 0.5 * wx + jr_inverse_coefficient(s) * cross(omega, wx)
+
+
+# ---- kernels with closed-form rules -------------------------------------------------------------
+
+
+@jax.custom_jvp
+def exp(omega):
+    """$\\mathrm{Exp}(\\omega) = (\\cos\\tfrac\\theta2,\\ \\tfrac{\\sin(\\theta/2)}{\\theta}\\,\\omega)
+    = (g_0(s/4),\\ \\tfrac12 g_1(s/4)\\,\\omega)$, $s = \\theta^2$."""
+    quarter = 0.25 * dot(omega, omega)[..., None]
+    return jnp.concatenate([g(0, quarter), 0.5 * g(1, quarter) * omega], axis=-1)
+
+
+@exp.defjvp
+def _exp_jvp(primals, tangents):
+    (omega,), (omega_dot,) = primals, tangents
+    q = exp(omega)
+    return q, from_local(q, apply_right_jacobian(omega, omega_dot))
+
+
+@jax.custom_jvp
+def log(q):
+    """$\\mathrm{Log}(q) = 2\\,\\mathrm{sign}(w)\\,\\mathrm{atan2}(|u|, |w|)\\,u / |u|$, $\\theta \\le \\pi$;
+    $2u/|w|$ where $u = 0$."""
+    w, u = q[..., :1], q[..., 1:]
+    norm_u = jnp.sqrt(dot(u, u))[..., None]
+    nonzero = norm_u > 0
+    safe_norm = jnp.where(nonzero, norm_u, 1.0)
+    abs_w = jnp.abs(w)
+    scale = jnp.where(nonzero, 2.0 * jnp.arctan2(norm_u, abs_w) / safe_norm, 2.0 / abs_w)
+    return jnp.where(w < 0, -scale, scale) * u
+
+
+@log.defjvp
+def _log_jvp(primals, tangents):
+    (q,), (q_dot,) = primals, tangents
+    omega = log(q)
+    return omega, apply_right_jacobian_inverse(omega, to_local(q, q_dot))
+
+
+@jax.custom_jvp
+def compose(q1, q2):
+    """$q_1 \\otimes q_2$."""
+    return quat_multiply(q1, q2)
+
+
+@_rules.defjvp(compose)
+def _compose_jvp(primals, tangents):
+    """Local block: $\\omega = R_2^\\top \\omega_1 + \\omega_2$ (Solà eq. 171-172)."""
+    (q1, q2), (q1_dot, q2_dot) = primals, tangents
+    q = compose(q1, q2)
+    omega1 = _rules.local_tangent(to_local, q1, q1_dot)
+    omega2 = _rules.local_tangent(to_local, q2, q2_dot)
+    rotated = None if omega1 is None else quat_rotate(quat_conjugate(q2), omega1)
+    omega = _rules.add(rotated, omega2)
+    return _rules.finish(q, None if omega is None else from_local(q, omega))
+
+
+@jax.custom_jvp
+def inverse(q):
+    """$\\bar q$."""
+    return quat_conjugate(q)
+
+
+@inverse.defjvp
+def _inverse_jvp(primals, tangents):
+    """Local block: $\\omega_{out} = -R\\,\\omega$ (Solà eq. 140)."""
+    (q,), (q_dot,) = primals, tangents
+    q_inv = inverse(q)
+    return q_inv, from_local(q_inv, -quat_rotate(q, to_local(q, q_dot)))
+
+
+@jax.custom_jvp
+def act(q, points):
+    """$R(q)\\,p$."""
+    return quat_rotate(q, points)
+
+
+@_rules.defjvp(act)
+def _act_jvp(primals, tangents):
+    """$\\dot y = R(\\omega \\times p + \\dot p)$: blocks $-R[p]_\\times$ and $R$ (Solà eq. 146-147)."""
+    (q, points), (q_dot, points_dot) = primals, tangents
+    moved = act(q, points)
+    omega = _rules.local_tangent(to_local, q, q_dot)
+    direction = _rules.add(
+        None if omega is None else cross(omega, points),
+        None if _rules.is_zero(points_dot) else points_dot,
+    )
+    if direction is None:
+        return _rules.finish(moved, None)
+    return _rules.finish(moved, matvec(quat_to_matrix(q), direction))
+
+
+@jax.custom_jvp
+def as_matrix(q):
+    """$R(q)$; also the adjoint matrix of SO(3)."""
+    return quat_to_matrix(q)
+
+
+@as_matrix.defjvp
+def _as_matrix_jvp(primals, tangents):
+    """$\\dot R = R [\\omega]_\\times$."""
+    (q,), (q_dot,) = primals, tangents
+    rotation = as_matrix(q)
+    return rotation, rotation @ skew(to_local(q, q_dot))
+
+
+@jax.custom_jvp
+def from_matrix(rotation):
+    """Shepperd's method: build $q$ from the largest of $1 + \\mathrm{tr} R$ and $1 + 2R_{ii} - \\mathrm{tr} R$,
+    then normalize (a valid rotation for any input; exact for a rotation matrix)."""
+    m = rotation
+    m00, m11, m22 = m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]
+    candidates = jnp.stack(
+        [
+            jnp.stack([1 + m00 + m11 + m22, m[..., 2, 1] - m[..., 1, 2],
+                       m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], axis=-1),
+            jnp.stack([m[..., 2, 1] - m[..., 1, 2], 1 + m00 - m11 - m22,
+                       m[..., 1, 0] + m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0]], axis=-1),
+            jnp.stack([m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] + m[..., 0, 1],
+                       1 - m00 + m11 - m22, m[..., 2, 1] + m[..., 1, 2]], axis=-1),
+            jnp.stack([m[..., 1, 0] - m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0],
+                       m[..., 2, 1] + m[..., 1, 2], 1 - m00 - m11 + m22], axis=-1),
+        ],
+        axis=-2,
+    )
+    pivots = jnp.stack([1 + m00 + m11 + m22, 1 + m00 - m11 - m22,
+                        1 - m00 + m11 - m22, 1 - m00 - m11 + m22], axis=-1)
+    best = jnp.argmax(pivots, axis=-1)
+    q = jnp.take_along_axis(candidates, best[..., None, None], axis=-2)[..., 0, :]
+    return normalize(q)
+
+
+@from_matrix.defjvp
+def _from_matrix_jvp(primals, tangents):
+    """$\\omega = \\mathrm{vee}(\\mathrm{skew}(R^\\top \\dot R))$, the local part of $\\dot R$."""
+    (rotation,), (rotation_dot,) = primals, tangents
+    q = from_matrix(rotation)
+    omega = unskew(jnp.swapaxes(rotation, -1, -2) @ rotation_dot)
+    return q, from_local(q, omega)
+
+
+def normalize(q):
+    return q / jnp.linalg.norm(q, axis=-1, keepdims=True)
+
+
+def hat(omega):
+    return skew(omega)
+
+
+def vee(matrix):
+    return unskew(matrix)
+
+
+def sample_uniform(key, batch_shape, dtype):
+    """Uniform rotations: a normalized standard normal 4-vector (Shoemake)."""
+    return normalize(jax.random.normal(key, (*batch_shape, 4), dtype=dtype))
+
+
+class SO3(AbstractGroup):
+    """Rotations in 3D: parameters `wxyz`, shape `(*batch, 4)`; tangent $\\omega$, shape `(*batch, 3)`."""
+
+    tangent_dim = 3
+    parameters_dim = 4
+    space_dim = 3
+    matrix_dim = 3
+    parameters_layout = "unit quaternion wxyz"
+
+    _exp = staticmethod(exp)
+    _log = staticmethod(log)
+    _compose = staticmethod(compose)
+    _inverse = staticmethod(inverse)
+    _act = staticmethod(act)
+    _adjoint = staticmethod(as_matrix)
+    _as_matrix = staticmethod(as_matrix)
+    _from_matrix = staticmethod(from_matrix)
+    _normalize = staticmethod(normalize)
+    _hat = staticmethod(hat)
+    _vee = staticmethod(vee)
+    _right_jacobian = staticmethod(right_jacobian)
+    _right_jacobian_inverse = staticmethod(right_jacobian_inverse)
+    _local_from_ambient = staticmethod(to_local)
+    _ambient_from_local = staticmethod(from_local)
+    _sample_uniform = staticmethod(sample_uniform)
+
+    @property
+    def wxyz(self) -> jax.Array:
+        return self._params
+
+    @classmethod
+    def from_xyzw(cls, xyzw):
+        """From scalar-last quaternions (SciPy, ROS, Eigen's `coeffs()`)."""
+        xyzw = check_last_axis(xyzw, 4, "SO3.from_xyzw quaternion", "xyzw")
+        return cls(jnp.roll(xyzw, 1, axis=-1))
+
+    def as_xyzw(self) -> jax.Array:
+        """Scalar-last quaternions (SciPy, ROS, Eigen's `coeffs()`)."""
+        return jnp.roll(self._params, -1, axis=-1)
+
+    @classmethod
+    def from_rotvec(cls, rotvec):
+        """From axis times angle (the same as `exp`)."""
+        return cls.exp(rotvec)
+
+    def as_rotvec(self) -> jax.Array:
+        """Axis times angle, angle in $[0, \\pi]$ (the same as `log`)."""
+        return self.log()
+
+    @classmethod
+    def from_rpy(cls, roll, pitch, yaw):
+        """$R = R_z(\\text{yaw})\\,R_y(\\text{pitch})\\,R_x(\\text{roll})$ (extrinsic x-y-z, as ROS)."""
+        roll, pitch, yaw = (as_float_array(a, "SO3.from_rpy angle") for a in (roll, pitch, yaw))
+        roll, pitch, yaw = jnp.broadcast_arrays(roll, pitch, yaw)
+        zero = jnp.zeros_like(roll)
+        about = lambda a, b, c: cls.exp(jnp.stack([a, b, c], axis=-1))  # noqa: E731
+        return about(zero, zero, yaw) @ about(zero, pitch, zero) @ about(roll, zero, zero)
+
+    def as_rpy(self) -> jax.Array:
+        """`(roll, pitch, yaw)` on the last axis, inverse of `from_rpy` (pitch in $[-\\pi/2, \\pi/2]$)."""
+        r = self.as_matrix()
+        roll = jnp.arctan2(r[..., 2, 1], r[..., 2, 2])
+        pitch = jnp.arcsin(jnp.clip(-r[..., 2, 0], -1.0, 1.0))
+        yaw = jnp.arctan2(r[..., 1, 0], r[..., 0, 0])
+        return jnp.stack([roll, pitch, yaw], axis=-1)
