@@ -14,12 +14,14 @@ from ._manifold import (
     unflatten_tangents,
     zero_tangents,
 )
+from ._se3 import SE3
 from ._so3 import SO3
 
 __version__ = "0.1.0"
 
 __all__ = [
     "AbstractGroup",
+    "SE3",
     "SO3",
     "flatten_tangents",
     "grad",

@@ -1,0 +1,332 @@
+"""SE(3), rigid motions in 3D, stored as `(w, x, y, z, tx, ty, tz)`: a unit quaternion (wxyz) and
+a translation, $T = [R(q), t; 0, 1]$.
+
+Tangent $\\xi = (v, \\omega)$, translation first; right perturbation $T \\oplus \\xi = T\\,\\mathrm{Exp}(\\xi)$,
+so a parameter tangent maps to the local one by $v = R^\\top \\dot t$, $\\omega = 2\\,\\mathrm{Im}(\\bar q \\otimes \\dot q)$.
+
+Formulas: Solà, Deray, Atchuthan, "A micro Lie theory for state estimation in robotics" (2018),
+Sec. IV-D and App. D; the coupling block $Q$ of the Jacobians from Barfoot, "State Estimation for
+Robotics" (2017), eq. 7.86, with coefficients rewritten as the $g_n$ of `lieax._series`.
+"""
+
+import jax
+import jax.numpy as jnp
+
+from . import _rules
+from . import _so3 as so3
+from ._base import AbstractGroup
+from ._checks import check_last_axis
+from ._series import g
+from ._so3 import SO3, cross, dot, matvec, quat_conjugate, quat_rotate, skew
+
+# ---- parameter and tangent layout ---------------------------------------------------------------
+
+
+def _split(params):
+    return params[..., :4], params[..., 4:]
+
+
+def _join(q, t):
+    """Parameters from a quaternion and a translation, broadcasting their batch shapes."""
+    batch = jnp.broadcast_shapes(q.shape[:-1], t.shape[:-1])
+    return jnp.concatenate(
+        [jnp.broadcast_to(q, (*batch, 4)), jnp.broadcast_to(t, (*batch, 3))], axis=-1
+    )
+
+
+def to_local(params, params_dot):
+    """$(v, \\omega) = (R^\\top \\dot t,\\ 2\\,\\mathrm{Im}(\\bar q \\otimes \\dot q))$."""
+    q, _ = _split(params)
+    q_dot, t_dot = _split(params_dot)
+    return jnp.concatenate(
+        [quat_rotate(quat_conjugate(q), t_dot), so3.to_local(q, q_dot)], axis=-1
+    )
+
+
+def from_local(params, xi):
+    """$(\\dot q, \\dot t) = (q \\otimes (0, \\omega/2),\\ R v)$."""
+    q, _ = _split(params)
+    v, omega = xi[..., :3], xi[..., 3:]
+    return jnp.concatenate([so3.from_local(q, omega), quat_rotate(q, v)], axis=-1)
+
+
+# ---- Jacobians of Exp ---------------------------------------------------------------------------
+
+
+def _coupling(v, omega):
+    """Barfoot's $Q(\\rho, \\phi)$, the upper-right block of $J_l$ (eq. 7.86), with
+    $V = [\\rho]_\\times$, $W = [\\phi]_\\times$:
+    $Q = \\tfrac12 V + g_3 (WV + VW + WVW) + g_4 (WWV + VWW - 3WVW)
+    + \\tfrac12 (g_4 - 3g_5) (WVWW + WWVW)$."""
+    s = dot(omega, omega)[..., None, None]
+    V, W = skew(v), skew(omega)
+    WV, VW = W @ V, V @ W
+    WVW = WV @ W
+    return (
+        0.5 * V
+        + g(3, s) * (WV + VW + WVW)
+        + g(4, s) * (W @ WV + VW @ W - 3.0 * WVW)
+        + 0.5 * (g(4, s) - 3.0 * g(5, s)) * (WVW @ W + W @ WVW)
+    )
+
+
+def _block_upper_triangular(diagonal, corner):
+    top = jnp.concatenate([diagonal, corner], axis=-1)
+    bottom = jnp.concatenate([jnp.zeros_like(diagonal), diagonal], axis=-1)
+    return jnp.concatenate([top, bottom], axis=-2)
+
+
+def right_jacobian(xi):
+    """$J_r(\\xi) = J_l(-\\xi) = [J_r(\\omega), Q(-v, -\\omega); 0, J_r(\\omega)]$ (Solà eq. 179-180)."""
+    v, omega = xi[..., :3], xi[..., 3:]
+    return _block_upper_triangular(so3.right_jacobian(omega), _coupling(-v, -omega))
+
+
+def right_jacobian_inverse(xi):
+    """$J_r^{-1}(\\xi) = [J_r^{-1}, -J_r^{-1} Q J_r^{-1}; 0, J_r^{-1}]$ with $Q = Q(-v, -\\omega)$."""
+    v, omega = xi[..., :3], xi[..., 3:]
+    inverse = so3.right_jacobian_inverse(omega)
+    return _block_upper_triangular(inverse, -inverse @ _coupling(-v, -omega) @ inverse)
+
+
+# ---- kernels with closed-form rules -------------------------------------------------------------
+
+
+@jax.custom_jvp
+def exp(xi):
+    """$\\mathrm{Exp}(v, \\omega) = (\\mathrm{Exp}(\\omega),\\ J_l(\\omega)\\,v)$ with
+    $J_l(\\omega) v = v + g_2\\,\\omega \\times v + g_3\\,\\omega \\times (\\omega \\times v)$ (Solà eq. 172)."""
+    v, omega = xi[..., :3], xi[..., 3:]
+    s = dot(omega, omega)[..., None]
+    wv = cross(omega, v)
+    t = v + g(2, s) * wv + g(3, s) * cross(omega, wv)
+    return jnp.concatenate([so3.exp(omega), t], axis=-1)
+
+
+@exp.defjvp
+def _exp_jvp(primals, tangents):
+    (xi,), (xi_dot,) = primals, tangents
+    params = exp(xi)
+    return params, from_local(params, matvec(right_jacobian(xi), xi_dot))
+
+
+@jax.custom_jvp
+def log(params):
+    """$\\mathrm{Log}(T) = (J_l^{-1}(\\omega)\\,t,\\ \\omega)$, $\\omega = \\mathrm{Log}(q)$, with
+    $J_l^{-1}(\\omega) t = t - \\tfrac12 \\omega \\times t + D(\\theta)\\,\\omega \\times (\\omega \\times t)$."""
+    q, t = _split(params)
+    omega = so3.log(q)
+    s = dot(omega, omega)[..., None]
+    wt = cross(omega, t)
+    v = t - 0.5 * wt + so3.jr_inverse_coefficient(s) * cross(omega, wt)
+    return jnp.concatenate([v, omega], axis=-1)
+
+
+@log.defjvp
+def _log_jvp(primals, tangents):
+    (params,), (params_dot,) = primals, tangents
+    xi = log(params)
+    return xi, matvec(right_jacobian_inverse(xi), to_local(params, params_dot))
+
+
+@jax.custom_jvp
+def compose(params1, params2):
+    """$T_1 T_2 = (q_1 \\otimes q_2,\\ R_1 t_2 + t_1)$."""
+    q1, t1 = _split(params1)
+    q2, t2 = _split(params2)
+    return _join(so3.quat_multiply(q1, q2), quat_rotate(q1, t2) + t1)
+
+
+@_rules.defjvp(compose)
+def _compose_jvp(primals, tangents):
+    """Local block: $\\xi = \\mathrm{Ad}(T_2^{-1})\\,\\xi_1 + \\xi_2$, i.e.
+    $v = R_2^\\top(v_1 + \\omega_1 \\times t_2) + v_2$, $\\omega = R_2^\\top \\omega_1 + \\omega_2$ (Solà eq. 171)."""
+    (params1, params2), (params1_dot, params2_dot) = primals, tangents
+    params = compose(params1, params2)
+    xi1 = _rules.local_tangent(to_local, params1, params1_dot)
+    xi2 = _rules.local_tangent(to_local, params2, params2_dot)
+    moved = None
+    if xi1 is not None:
+        q2_inverse, t2 = quat_conjugate(params2[..., :4]), params2[..., 4:]
+        v1, omega1 = xi1[..., :3], xi1[..., 3:]
+        moved = jnp.concatenate(
+            [quat_rotate(q2_inverse, v1 + cross(omega1, t2)), quat_rotate(q2_inverse, omega1)],
+            axis=-1,
+        )
+    xi = _rules.add(moved, xi2)
+    return _rules.finish(params, None if xi is None else from_local(params, xi))
+
+
+@jax.custom_jvp
+def inverse(params):
+    """$T^{-1} = (\\bar q,\\ -R^\\top t)$."""
+    q, t = _split(params)
+    q_inverse = quat_conjugate(q)
+    return jnp.concatenate([q_inverse, -quat_rotate(q_inverse, t)], axis=-1)
+
+
+@inverse.defjvp
+def _inverse_jvp(primals, tangents):
+    """Local block $-\\mathrm{Ad}(T)$: $\\omega' = -R\\omega$, $v' = -(R v + t \\times R\\omega)$ (Solà eq. 176)."""
+    (params,), (params_dot,) = primals, tangents
+    params_inverse = inverse(params)
+    q, t = _split(params)
+    xi = to_local(params, params_dot)
+    rotated_omega = quat_rotate(q, xi[..., 3:])
+    xi_out = -jnp.concatenate([quat_rotate(q, xi[..., :3]) + cross(t, rotated_omega), rotated_omega], -1)
+    return params_inverse, from_local(params_inverse, xi_out)
+
+
+@jax.custom_jvp
+def act(params, points):
+    """$T p = R p + t$."""
+    q, t = _split(params)
+    return quat_rotate(q, points) + t
+
+
+@_rules.defjvp(act)
+def _act_jvp(primals, tangents):
+    """$\\dot y = R(v + \\omega \\times p + \\dot p)$: blocks $[R, -R[p]_\\times]$ and $R$ (Solà eq. 181-182)."""
+    (params, points), (params_dot, points_dot) = primals, tangents
+    moved = act(params, points)
+    xi = _rules.local_tangent(to_local, params, params_dot)
+    direction = _rules.add(
+        None if xi is None else xi[..., :3] + cross(xi[..., 3:], points),
+        None if _rules.is_zero(points_dot) else points_dot,
+    )
+    if direction is None:
+        return _rules.finish(moved, None)
+    return _rules.finish(moved, matvec(so3.quat_to_matrix(params[..., :4]), direction))
+
+
+@jax.custom_jvp
+def adjoint(params):
+    """$\\mathrm{Ad}_T = [R, [t]_\\times R; 0, R]$ (translation-first tangents; Solà eq. 178)."""
+    q, t = _split(params)
+    rotation = so3.quat_to_matrix(q)
+    return _block_upper_triangular(rotation, skew(t) @ rotation)
+
+
+def _ad(xi):
+    """$\\mathrm{ad}_\\xi = [[\\omega]_\\times, [v]_\\times; 0, [\\omega]_\\times]$, the derivative of $\\mathrm{Ad}$."""
+    return _block_upper_triangular(skew(xi[..., 3:]), skew(xi[..., :3]))
+
+
+@adjoint.defjvp
+def _adjoint_jvp(primals, tangents):
+    """$\\dot{\\mathrm{Ad}} = \\mathrm{Ad}_T\\,\\mathrm{ad}_\\xi$, from $\\mathrm{Ad}_{T \\mathrm{Exp}(\\xi)} = \\mathrm{Ad}_T \\mathrm{Ad}_{\\mathrm{Exp}(\\xi)}$."""
+    (params,), (params_dot,) = primals, tangents
+    matrix = adjoint(params)
+    return matrix, matrix @ _ad(to_local(params, params_dot))
+
+
+def hat(xi):
+    """$\\xi^\\wedge = [[\\omega]_\\times, v; 0, 0]$."""
+    top = jnp.concatenate([skew(xi[..., 3:]), xi[..., :3, None]], axis=-1)
+    return jnp.concatenate([top, jnp.zeros_like(top[..., :1, :])], axis=-2)
+
+
+def vee(matrix):
+    return jnp.concatenate([matrix[..., :3, 3], so3.unskew(matrix[..., :3, :3])], axis=-1)
+
+
+@jax.custom_jvp
+def as_matrix(params):
+    """$T = [R(q), t; 0, 1]$."""
+    q, t = _split(params)
+    top = jnp.concatenate([so3.quat_to_matrix(q), t[..., None]], axis=-1)
+    bottom = jnp.broadcast_to(jnp.array([0.0, 0.0, 0.0, 1.0], dtype=params.dtype), top[..., :1, :].shape)
+    return jnp.concatenate([top, bottom], axis=-2)
+
+
+@as_matrix.defjvp
+def _as_matrix_jvp(primals, tangents):
+    """$\\dot T = T\\,\\xi^\\wedge$."""
+    (params,), (params_dot,) = primals, tangents
+    matrix = as_matrix(params)
+    return matrix, matrix @ hat(to_local(params, params_dot))
+
+
+@jax.custom_jvp
+def from_matrix(matrix):
+    """Rotation by `SO3.from_matrix` (re-orthogonalized), translation the last column."""
+    return _join(so3.from_matrix(matrix[..., :3, :3]), matrix[..., :3, 3])
+
+
+@from_matrix.defjvp
+def _from_matrix_jvp(primals, tangents):
+    """$v = R^\\top \\dot t$, $\\omega = \\mathrm{vee}(\\mathrm{skew}(R^\\top \\dot R))$."""
+    (matrix,), (matrix_dot,) = primals, tangents
+    params = from_matrix(matrix)
+    local = vee(jnp.swapaxes(matrix, -1, -2) @ matrix_dot)
+    return params, from_local(params, local)
+
+
+def normalize(params):
+    q, t = _split(params)
+    return jnp.concatenate([so3.normalize(q), t], axis=-1)
+
+
+def sample_uniform(key, batch_shape, dtype):
+    """Uniform rotation (Haar) and translation uniform in $[-1, 1]^3$."""
+    key_rotation, key_translation = jax.random.split(key)
+    q = so3.sample_uniform(key_rotation, batch_shape, dtype)
+    t = jax.random.uniform(key_translation, (*batch_shape, 3), dtype=q.dtype, minval=-1.0, maxval=1.0)
+    return jnp.concatenate([q, t], axis=-1)
+
+
+class SE3(AbstractGroup):
+    """Rigid motions in 3D: parameters `(w, x, y, z, tx, ty, tz)`, shape `(*batch, 7)`; tangent
+    `(vx, vy, vz, ωx, ωy, ωz)`, shape `(*batch, 6)`."""
+
+    tangent_dim = 6
+    parameters_dim = 7
+    space_dim = 3
+    matrix_dim = 4
+    parameters_layout = "quaternion wxyz, then translation xyz"
+
+    _exp = staticmethod(exp)
+    _log = staticmethod(log)
+    _compose = staticmethod(compose)
+    _inverse = staticmethod(inverse)
+    _act = staticmethod(act)
+    _adjoint = staticmethod(adjoint)
+    _as_matrix = staticmethod(as_matrix)
+    _from_matrix = staticmethod(from_matrix)
+    _normalize = staticmethod(normalize)
+    _hat = staticmethod(hat)
+    _vee = staticmethod(vee)
+    _right_jacobian = staticmethod(right_jacobian)
+    _right_jacobian_inverse = staticmethod(right_jacobian_inverse)
+    _local_from_ambient = staticmethod(to_local)
+    _ambient_from_local = staticmethod(from_local)
+    _sample_uniform = staticmethod(sample_uniform)
+
+    @property
+    def wxyz_xyz(self) -> jax.Array:
+        return self._params
+
+    @classmethod
+    def from_rotation_and_translation(cls, rotation: SO3, translation):
+        """$T = [R, t; 0, 1]$, broadcasting batch shapes."""
+        if not isinstance(rotation, SO3):
+            raise TypeError(f"rotation must be an SO3, got {type(rotation).__name__}.")
+        translation = check_last_axis(translation, 3, "SE3 translation")
+        return cls._wrap(_join(rotation.parameters(), translation))
+
+    @classmethod
+    def from_rotation(cls, rotation: SO3):
+        return cls.from_rotation_and_translation(rotation, jnp.zeros(3, dtype=rotation.dtype))
+
+    @classmethod
+    def from_translation(cls, translation):
+        translation = check_last_axis(translation, 3, "SE3 translation")
+        return cls.from_rotation_and_translation(
+            SO3.identity(translation.shape[:-1], dtype=translation.dtype), translation
+        )
+
+    def rotation(self) -> SO3:
+        return SO3._wrap(self._params[..., :4])
+
+    def translation(self) -> jax.Array:
+        return self._params[..., 4:]
