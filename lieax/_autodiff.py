@@ -43,7 +43,6 @@ def value_and_jacobian(f, argnums=0, *, has_aux=False, mode="auto"):
                 raise ValueError(f"argnums {argnums} out of range for {len(args)} arguments.")
         flattened = [manifold_leaves(args[i], f"argument {i}") for i in argnums_tuple]
         in_leaves = [leaf for leaves, _ in flattened for leaf in leaves]
-        treedefs = [treedef for _, treedef in flattened]
 
         def on_parameters(*ambient):
             rebuilt = iter(_rebuild(leaf, a) for leaf, a in zip(in_leaves, ambient))
@@ -92,8 +91,8 @@ def value_and_jacobian(f, argnums=0, *, has_aux=False, mode="auto"):
 
         jac = out_treedef.unflatten(
             [
-                _input_structure(row, in_shapes, out_shape, treedefs, flattened, single)
-                for row, out_shape in zip(_split_rows(flat, out_shapes), out_shapes)
+                _input_structure(flat[a:b], out_shape, in_shapes, flattened, single)
+                for (a, b), out_shape in zip(_offsets(out_shapes), out_shapes)
             ]
         )
         return ((value, aux) if has_aux else value), jac
@@ -177,40 +176,27 @@ def _transpose_ambient_from_local(leaf, ambient_cotangent):
     return local
 
 
+def _offsets(shapes):
+    """`(start, stop)` of each shape's entries in a flat vector."""
+    bounds, start = [], 0
+    for shape in shapes:
+        bounds.append((start, start + math.prod(shape)))
+        start += math.prod(shape)
+    return bounds
+
+
 def _split(vector, shapes):
-    pieces, start = [], 0
-    for shape in shapes:
-        size = math.prod(shape)
-        pieces.append(jnp.reshape(vector[start : start + size], shape))
-        start += size
-    return pieces
+    return [jnp.reshape(vector[a:b], shape) for (a, b), shape in zip(_offsets(shapes), shapes)]
 
 
-def _split_rows(flat, shapes):
-    rows, start = [], 0
-    for shape in shapes:
-        size = math.prod(shape)
-        rows.append(flat[start : start + size])
-        start += size
-    return rows
-
-
-def _input_structure(row, in_shapes, out_shape, treedefs, flattened, single):
+def _input_structure(rows, out_shape, in_shapes, flattened, single):
+    """One output leaf's block row, split into blocks and nested like the differentiated args."""
     blocks = iter(
-        jnp.reshape(piece, (*out_shape, *in_shape))
-        for piece, in_shape in zip(_split_columns(row, in_shapes), in_shapes)
+        jnp.reshape(rows[:, a:b], (*out_shape, *in_shape))
+        for (a, b), in_shape in zip(_offsets(in_shapes), in_shapes)
     )
     per_argument = [treedef.unflatten([next(blocks) for _ in leaves]) for leaves, treedef in flattened]
     return per_argument[0] if single else tuple(per_argument)
-
-
-def _split_columns(row, shapes):
-    columns, start = [], 0
-    for shape in shapes:
-        size = math.prod(shape)
-        columns.append(row[:, start : start + size])
-        start += size
-    return columns
 
 
 def _describe(value):
