@@ -3,8 +3,8 @@
 The Jacobian of $f: \\mathcal{M} \\to \\mathcal{N}$ at $X$ is the matrix $J$ with
 $f(X \\oplus \\delta) \\ominus f(X) \\approx J\\,\\delta$, in right-local tangent coordinates on both
 sides (for arrays $\\oplus$ is $+$). It is computed by one linearization of `f` in the parameters,
-seeded with $\\dot X = X \\otimes \\mathrm{hat}(\\delta)$ (each group's `_ambient_from_local`) and read
-out with the inverse map at $f(X)$. Because every group kernel carries a closed-form `custom_jvp`
+seeded with the JAX tangent that moves $X$ along $\\delta$ (each group's `_tangent_from_local`; for
+SO3 and SE3 the local tangent itself) and read out with the inverse map at $f(X)$. Because every group kernel carries a closed-form `custom_jvp`
 rule, the linearization costs what the hand-written block Jacobians cost: nothing is ever
 differentiated through Exp, Log or the quaternion embedding.
 
@@ -19,9 +19,9 @@ import jax.numpy as jnp
 
 from ._base import AbstractGroup
 from ._manifold import (
-    leaf_ambient,
-    leaf_ambient_from_local,
-    leaf_local_from_ambient,
+    leaf_array,
+    leaf_tangent_from_local,
+    leaf_local_from_tangent,
     leaf_tangent_shape,
     manifold_leaves,
 )
@@ -44,25 +44,25 @@ def value_and_jacobian(f, argnums=0, *, has_aux=False, mode="auto"):
         flattened = [manifold_leaves(args[i], f"argument {i}") for i in argnums_tuple]
         in_leaves = [leaf for leaves, _ in flattened for leaf in leaves]
 
-        def on_parameters(*ambient):
-            rebuilt = iter(_rebuild(leaf, a) for leaf, a in zip(in_leaves, ambient))
+        def on_leaves(*arrays):
+            rebuilt = iter(_rebuild(leaf, a) for leaf, a in zip(in_leaves, arrays))
             full_args = list(args)
             for i, (leaves, treedef) in zip(argnums_tuple, flattened):
                 full_args[i] = treedef.unflatten([next(rebuilt) for _ in leaves])
             result = f(*full_args)
             value, aux = result if has_aux else (result, None)
             out_leaves, _ = manifold_leaves(value, "result")
-            return [leaf_ambient(leaf) for leaf in out_leaves], (value, aux)
+            return [leaf_array(leaf) for leaf in out_leaves], (value, aux)
 
-        primals = [leaf_ambient(leaf) for leaf in in_leaves]
-        _, linear, (value, aux) = jax.linearize(on_parameters, *primals, has_aux=True)
+        primals = [leaf_array(leaf) for leaf in in_leaves]
+        _, linear, (value, aux) = jax.linearize(on_leaves, *primals, has_aux=True)
         out_leaves, out_treedef = manifold_leaves(value, "result")
 
         in_shapes = [leaf_tangent_shape(leaf) for leaf in in_leaves]
         out_shapes = [leaf_tangent_shape(leaf) for leaf in out_leaves]
         in_size = sum(math.prod(s) for s in in_shapes)
         out_size = sum(math.prod(s) for s in out_shapes)
-        dtype = jnp.result_type(*primals, *(leaf_ambient(leaf) for leaf in out_leaves))
+        dtype = jnp.result_type(*primals, *(leaf_array(leaf) for leaf in out_leaves))
 
         use_reverse = mode == "rev" or (mode == "auto" and out_size < in_size)
         if use_reverse:
@@ -70,10 +70,10 @@ def value_and_jacobian(f, argnums=0, *, has_aux=False, mode="auto"):
 
             def pull(cotangent):
                 pieces = _split(cotangent, out_shapes)
-                ambient = [_transpose_local_from_ambient(y, c) for y, c in zip(out_leaves, pieces)]
-                pulled = transposed(ambient)
+                seeds = [_transpose_local_from_tangent(y, c) for y, c in zip(out_leaves, pieces)]
+                pulled = transposed(seeds)
                 return jnp.concatenate(
-                    [jnp.ravel(_transpose_ambient_from_local(x, a)) for x, a in zip(in_leaves, pulled)]
+                    [jnp.ravel(_transpose_tangent_from_local(x, a)) for x, a in zip(in_leaves, pulled)]
                 )
 
             flat = jax.vmap(pull)(jnp.eye(out_size, dtype=dtype))
@@ -81,10 +81,10 @@ def value_and_jacobian(f, argnums=0, *, has_aux=False, mode="auto"):
 
             def push(direction):
                 pieces = _split(direction, in_shapes)
-                ambient = [leaf_ambient_from_local(x, d) for x, d in zip(in_leaves, pieces)]
-                pushed = linear(*ambient)
+                seeds = [leaf_tangent_from_local(x, d) for x, d in zip(in_leaves, pieces)]
+                pushed = linear(*seeds)
                 return jnp.concatenate(
-                    [jnp.ravel(leaf_local_from_ambient(y, t)) for y, t in zip(out_leaves, pushed)]
+                    [jnp.ravel(leaf_local_from_tangent(y, t)) for y, t in zip(out_leaves, pushed)]
                 )
 
             flat = jax.vmap(push, out_axes=1)(jnp.eye(in_size, dtype=dtype))
@@ -154,24 +154,24 @@ def grad(f, argnums=0, *, has_aux=False):
 # ---- helpers -------------------------------------------------------------------------------------
 
 
-def _rebuild(leaf, ambient):
-    return type(leaf)._wrap(ambient) if isinstance(leaf, AbstractGroup) else ambient
+def _rebuild(leaf, array):
+    return type(leaf)._wrap(array) if isinstance(leaf, AbstractGroup) else array
 
 
-def _transpose_local_from_ambient(leaf, local_cotangent):
-    """Transpose of the read-out map at an output leaf: local cotangent to parameter cotangent."""
-    zeros = jnp.zeros_like(leaf_ambient(leaf))
-    (ambient,) = jax.linear_transpose(lambda a: leaf_local_from_ambient(leaf, a), zeros)(
+def _transpose_local_from_tangent(leaf, local_cotangent):
+    """Transpose of the read-out map at an output leaf: local cotangent to leaf cotangent."""
+    zeros = jnp.zeros_like(leaf_array(leaf))
+    (cotangent,) = jax.linear_transpose(lambda t: leaf_local_from_tangent(leaf, t), zeros)(
         local_cotangent
     )
-    return ambient
+    return cotangent
 
 
-def _transpose_ambient_from_local(leaf, ambient_cotangent):
-    """Transpose of the seeding map at an input leaf: parameter cotangent to local cotangent."""
-    zeros = jnp.zeros(leaf_tangent_shape(leaf), dtype=ambient_cotangent.dtype)
-    (local,) = jax.linear_transpose(lambda d: leaf_ambient_from_local(leaf, d), zeros)(
-        ambient_cotangent
+def _transpose_tangent_from_local(leaf, cotangent):
+    """Transpose of the seeding map at an input leaf: leaf cotangent to local cotangent."""
+    zeros = jnp.zeros(leaf_tangent_shape(leaf), dtype=cotangent.dtype)
+    (local,) = jax.linear_transpose(lambda d: leaf_tangent_from_local(leaf, d), zeros)(
+        cotangent
     )
     return local
 

@@ -39,7 +39,7 @@ class AbstractGroup:
         """Wraps parameters as given (after checking shape and dtype); see `normalize()`."""
         name = f"{type(self).__name__} parameters"
         params = check_last_axis(parameters, self.parameters_dim, name, self.parameters_layout)
-        object.__setattr__(self, "_params", params)
+        object.__setattr__(self, "_params", self._from_parameters(params))
 
     @classmethod
     def _wrap(cls, params):
@@ -57,8 +57,23 @@ class AbstractGroup:
     # ---- array kernels, supplied by each group -----------------------------------------------
     # _exp, _log, _compose, _inverse, _act, _adjoint, _as_matrix, _from_matrix, _normalize,
     # _hat, _vee, _right_jacobian, _right_jacobian_inverse: parameter and tangent arrays in/out.
-    # _local_from_ambient(params, params_dot) -> tangent and _ambient_from_local(params, tangent)
-    # -> params_dot map derivatives of the parameters to right-local tangents and back.
+    #
+    # The tangent carrier: JAX gives the parameter leaf a tangent of the leaf's shape. A group may
+    # fill it with something cheaper to use than the derivative of the raw parameters (SO3 and
+    # SE3 carry the local tangent itself); then `_from_parameters` / `_to_parameters` (identity on
+    # values) convert derivatives where raw parameters enter and leave, and
+    # `_local_from_tangent(params, carrier)` / `_tangent_from_local(params, local)` map the carrier
+    # to the right-local tangent and back. The defaults below: the carrier is the raw derivative.
+    _from_parameters = staticmethod(lambda params: params)
+    _to_parameters = staticmethod(lambda params: params)
+
+    @classmethod
+    def _local_from_tangent(cls, params, tangent):  # transitional: groups still naming it ambient
+        return cls._local_from_ambient(params, tangent)
+
+    @classmethod
+    def _tangent_from_local(cls, params, local):  # transitional
+        return cls._ambient_from_local(params, local)
 
     # ---- construction ------------------------------------------------------------------------
     @classmethod
@@ -86,8 +101,8 @@ class AbstractGroup:
 
     # ---- accessors ---------------------------------------------------------------------------
     def parameters(self) -> jax.Array:
-        """The parameter array, layout `parameters_layout`."""
-        return self._params
+        """The parameter array, layout `parameters_layout` (differentiable as a raw array)."""
+        return self._to_parameters(self._params)
 
     @property
     def batch_shape(self) -> tuple:

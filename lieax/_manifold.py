@@ -45,23 +45,23 @@ def leaf_tangent_shape(leaf) -> tuple:
     return tuple(jnp.shape(leaf))
 
 
-def leaf_local_from_ambient(leaf, ambient):
-    """Right-local tangent of a parameter (or array) tangent at `leaf`."""
+def leaf_local_from_tangent(leaf, tangent):
+    """Right-local tangent of the JAX tangent of `leaf_array(leaf)` (see `AbstractGroup`)."""
     if isinstance(leaf, AbstractGroup):
-        return leaf._local_from_ambient(leaf.parameters(), ambient)
-    return ambient
+        return leaf._local_from_tangent(leaf._params, tangent)
+    return tangent
 
 
-def leaf_ambient_from_local(leaf, local):
-    """Parameter (or array) tangent of a right-local tangent at `leaf`."""
+def leaf_tangent_from_local(leaf, local):
+    """The JAX tangent of `leaf_array(leaf)` that moves `leaf` along a right-local tangent."""
     if isinstance(leaf, AbstractGroup):
-        return leaf._ambient_from_local(leaf.parameters(), local)
+        return leaf._tangent_from_local(leaf._params, local)
     return local
 
 
-def leaf_ambient(leaf):
-    """The array that carries a leaf's derivatives: a group's parameters, or the array."""
-    return leaf.parameters() if isinstance(leaf, AbstractGroup) else leaf
+def leaf_array(leaf):
+    """The array that carries a leaf's derivatives: a group's parameter leaf, or the array."""
+    return leaf._params if isinstance(leaf, AbstractGroup) else leaf
 
 
 def rplus(tree, tangents):
@@ -90,7 +90,7 @@ def zero_tangents(tree):
     """Zero tangents shaped like `tree`'s tangent space (groups become `(*batch, tangent_dim)`)."""
     leaves, treedef = manifold_leaves(tree, "tree")
     return treedef.unflatten(
-        [jnp.zeros(leaf_tangent_shape(leaf), dtype=leaf_ambient(leaf).dtype) for leaf in leaves]
+        [jnp.zeros(leaf_tangent_shape(leaf), dtype=leaf_array(leaf).dtype) for leaf in leaves]
     )
 
 
@@ -120,3 +120,9 @@ def unflatten_tangents(tree, vector):
     if start != vector.shape[-1]:
         raise ValueError(f"unflatten_tangents: expected a vector of {start} entries, got {vector.shape}.")
     return treedef.unflatten(pieces)
+
+
+# Transitional names (removed once every module uses the ones above).
+leaf_local_from_ambient = leaf_local_from_tangent
+leaf_ambient_from_local = leaf_tangent_from_local
+leaf_ambient = leaf_array

@@ -2,7 +2,13 @@
 a translation, $T = [R(q), t; 0, 1]$.
 
 Tangent $\\xi = (v, \\omega)$, translation first; right perturbation $T \\oplus \\xi = T\\,\\mathrm{Exp}(\\xi)$,
-so a parameter tangent maps to the local one by $v = R^\\top \\dot t$, $\\omega = 2\\,\\mathrm{Im}(\\bar q \\otimes \\dot q)$.
+so $\\dot t = R v$ and $\\dot q = q \\otimes (0, \\omega/2)$.
+
+Tangent carrier (see `lieax._so3`): the 7-vector tangent of the parameter leaf holds
+$(\\rho, \\omega, v)$, the local tangent itself (and the quaternion's radial part $\\rho$), so the
+rotation slot carries exactly SO3's carrier and kernels use local tangents without conversion.
+`SE3(wxyz_xyz)`, `parameters()`, `translation()` and `from_rotation_and_translation` convert
+where raw arrays cross the API.
 
 Formulas: Solà, Deray, Atchuthan, "A micro Lie theory for state estimation in robotics" (2018),
 Sec. IV-D and App. D; the coupling block $Q$ of the Jacobians from Barfoot, "State Estimation for
@@ -17,7 +23,7 @@ from . import _so3 as so3
 from ._base import AbstractGroup
 from ._checks import check_last_axis
 from ._series import g
-from ._so3 import SO3, cross, dot, matvec, quat_conjugate, quat_rotate, skew
+from ._so3 import SO3, cross, dot, matvec, quat_conjugate, rotate_back, skew
 
 # ---- parameter and tangent layout ---------------------------------------------------------------
 
@@ -34,20 +40,70 @@ def _join(q, t):
     )
 
 
-def to_local(params, params_dot):
-    """$(v, \\omega) = (R^\\top \\dot t,\\ 2\\,\\mathrm{Im}(\\bar q \\otimes \\dot q))$."""
-    q, _ = _split(params)
-    q_dot, t_dot = _split(params_dot)
-    return jnp.concatenate(
-        [quat_rotate(quat_conjugate(q), t_dot), so3.to_local(q, q_dot)], axis=-1
-    )
+def to_local(params, carrier):
+    """The local tangent $(v, \\omega)$ held by a carrier $(\\rho, \\omega, v)$."""
+    return jnp.concatenate([carrier[..., 4:], carrier[..., 1:4]], axis=-1)
 
 
 def from_local(params, xi):
-    """$(\\dot q, \\dot t) = (q \\otimes (0, \\omega/2),\\ R v)$."""
-    q, _ = _split(params)
-    v, omega = xi[..., :3], xi[..., 3:]
-    return jnp.concatenate([so3.from_local(q, omega), quat_rotate(q, v)], axis=-1)
+    """The carrier $(0, \\omega, v)$ of a local tangent $(v, \\omega)$."""
+    return jnp.concatenate([jnp.zeros_like(xi[..., :1]), xi[..., 3:], xi[..., :3]], axis=-1)
+
+
+def _unit_rotation(q):
+    return so3.quat_to_matrix(so3.normalize(q))
+
+
+@jax.custom_jvp
+def to_parameters(params):
+    """The parameters as a raw array (identity on values)."""
+    return params
+
+
+@to_parameters.defjvp
+def _to_parameters_jvp(primals, tangents):
+    """Carrier to raw derivative: $\\dot q = q \\otimes (\\rho, \\omega/2)$, $\\dot t = R v$."""
+    (params,), (carrier,) = primals, tangents
+    raw = to_parameters(params)
+    q = raw[..., :4]
+    q_dot = so3.quaternion_derivative(q, carrier[..., :4])
+    return raw, jnp.concatenate([q_dot, matvec(_unit_rotation(q), carrier[..., 4:])], axis=-1)
+
+
+@jax.custom_jvp
+def from_parameters(params):
+    """A raw parameter array as SE3 parameters (identity on values)."""
+    return params
+
+
+@from_parameters.defjvp
+def _from_parameters_jvp(primals, tangents):
+    """Raw derivative to carrier: $(\\rho, \\omega)$ as in SO3, $v = R^\\top \\dot t$."""
+    (params,), (params_dot,) = primals, tangents
+    q = params[..., :4]
+    rotational = so3.radial_and_local(q, params_dot[..., :4])
+    v = so3.rotate_back(_unit_rotation(q), params_dot[..., 4:])
+    return from_parameters(params), jnp.concatenate([rotational, v], axis=-1)
+
+
+@jax.custom_jvp
+def join(q, t):
+    """SE3 parameters from SO3 parameters and a raw translation, broadcasting batch shapes."""
+    return _join(q, t)
+
+
+@join.defjvp
+def _join_jvp(primals, tangents):
+    """The rotation's carrier passes through; $v = R^\\top \\dot t$."""
+    (q, t), (q_carrier, t_dot) = primals, tangents
+    params = join(q, t)
+    v = rotate_back(so3.as_matrix(q), t_dot)
+    return params, _join(q_carrier, v)
+
+
+def _rotation_and_translation(params):
+    """$R$ and $t$ for use inside rules (through kernels, so that rules differentiate correctly)."""
+    return so3.as_matrix(params[..., :4]), to_parameters(params)[..., 4:]
 
 
 # ---- Jacobians of Exp ---------------------------------------------------------------------------
@@ -134,7 +190,7 @@ def compose(params1, params2):
     """$T_1 T_2 = (q_1 \\otimes q_2,\\ R_1 t_2 + t_1)$."""
     q1, t1 = _split(params1)
     q2, t2 = _split(params2)
-    return _join(so3.quat_multiply(q1, q2), quat_rotate(q1, t2) + t1)
+    return _join(so3.quat_multiply(q1, q2), so3.quat_rotate(q1, t2) + t1)
 
 
 @_rules.defjvp(compose)
@@ -147,10 +203,10 @@ def _compose_jvp(primals, tangents):
     xi2 = _rules.local_tangent(to_local, params2, params2_dot)
     moved = None
     if xi1 is not None:
-        q2_inverse, t2 = quat_conjugate(params2[..., :4]), params2[..., 4:]
+        rotation2, t2 = _rotation_and_translation(params2)
         v1, omega1 = xi1[..., :3], xi1[..., 3:]
         moved = jnp.concatenate(
-            [quat_rotate(q2_inverse, v1 + cross(omega1, t2)), quat_rotate(q2_inverse, omega1)],
+            [rotate_back(rotation2, v1 + cross(omega1, t2)), rotate_back(rotation2, omega1)],
             axis=-1,
         )
     xi = _rules.add(moved, xi2)
@@ -162,7 +218,7 @@ def inverse(params):
     """$T^{-1} = (\\bar q,\\ -R^\\top t)$."""
     q, t = _split(params)
     q_inverse = quat_conjugate(q)
-    return jnp.concatenate([q_inverse, -quat_rotate(q_inverse, t)], axis=-1)
+    return jnp.concatenate([q_inverse, -so3.quat_rotate(q_inverse, t)], axis=-1)
 
 
 @inverse.defjvp
@@ -170,10 +226,10 @@ def _inverse_jvp(primals, tangents):
     """Local block $-\\mathrm{Ad}(T)$: $\\omega' = -R\\omega$, $v' = -(R v + t \\times R\\omega)$ (Solà eq. 176)."""
     (params,), (params_dot,) = primals, tangents
     params_inverse = inverse(params)
-    q, t = _split(params)
+    rotation, t = _rotation_and_translation(params)
     xi = to_local(params, params_dot)
-    rotated_omega = quat_rotate(q, xi[..., 3:])
-    xi_out = -jnp.concatenate([quat_rotate(q, xi[..., :3]) + cross(t, rotated_omega), rotated_omega], -1)
+    rotated_omega = matvec(rotation, xi[..., 3:])
+    xi_out = -jnp.concatenate([matvec(rotation, xi[..., :3]) + cross(t, rotated_omega), rotated_omega], -1)
     return params_inverse, from_local(params_inverse, xi_out)
 
 
@@ -181,7 +237,7 @@ def _inverse_jvp(primals, tangents):
 def act(params, points):
     """$T p = R p + t$."""
     q, t = _split(params)
-    return quat_rotate(q, points) + t
+    return matvec(so3.quat_to_matrix(q), points) + t
 
 
 @_rules.defjvp(act)
@@ -196,7 +252,7 @@ def _act_jvp(primals, tangents):
     )
     if direction is None:
         return _rules.finish(moved, None)
-    return _rules.finish(moved, matvec(so3.quat_to_matrix(params[..., :4]), direction))
+    return _rules.finish(moved, matvec(so3.as_matrix(params[..., :4]), direction))
 
 
 @jax.custom_jvp
@@ -262,9 +318,18 @@ def _from_matrix_jvp(primals, tangents):
     return params, from_local(params, local)
 
 
+@jax.custom_jvp
 def normalize(params):
+    """Unit quaternion, translation unchanged."""
     q, t = _split(params)
     return jnp.concatenate([so3.normalize(q), t], axis=-1)
+
+
+@normalize.defjvp
+def _normalize_jvp(primals, tangents):
+    """The radial part of the carrier is dropped; the local part is unchanged."""
+    (params,), (carrier,) = primals, tangents
+    return normalize(params), carrier.at[..., 0].set(0.0)
 
 
 def sample_uniform(key, batch_shape, dtype):
@@ -298,13 +363,15 @@ class SE3(AbstractGroup):
     _vee = staticmethod(vee)
     _right_jacobian = staticmethod(right_jacobian)
     _right_jacobian_inverse = staticmethod(right_jacobian_inverse)
-    _local_from_ambient = staticmethod(to_local)
-    _ambient_from_local = staticmethod(from_local)
+    _local_from_tangent = staticmethod(to_local)
+    _tangent_from_local = staticmethod(from_local)
+    _to_parameters = staticmethod(to_parameters)
+    _from_parameters = staticmethod(from_parameters)
     _sample_uniform = staticmethod(sample_uniform)
 
     @property
     def wxyz_xyz(self) -> jax.Array:
-        return self._params
+        return self.parameters()
 
     @classmethod
     def from_rotation_and_translation(cls, rotation: SO3, translation):
@@ -312,7 +379,7 @@ class SE3(AbstractGroup):
         if not isinstance(rotation, SO3):
             raise TypeError(f"rotation must be an SO3, got {type(rotation).__name__}.")
         translation = check_last_axis(translation, 3, "SE3 translation")
-        return cls._wrap(_join(rotation.parameters(), translation))
+        return cls._wrap(join(rotation._params, translation))
 
     @classmethod
     def from_rotation(cls, rotation: SO3):
@@ -329,4 +396,4 @@ class SE3(AbstractGroup):
         return SO3._wrap(self._params[..., :4])
 
     def translation(self) -> jax.Array:
-        return self._params[..., 4:]
+        return self.parameters()[..., 4:]

@@ -1,10 +1,15 @@
 """SO(3), rotations in 3D, stored as unit quaternions $q = (w, x, y, z)$ (Hamilton, wxyz).
 
 Tangent $\\omega \\in \\mathbb{R}^3$, right perturbation $q \\oplus \\omega = q \\otimes \\mathrm{Exp}(\\omega)$.
-The derivative of the parameters along a right-local tangent is $\\dot q = q \\otimes (0, \\omega/2)$,
-and back $\\omega = 2\\,\\mathrm{Im}(\\bar q \\otimes \\dot q)$: every kernel's rule converts the
-incoming parameter tangents to local tangents once, applies the closed-form block, and converts
-the result back, so code that touches the quaternion itself still gets correct derivatives.
+
+Tangent carrier. JAX gives the quaternion leaf a 4-vector tangent; lieax fills it with the local
+coordinates themselves, $(\\rho, \\omega)$ with $\\dot q = q \\otimes (\\rho, \\omega/2)$ ($\\rho$ the radial
+part, zero on the manifold). Kernels therefore read and write local tangents directly and no rule
+converts anything; the conversion to and from the derivative of the raw quaternion happens only
+where raw parameters cross the API: `SO3(wxyz)` (`from_parameters`) and `X.parameters()`
+(`to_parameters`). Code that differentiates the raw quaternion still gets exact derivatives.
+Inside rules, anything that depends on $q$ is computed by kernels (`as_matrix`) or from
+`to_parameters(q)`, so second derivatives stay consistent with the carrier.
 
 Formulas: Solà, Deray, Atchuthan, "A micro Lie theory for state estimation in robotics" (2018),
 Sec. IV-B and App. B; the coefficients are the $g_n$ of `lieax._series`.
@@ -90,17 +95,57 @@ def quat_to_matrix(q):
     return jnp.stack([jnp.stack(row, axis=-1) for row in rows], axis=-2)
 
 
-def to_local(q, q_dot):
-    """$\\omega = 2\\,\\mathrm{Im}(\\bar q \\otimes \\dot q) = 2 (w \\dot u - \\dot w u - u \\times \\dot u)$."""
-    w, u = q[..., :1], q[..., 1:]
-    w_dot, u_dot = q_dot[..., :1], q_dot[..., 1:]
-    return 2.0 * (w * u_dot - w_dot * u - cross(u, u_dot))
+def radial_and_local(q, q_dot):
+    """The carrier of a quaternion derivative: $(\\rho, \\omega) = (\\mathrm{Re}, 2\\,\\mathrm{Im})(q^{-1} \\otimes \\dot q)$."""
+    product = quat_multiply(quat_conjugate(q), q_dot) / dot(q, q)[..., None]
+    return product * jnp.array([1.0, 2.0, 2.0, 2.0], dtype=product.dtype)
+
+
+def quaternion_derivative(q, carrier):
+    """$\\dot q = q \\otimes (\\rho, \\omega / 2)$, inverse of `radial_and_local`."""
+    return quat_multiply(q, carrier * jnp.array([1.0, 0.5, 0.5, 0.5], dtype=carrier.dtype))
+
+
+def to_local(q, carrier):
+    """The right-local tangent $\\omega$ held by a carrier."""
+    return carrier[..., 1:]
 
 
 def from_local(q, omega):
-    """$\\dot q = q \\otimes (0, \\omega / 2) = (-u^\\top\\omega,\\; w\\omega + u \\times \\omega) / 2$."""
-    w, u = q[..., :1], q[..., 1:]
-    return 0.5 * jnp.concatenate([-dot(u, omega)[..., None], w * omega + cross(u, omega)], axis=-1)
+    """The carrier of a right-local tangent: $(0, \\omega)$."""
+    return jnp.concatenate([jnp.zeros_like(omega[..., :1]), omega], axis=-1)
+
+
+def rotate_back(rotation, x):
+    """$R^\\top x$."""
+    return jnp.sum(rotation * x[..., :, None], axis=-2)
+
+
+@jax.custom_jvp
+def to_parameters(q):
+    """The quaternion as a raw array (identity on values)."""
+    return q
+
+
+@to_parameters.defjvp
+def _to_parameters_jvp(primals, tangents):
+    """Carrier to raw derivative: $\\dot q = q \\otimes (\\rho, \\omega/2)$."""
+    (q,), (carrier,) = primals, tangents
+    raw = to_parameters(q)
+    return raw, quaternion_derivative(raw, carrier)
+
+
+@jax.custom_jvp
+def from_parameters(q):
+    """A raw quaternion array as SO3 parameters (identity on values)."""
+    return q
+
+
+@from_parameters.defjvp
+def _from_parameters_jvp(primals, tangents):
+    """Raw derivative to carrier: $(\\rho, \\omega) = (\\mathrm{Re}, 2\\,\\mathrm{Im})(q^{-1} \\otimes \\dot q)$."""
+    (q,), (q_dot,) = primals, tangents
+    return from_parameters(q), radial_and_local(q, q_dot)
 
 
 # ---- coefficient matrices -----------------------------------------------------------------------
@@ -191,7 +236,7 @@ def _compose_jvp(primals, tangents):
     q = compose(q1, q2)
     omega1 = _rules.local_tangent(to_local, q1, q1_dot)
     omega2 = _rules.local_tangent(to_local, q2, q2_dot)
-    rotated = None if omega1 is None else quat_rotate(quat_conjugate(q2), omega1)
+    rotated = None if omega1 is None else rotate_back(as_matrix(q2), omega1)
     omega = _rules.add(rotated, omega2)
     return _rules.finish(q, None if omega is None else from_local(q, omega))
 
@@ -207,13 +252,13 @@ def _inverse_jvp(primals, tangents):
     """Local block: $\\omega_{out} = -R\\,\\omega$ (Solà eq. 140)."""
     (q,), (q_dot,) = primals, tangents
     q_inv = inverse(q)
-    return q_inv, from_local(q_inv, -quat_rotate(q, to_local(q, q_dot)))
+    return q_inv, from_local(q_inv, -matvec(as_matrix(q), to_local(q, q_dot)))
 
 
 @jax.custom_jvp
 def act(q, points):
     """$R(q)\\,p$."""
-    return quat_rotate(q, points)
+    return matvec(quat_to_matrix(q), points)
 
 
 @_rules.defjvp(act)
@@ -228,7 +273,7 @@ def _act_jvp(primals, tangents):
     )
     if direction is None:
         return _rules.finish(moved, None)
-    return _rules.finish(moved, matvec(quat_to_matrix(q), direction))
+    return _rules.finish(moved, matvec(as_matrix(q), direction))
 
 
 @jax.custom_jvp
@@ -280,8 +325,17 @@ def _from_matrix_jvp(primals, tangents):
     return q, from_local(q, omega)
 
 
+@jax.custom_jvp
 def normalize(q):
+    """$q / |q|$."""
     return q / jnp.linalg.norm(q, axis=-1, keepdims=True)
+
+
+@normalize.defjvp
+def _normalize_jvp(primals, tangents):
+    """The radial part of the carrier is dropped; the local part is unchanged."""
+    (q,), (carrier,) = primals, tangents
+    return normalize(q), carrier * jnp.array([0.0, 1.0, 1.0, 1.0], dtype=carrier.dtype)
 
 
 def hat(omega):
@@ -319,13 +373,15 @@ class SO3(AbstractGroup):
     _vee = staticmethod(vee)
     _right_jacobian = staticmethod(right_jacobian)
     _right_jacobian_inverse = staticmethod(right_jacobian_inverse)
-    _local_from_ambient = staticmethod(to_local)
-    _ambient_from_local = staticmethod(from_local)
+    _local_from_tangent = staticmethod(to_local)
+    _tangent_from_local = staticmethod(from_local)
+    _to_parameters = staticmethod(to_parameters)
+    _from_parameters = staticmethod(from_parameters)
     _sample_uniform = staticmethod(sample_uniform)
 
     @property
     def wxyz(self) -> jax.Array:
-        return self._params
+        return self.parameters()
 
     @classmethod
     def from_xyzw(cls, xyzw):
@@ -335,7 +391,7 @@ class SO3(AbstractGroup):
 
     def as_xyzw(self) -> jax.Array:
         """Scalar-last quaternions (SciPy, ROS, Eigen's `coeffs()`)."""
-        return jnp.roll(self._params, -1, axis=-1)
+        return jnp.roll(self.parameters(), -1, axis=-1)
 
     @classmethod
     def from_rotvec(cls, rotvec):
