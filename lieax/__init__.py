@@ -14,14 +14,18 @@ from ._manifold import (
     unflatten_tangents,
     zero_tangents,
 )
+from ._se2 import SE2
 from ._se3 import SE3
+from ._so2 import SO2
 from ._so3 import SO3
 
 __version__ = "0.1.0"
 
 __all__ = [
     "AbstractGroup",
+    "SE2",
     "SE3",
+    "SO2",
     "SO3",
     "flatten_tangents",
     "grad",

@@ -1,0 +1,370 @@
+"""SE(2), rigid motions in the plane, stored as $(\\cos\\theta, \\sin\\theta, x, y)$.
+
+Tangent $\\xi = (v_x, v_y, \\omega)$, translation first; right perturbation
+$X \\oplus \\xi = X\\,\\mathrm{Exp}(\\xi)$. The derivative of the parameters along a right-local tangent
+is $\\dot t = R v$, $(\\dot c, \\dot s) = \\omega\\,(-s, c)$, and back $v = R^\\top \\dot t$,
+$\\omega = c\\,\\dot s - s\\,\\dot c$: every kernel's rule converts the incoming parameter tangents to
+local tangents once, applies the closed-form block, and converts the result back, so code that
+touches the parameters itself still gets correct derivatives.
+
+Notation: $J = [[0, -1], [1, 0]]$ (the rotation by $+\\pi/2$, `perp`), and the coefficients are the
+$g_n(s)$ of `lieax._series` at $s = \\omega^2$ ($g_1 = \\sin\\omega/\\omega$,
+$g_2 = (1 - \\cos\\omega)/\\omega^2$, $g_3 = (\\omega - \\sin\\omega)/\\omega^3$).
+
+Formulas: Solà, Deray, Atchuthan, "A micro Lie theory for state estimation in robotics" (2018),
+App. C, rewritten with $J$ and the $g_n$ so that none divides by $\\omega$.
+"""
+
+import jax
+import jax.numpy as jnp
+
+from . import _rules
+from . import _so2 as so2
+from ._base import AbstractGroup
+from ._checks import as_float_array, broadcast_batch, check_last_axis
+from ._series import g
+from ._so2 import SO2, perp, rotate, unrotate
+from ._so3 import jr_inverse_coefficient
+
+
+def stack_matrix(rows):
+    """A `(*batch, n, m)` matrix from a nested list of `(*batch,)` entries."""
+    return jnp.stack([jnp.stack(row, axis=-1) for row in rows], axis=-2)
+
+
+def to_local(params, params_dot):
+    """$v = R^\\top \\dot t$, $\\omega = c\\,\\dot s - s\\,\\dot c$."""
+    cs = params[..., :2]
+    v = unrotate(cs, params_dot[..., 2:])
+    return jnp.concatenate([v, so2.to_local(cs, params_dot[..., :2])], axis=-1)
+
+
+def from_local(params, xi):
+    """$(\\dot c, \\dot s) = \\omega\\,(-s, c)$, $\\dot t = R v$."""
+    cs = params[..., :2]
+    cs_dot = so2.from_local(cs, xi[..., 2:])
+    return jnp.concatenate([cs_dot, rotate(cs, xi[..., :2])], axis=-1)
+
+
+# ---- coefficient matrices -----------------------------------------------------------------------
+
+
+def log_coefficient(s):
+    """$h = g_1 / (2 g_2) = \\tfrac\\omega2 \\cot\\tfrac\\omega2$ (1 at zero, 0 at $\\omega = \\pi$), with
+    $V^{-1} = h I - \\tfrac\\omega2 J$ since $\\det V = g_1^2 + s g_2^2 = 2 g_2$."""
+    return g(1, s) / (2.0 * g(2, s))
+
+
+def right_jacobian(xi):
+    """$J_r = [[A, b], [0, 1]]$ with $A = g_1 I - \\omega g_2 J$, $b = (\\omega g_3 I + g_2 J)\\,v$
+    (Solà eq. 163: $A = [[g_1, \\omega g_2], [-\\omega g_2, g_1]]$,
+    $b = (\\omega g_3 v_x - g_2 v_y,\\ g_2 v_x + \\omega g_3 v_y)$)."""
+    vx, vy, w = xi[..., 0], xi[..., 1], xi[..., 2]
+    s = w * w
+    g1, g2, g3 = g(1, s), g(2, s), g(3, s)
+    zero, one = jnp.zeros_like(w), jnp.ones_like(w)
+    return stack_matrix(
+        [
+            [g1, w * g2, w * g3 * vx - g2 * vy],
+            [-w * g2, g1, g2 * vx + w * g3 * vy],
+            [zero, zero, one],
+        ]
+    )
+
+
+def right_jacobian_inverse(xi):
+    """$J_r^{-1} = [[A^{-1}, -A^{-1} b], [0, 1]]$ with $A^{-1} = h I + \\tfrac\\omega2 J$ and
+    $-A^{-1} b = (\\omega D I - \\tfrac12 J)\\,v$, where $h$ is `log_coefficient` and
+    $D = (g_3 - 2 g_4) / (2 g_2)$ is the coefficient of $J_r^{-1}$ of SO(3) (Solà eq. 144)
+    (from eq. 163, using $g_1 + s g_3 = 1$ and $g_1 g_3 - g_2^2 = 2 g_4 - g_3$)."""
+    vx, vy, w = xi[..., 0], xi[..., 1], xi[..., 2]
+    s = w * w
+    h, wd = log_coefficient(s), w * jr_inverse_coefficient(s)
+    zero, one = jnp.zeros_like(w), jnp.ones_like(w)
+    return stack_matrix(
+        [
+            [h, -0.5 * w, wd * vx + 0.5 * vy],
+            [0.5 * w, h, wd * vy - 0.5 * vx],
+            [zero, zero, one],
+        ]
+    )
+
+
+def apply_right_jacobian(xi, delta):
+    """$J_r(\\xi)\\,\\delta = (A\\,\\delta_v + b\\,\\delta_\\omega,\\ \\delta_\\omega)$ without forming the matrix."""
+    v, w = xi[..., :2], xi[..., 2:]
+    dv, dw = delta[..., :2], delta[..., 2:]
+    s = w * w
+    g1, g2, g3 = g(1, s), g(2, s), g(3, s)
+    moved = g1 * dv - w * g2 * perp(dv) + dw * (w * g3 * v + g2 * perp(v))
+    return jnp.concatenate([moved, dw], axis=-1)
+
+
+def apply_right_jacobian_inverse(xi, local):
+    """$J_r^{-1}(\\xi)\\,u = (A^{-1} u_v - A^{-1} b\\,u_\\omega,\\ u_\\omega)$ without forming the matrix."""
+    v, w = xi[..., :2], xi[..., 2:]
+    uv, uw = local[..., :2], local[..., 2:]
+    s = w * w
+    moved = (
+        log_coefficient(s) * uv
+        + 0.5 * w * perp(uv)
+        + uw * (w * jr_inverse_coefficient(s) * v - 0.5 * perp(v))
+    )
+    return jnp.concatenate([moved, uw], axis=-1)
+
+
+def adjoint_matrix(params):
+    """$\\mathrm{Ad}_X = [[R, -J t], [0, 1]] = [[c, -s, y], [s, c, -x], [0, 0, 1]]$ (Solà App. C)."""
+    c, s, x, y = (params[..., i] for i in range(4))
+    zero, one = jnp.zeros_like(c), jnp.ones_like(c)
+    return stack_matrix([[c, -s, y], [s, c, -x], [zero, zero, one]])
+
+
+def small_adjoint(xi):
+    """$\\mathrm{ad}_\\xi = [[\\omega J, -J v], [0, 0]]$, the derivative of $\\mathrm{Ad}_{\\mathrm{Exp}(\\xi)}$
+    at zero."""
+    vx, vy, w = xi[..., 0], xi[..., 1], xi[..., 2]
+    zero = jnp.zeros_like(w)
+    return stack_matrix([[zero, -w, vy], [w, zero, -vx], [zero, zero, zero]])
+
+
+# ---- kernels with closed-form rules -------------------------------------------------------------
+
+
+@jax.custom_jvp
+def exp(xi):
+    """$\\mathrm{Exp}(v, \\omega) = (\\cos\\omega, \\sin\\omega, V v)$ with $V = g_1 I + \\omega g_2 J$
+    (Solà App. C)."""
+    v, w = xi[..., :2], xi[..., 2:]
+    s = w * w
+    g1 = g(1, s)
+    return jnp.concatenate([g(0, s), w * g1, g1 * v + w * g(2, s) * perp(v)], axis=-1)
+
+
+@exp.defjvp
+def _exp_jvp(primals, tangents):
+    """Local block: $J_r(\\xi)$."""
+    (xi,), (xi_dot,) = primals, tangents
+    params = exp(xi)
+    return params, from_local(params, apply_right_jacobian(xi, xi_dot))
+
+
+@jax.custom_jvp
+def log(params):
+    """$\\mathrm{Log}(X) = (V^{-1} t, \\omega)$ with $\\omega = \\mathrm{atan2}(s, c) \\in (-\\pi, \\pi]$ and
+    $V^{-1} = h I - \\tfrac\\omega2 J$, $h$ of `log_coefficient` (Solà App. C)."""
+    cs, t = params[..., :2], params[..., 2:]
+    w = jnp.arctan2(cs[..., 1:], cs[..., :1])
+    v = log_coefficient(w * w) * t - 0.5 * w * perp(t)
+    return jnp.concatenate([v, w], axis=-1)
+
+
+@log.defjvp
+def _log_jvp(primals, tangents):
+    """Local block: $J_r^{-1}(\\xi)$."""
+    (params,), (params_dot,) = primals, tangents
+    xi = log(params)
+    return xi, apply_right_jacobian_inverse(xi, to_local(params, params_dot))
+
+
+@jax.custom_jvp
+def compose(params1, params2):
+    """$(R_1 R_2,\\ R_1 t_2 + t_1)$."""
+    cs1, t1 = params1[..., :2], params1[..., 2:]
+    cs2, t2 = params2[..., :2], params2[..., 2:]
+    return jnp.concatenate([rotate(cs1, cs2), rotate(cs1, t2) + t1], axis=-1)
+
+
+@_rules.defjvp(compose)
+def _compose_jvp(primals, tangents):
+    """Local block: $\\xi = \\mathrm{Ad}_{X_2^{-1}} \\xi_1 + \\xi_2$, i.e.
+    $v = R_2^\\top (v_1 + \\omega_1 J t_2) + v_2$, $\\omega = \\omega_1 + \\omega_2$ (Solà App. C)."""
+    (params1, params2), (params1_dot, params2_dot) = primals, tangents
+    params = compose(params1, params2)
+    xi1 = _rules.local_tangent(to_local, params1, params1_dot)
+    xi2 = _rules.local_tangent(to_local, params2, params2_dot)
+    moved = None
+    if xi1 is not None:
+        cs2, t2 = params2[..., :2], params2[..., 2:]
+        v1, w1 = xi1[..., :2], xi1[..., 2:]
+        v = unrotate(cs2, v1 + w1 * perp(t2))
+        moved = jnp.concatenate([v, jnp.broadcast_to(w1, (*v.shape[:-1], 1))], axis=-1)
+    xi = _rules.add(moved, xi2)
+    return _rules.finish(params, None if xi is None else from_local(params, xi))
+
+
+@jax.custom_jvp
+def inverse(params):
+    """$(R^\\top, -R^\\top t)$."""
+    cs, t = params[..., :2], params[..., 2:]
+    return jnp.concatenate([so2.inverse(cs), -unrotate(cs, t)], axis=-1)
+
+
+@inverse.defjvp
+def _inverse_jvp(primals, tangents):
+    """Local block: $-\\mathrm{Ad}_X$, i.e. $v_{out} = \\omega J t - R v$, $\\omega_{out} = -\\omega$."""
+    (params,), (params_dot,) = primals, tangents
+    params_inv = inverse(params)
+    xi = to_local(params, params_dot)
+    cs, t = params[..., :2], params[..., 2:]
+    v, w = xi[..., :2], xi[..., 2:]
+    xi_inv = jnp.concatenate([w * perp(t) - rotate(cs, v), -w], axis=-1)
+    return params_inv, from_local(params_inv, xi_inv)
+
+
+@jax.custom_jvp
+def act(params, points):
+    """$R p + t$."""
+    return rotate(params[..., :2], points) + params[..., 2:]
+
+
+@_rules.defjvp(act)
+def _act_jvp(primals, tangents):
+    """$\\dot y = R(v + \\omega J p + \\dot p)$: blocks $[R,\\ R J p]$ and $R$ (Solà App. C)."""
+    (params, points), (params_dot, points_dot) = primals, tangents
+    moved = act(params, points)
+    xi = _rules.local_tangent(to_local, params, params_dot)
+    direction = _rules.add(
+        None if xi is None else xi[..., :2] + xi[..., 2:] * perp(points),
+        None if _rules.is_zero(points_dot) else points_dot,
+    )
+    return _rules.finish(moved, None if direction is None else rotate(params[..., :2], direction))
+
+
+@jax.custom_jvp
+def adjoint(params):
+    """$\\mathrm{Ad}_X$ of `adjoint_matrix`."""
+    return adjoint_matrix(params)
+
+
+@adjoint.defjvp
+def _adjoint_jvp(primals, tangents):
+    """$\\dot{\\mathrm{Ad}} = \\mathrm{Ad}_X\\,\\mathrm{ad}_\\xi$, from $\\mathrm{Ad}_{X \\mathrm{Exp}(\\xi)} =
+    \\mathrm{Ad}_X \\mathrm{Ad}_{\\mathrm{Exp}(\\xi)}$."""
+    (params,), (params_dot,) = primals, tangents
+    matrix = adjoint(params)
+    return matrix, matrix @ small_adjoint(to_local(params, params_dot))
+
+
+@jax.custom_jvp
+def as_matrix(params):
+    """$T = [[R, t], [0, 1]]$."""
+    c, s, x, y = (params[..., i] for i in range(4))
+    zero, one = jnp.zeros_like(c), jnp.ones_like(c)
+    return stack_matrix([[c, -s, x], [s, c, y], [zero, zero, one]])
+
+
+@as_matrix.defjvp
+def _as_matrix_jvp(primals, tangents):
+    """$\\dot T = T\\,\\mathrm{hat}(\\xi)$."""
+    (params,), (params_dot,) = primals, tangents
+    matrix = as_matrix(params)
+    return matrix, matrix @ hat(to_local(params, params_dot))
+
+
+@jax.custom_jvp
+def from_matrix(matrix):
+    """The nearest rotation of the 2×2 block (`lieax._so2.nearest_rotation`) and the last column."""
+    cs, _ = so2.nearest_rotation(matrix[..., :2, :2])
+    return jnp.concatenate([cs, matrix[..., :2, 2]], axis=-1)
+
+
+@from_matrix.defjvp
+def _from_matrix_jvp(primals, tangents):
+    """$v = R^\\top \\dot t$, $\\omega$ of `lieax._so2.nearest_rotation_tangent` (the skew part of
+    $R^\\top \\dot R$ at a rotation)."""
+    (matrix,), (matrix_dot,) = primals, tangents
+    cs, norm = so2.nearest_rotation(matrix[..., :2, :2])
+    params = jnp.concatenate([cs, matrix[..., :2, 2]], axis=-1)
+    w = so2.nearest_rotation_tangent(cs, norm, matrix_dot[..., :2, :2])
+    v = unrotate(cs, matrix_dot[..., :2, 2])
+    return params, from_local(params, jnp.concatenate([v, w], axis=-1))
+
+
+def normalize(params):
+    """Unit $(c, s)$; the translation as given."""
+    return jnp.concatenate([so2.normalize(params[..., :2]), params[..., 2:]], axis=-1)
+
+
+def hat(xi):
+    """$\\mathrm{hat}(v, \\omega) = [[\\omega J, v], [0, 0]]$."""
+    vx, vy, w = xi[..., 0], xi[..., 1], xi[..., 2]
+    zero = jnp.zeros_like(w)
+    return stack_matrix([[zero, -w, vx], [w, zero, vy], [zero, zero, zero]])
+
+
+def vee(matrix):
+    """$(m_{02},\\ m_{12},\\ (m_{10} - m_{01}) / 2)$: the inverse of `hat` on the skew part."""
+    return jnp.concatenate([matrix[..., :2, 2], so2.vee(matrix[..., :2, :2])], axis=-1)
+
+
+def sample_uniform(key, batch_shape, dtype):
+    """Uniform rotations (`lieax._so2.sample_uniform`), translations uniform in $[-1, 1]^2$."""
+    rotation_key, translation_key = jax.random.split(key)
+    cs = so2.sample_uniform(rotation_key, batch_shape, dtype)
+    t = jax.random.uniform(translation_key, (*batch_shape, 2), dtype, minval=-1.0, maxval=1.0)
+    return jnp.concatenate([cs, t.astype(cs.dtype)], axis=-1)
+
+
+class SE2(AbstractGroup):
+    """Rigid motions in the plane: parameters `(cos, sin, x, y)`, shape `(*batch, 4)`; tangent
+    $(v_x, v_y, \\omega)$, shape `(*batch, 3)`."""
+
+    tangent_dim = 3
+    parameters_dim = 4
+    space_dim = 2
+    matrix_dim = 3
+    parameters_layout = "cos, sin, x, y"
+
+    _exp = staticmethod(exp)
+    _log = staticmethod(log)
+    _compose = staticmethod(compose)
+    _inverse = staticmethod(inverse)
+    _act = staticmethod(act)
+    _adjoint = staticmethod(adjoint)
+    _as_matrix = staticmethod(as_matrix)
+    _from_matrix = staticmethod(from_matrix)
+    _normalize = staticmethod(normalize)
+    _hat = staticmethod(hat)
+    _vee = staticmethod(vee)
+    _right_jacobian = staticmethod(right_jacobian)
+    _right_jacobian_inverse = staticmethod(right_jacobian_inverse)
+    _local_from_tangent = staticmethod(to_local)
+    _tangent_from_local = staticmethod(from_local)
+    _sample_uniform = staticmethod(sample_uniform)
+
+    @classmethod
+    def from_rotation_and_translation(cls, rotation: SO2, translation):
+        """$X = (R, t)$ from an `SO2` and translations of shape `(*batch, 2)`, broadcasting batch
+        shapes."""
+        if not isinstance(rotation, SO2):
+            raise TypeError(
+                f"SE2.from_rotation_and_translation needs an SO2 rotation, "
+                f"got {type(rotation).__name__}."
+            )
+        translation = check_last_axis(translation, 2, "SE2 translation", "x, y")
+        batch = broadcast_batch(
+            "SE2.from_rotation_and_translation", rotation.batch_shape, translation.shape[:-1]
+        )
+        cs = jnp.broadcast_to(rotation.parameters(), (*batch, 2))
+        return cls._wrap(jnp.concatenate([cs, jnp.broadcast_to(translation, (*batch, 2))], axis=-1))
+
+    @classmethod
+    def from_xy_theta(cls, x, y, theta):
+        """From positions and headings (radians), each of shape `(*batch,)`, broadcast together."""
+        x, y, theta = (as_float_array(a, "SE2.from_xy_theta argument") for a in (x, y, theta))
+        x, y, theta = jnp.broadcast_arrays(x, y, theta)
+        cs = so2.exp(theta[..., None])
+        return cls._wrap(jnp.concatenate([cs, x[..., None], y[..., None]], axis=-1))
+
+    def as_xy_theta(self) -> jax.Array:
+        """`(x, y, theta)` on the last axis, theta in $(-\\pi, \\pi]$; inverse of `from_xy_theta`."""
+        return jnp.concatenate([self.translation(), so2.log(self._params[..., :2])], axis=-1)
+
+    def rotation(self) -> SO2:
+        """$R$, an `SO2` of the same batch shape."""
+        return SO2._wrap(self._params[..., :2])
+
+    def translation(self) -> jax.Array:
+        """$t$, shape `(*batch, 2)`."""
+        return self._params[..., 2:]
