@@ -67,14 +67,6 @@ class AbstractGroup:
     _from_parameters = staticmethod(lambda params: params)
     _to_parameters = staticmethod(lambda params: params)
 
-    @classmethod
-    def _local_from_tangent(cls, params, tangent):  # transitional: groups still naming it ambient
-        return cls._local_from_ambient(params, tangent)
-
-    @classmethod
-    def _tangent_from_local(cls, params, local):  # transitional
-        return cls._ambient_from_local(params, local)
-
     # ---- construction ------------------------------------------------------------------------
     @classmethod
     def identity(cls, batch_shape=(), dtype=None):

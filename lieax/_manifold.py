@@ -121,8 +121,3 @@ def unflatten_tangents(tree, vector):
         raise ValueError(f"unflatten_tangents: expected a vector of {start} entries, got {vector.shape}.")
     return treedef.unflatten(pieces)
 
-
-# Transitional names (removed once every module uses the ones above).
-leaf_local_from_ambient = leaf_local_from_tangent
-leaf_ambient_from_local = leaf_tangent_from_local
-leaf_ambient = leaf_array

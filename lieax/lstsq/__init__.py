@@ -1,0 +1,26 @@
+"""Nonlinear least squares on manifolds: Gauss-Newton and Levenberg-Marquardt over states that
+mix lieax groups and arrays, robust losses, solves that batch under `vmap`, and implicit
+derivatives of a solution.
+
+Conventions (right perturbation $x \\oplus \\delta$, tangent layouts): the README's "Conventions".
+"""
+
+from ._least_squares import least_squares
+from ._losses import AbstractLoss, Cauchy, GemanMcClure, Huber, Tukey
+from ._solution import Solution, SolveError, Status
+from ._solvers import AbstractSolver, GaussNewton, LevenbergMarquardt
+
+__all__ = [
+    "AbstractLoss",
+    "AbstractSolver",
+    "Cauchy",
+    "GaussNewton",
+    "GemanMcClure",
+    "Huber",
+    "LevenbergMarquardt",
+    "Solution",
+    "SolveError",
+    "Status",
+    "Tukey",
+    "least_squares",
+]

@@ -1,0 +1,374 @@
+"""`least_squares`: the solve loop, compiled once as a `lax.while_loop`, with its status logic,
+its tolerances and the verbose iteration table.
+
+Each iteration evaluates the cost, $H = J^\\top W J$ and $g = J^\\top W r$ at the trial point
+$x \\oplus \\delta$ the previous iteration chose (one linearization of the residual; the first
+iteration evaluates $x_0$), keeps or rejects it on the gain ratio
+$\\varrho = (c(x) - c(x \\oplus \\delta)) / (-g^\\top\\delta - \\tfrac12 \\delta^\\top H \\delta)$,
+checks the stopping rules, and solves the normal equations at the kept point for the next step.
+Every problem of a `vmap` runs this same loop in lockstep; a problem that has stopped keeps its
+state while the others run on (the batching rule of `while_loop`).
+"""
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+from .._manifold import leaf_array, manifold_leaves, rplus, tangent_dim, unflatten_tangents
+from ._implicit import with_implicit_derivatives
+from ._losses import AbstractLoss
+from ._problem import linearize
+from ._solution import Solution, SolveError, Status
+from ._solvers import AbstractSolver, LevenbergMarquardt
+
+_DEFAULT_TOLERANCES = {  # (function, gradient, parameter) by dtype
+    np.dtype(np.float64): (1e-10, 1e-10, 1e-10),
+    np.dtype(np.float32): (1e-6, 1e-6, 1e-6),
+}
+_DIFFERENTIATION = ("implicit", "unrolled")
+
+
+def least_squares(
+    residual_fn,
+    x0,
+    args=None,
+    *,
+    solver: AbstractSolver = LevenbergMarquardt(),
+    loss=None,
+    max_iterations: int = 100,
+    function_tolerance=None,
+    gradient_tolerance=None,
+    parameter_tolerance=None,
+    differentiation: str = "implicit",
+    verbose: bool = False,
+    throw: bool = True,
+) -> Solution:
+    """Minimizes $\\tfrac12 \\sum_i \\rho(\\|r_i(x, \\text{args})\\|^2)$ over a state `x` that
+    mixes group elements and arrays, every update a retraction $x \\leftarrow x \\oplus \\delta$.
+
+    **Arguments:**
+    - `residual_fn`: `residual_fn(x, args)` returns an array or a pytree of arrays (typically one
+      residual per data element, built with `jax.vmap` over the data). A leaf of shape
+      `(*batch, k)` holds `k`-dimensional blocks; a leaf with fewer than two axes holds scalar
+      blocks. The solve is compiled once per `residual_fn` object: define it once, not as a new
+      lambda on every call.
+    - `x0`: the initial state, a pytree of lieax groups and floating arrays.
+    - `args`: data passed to `residual_fn`, a pytree of arrays; differentiable (see below).
+    - `solver`: `LevenbergMarquardt()` (default) or `GaussNewton()`.
+    - `loss`: `None`, a robust loss (`Huber`, `Cauchy`, `Tukey`, `GemanMcClure`), or a pytree
+      prefix of the residual with a loss or `None` per leaf. Applied by reweighting.
+    - `max_iterations`: the most iterations (rejected steps count).
+    - `function_tolerance`: converged when a kept step changes the cost by less than this
+      fraction of it (0 turns the test off).
+    - `gradient_tolerance`: converged when $\\|J^\\top W r\\|_\\infty$ is at most this.
+    - `parameter_tolerance`: converged when a step's norm is at most `tol * (|x| + tol)`, with
+      $|x|$ the norm of the state's parameters.
+      The three tolerances default to $10^{-10}$ in float64 and $10^{-6}$ in float32.
+    - `differentiation`: `"implicit"` (default): derivatives of `value` and `cost` with respect
+      to `args` (and the loss's scale) by the implicit function theorem at the solution, with no
+      iteration unrolled; the start `x0` gets zero derivative, and a solve that did not converge
+      gets the derivative of the point it returned as if it were the optimum. `"unrolled"`: the
+      loop runs as a `lax.scan` of `max_iterations + 1` masked iterations and JAX differentiates
+      through it (for comparison: every iteration runs, and reverse mode stores them all).
+    - `verbose`: print an iteration table (cost, cost change, gradient and step norms, gain ratio,
+      damping) from inside the compiled loop. Under `vmap` every problem prints its rows, the
+      problems' rows interleaved.
+    - `throw`: raise `SolveError` when the solve ends `DIVERGED` or `NONFINITE` (this waits for
+      the result). Only possible when the status is concrete: under `jit` or `vmap` nothing is
+      raised and `Solution.status` says what happened, as with `throw=False`.
+
+    **Returns:** a `Solution` (`value`, `cost`, `iterations`, `status`, `cost_history`).
+
+    Example (a rotation that maps `source` onto `target`, both of shape `(N, 3)`):
+    ```python
+    def residual(rotation, data):
+        source, target = data
+        return jax.vmap(lambda p, q: rotation @ p - q)(source, target)
+
+    solution = lieax.lstsq.least_squares(residual, lieax.SO3.identity(), (source, target))
+    ```
+    """
+    if not callable(residual_fn):
+        raise TypeError(f"residual_fn must be callable, got {residual_fn!r}.")
+    if not isinstance(solver, AbstractSolver):
+        raise TypeError(
+            f"solver must be a lieax.lstsq solver (e.g. LevenbergMarquardt()), got {solver!r}."
+        )
+    if not isinstance(max_iterations, (int, np.integer)) or max_iterations < 0:
+        raise ValueError(f"max_iterations must be a non-negative int, got {max_iterations!r}.")
+    if differentiation not in _DIFFERENTIATION:
+        raise ValueError(
+            f"differentiation must be one of {_DIFFERENTIATION}, got {differentiation!r}."
+        )
+    _check_loss(loss)
+    leaves, _ = manifold_leaves(x0, "x0")
+    dtype = np.dtype(jnp.result_type(*(leaf_array(leaf) for leaf in leaves)))
+    defaults = _DEFAULT_TOLERANCES.get(dtype, _DEFAULT_TOLERANCES[np.dtype(np.float32)])
+    tolerances = tuple(
+        default if given is None else given
+        for given, default in zip(
+            (function_tolerance, gradient_tolerance, parameter_tolerance), defaults
+        )
+    )
+    solution = _solve(
+        residual_fn,
+        int(max_iterations),
+        bool(verbose),
+        differentiation,
+        x0,
+        args,
+        solver,
+        loss,
+        tolerances,
+    )
+    if throw:
+        _raise_on_failure(solution)
+    return solution
+
+
+def _check_loss(loss):
+    is_leaf = lambda node: node is None or isinstance(node, AbstractLoss)  # noqa: E731
+    for leaf in jax.tree_util.tree_leaves(loss, is_leaf=is_leaf):
+        if not (leaf is None or isinstance(leaf, AbstractLoss)):
+            raise TypeError(
+                f"loss must be None, a lieax.lstsq loss (Huber, Cauchy, Tukey, GemanMcClure) or a "
+                f"pytree of them, got {leaf!r}."
+            )
+
+
+class _State(NamedTuple):
+    x: object  # the current (last accepted) point
+    cost: jax.Array
+    hessian: jax.Array  # J^T W J at x, flattened tangent coordinates
+    gradient: jax.Array  # J^T W r at x
+    solver_state: object
+    x_trial: object  # x ⊕ step, evaluated by the next iteration
+    step: jax.Array
+    first: jax.Array  # the next evaluation is the one of x0
+    iteration: jax.Array
+    status: jax.Array
+    cost_history: jax.Array
+
+
+def _all_finite(*arrays):
+    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in arrays]))
+
+
+def _tree_where(condition, new, old):
+    return jax.tree_util.tree_map(lambda a, b: jnp.where(condition, a, b), new, old)
+
+
+def _parameter_norm(x):
+    leaves, _ = manifold_leaves(x, "x")
+    return jnp.sqrt(sum(jnp.sum(leaf_array(leaf) ** 2) for leaf in leaves))
+
+
+def _gain_ratio(values, trial_finite):
+    """$\\varrho = (c - c_t) / (-g^\\top\\delta - \\tfrac12 \\delta^\\top H \\delta)$ and the actual
+    decrease $c - c_t$ ($c_t$ the cost at the trial point); $-\\infty$ for a non-finite trial
+    point. Below the rounding error of the cost the ratio is noise: it is taken as 1 (trust the
+    model) unless the cost measurably rose, which lets the last Newton-like steps through."""
+    cost, cost_trial, step, hessian, gradient = values
+    actual = cost - cost_trial
+    predicted = -(gradient @ step + 0.5 * step @ (hessian @ step))
+    ratio = actual / jnp.where(predicted > 0, predicted, 1.0)
+    ratio = jnp.where(trial_finite & (predicted > 0), ratio, -jnp.inf)
+    resolution = 16 * jnp.finfo(cost.dtype).eps * jnp.abs(cost)
+    unmeasurable = trial_finite & (jnp.abs(predicted) <= resolution) & (actual >= -resolution)
+    return jnp.where(unmeasurable, 1.0, ratio), actual
+
+
+@jax.jit(static_argnums=(0, 1, 2, 3))
+def _solve(
+    residual_fn, max_iterations, verbose, differentiation, x0, args, solver, loss, tolerances
+):
+    function_tolerance, gradient_tolerance, parameter_tolerance = tolerances
+    implicit = differentiation == "implicit"
+    if implicit:  # the loop is not differentiated: derivatives come from with_implicit_derivatives
+        x0, args_loop, loss_loop = lax.stop_gradient((x0, args, loss))
+    else:
+        args_loop, loss_loop = args, loss
+    sg = lax.stop_gradient
+    n = tangent_dim(x0)
+    dtype = jnp.result_type(*(leaf_array(leaf) for leaf in manifold_leaves(x0, "x0")[0]))
+
+    # One linearization per iteration, at the trial point the previous iteration chose; the
+    # first iteration evaluates x0 (so the residual is traced and compiled once).
+    def body(state: _State) -> _State:
+        first = state.first
+        cost_trial, hessian_trial, gradient_trial = linearize(
+            residual_fn, state.x_trial, args_loop, loss_loop
+        )
+        trial_finite = _all_finite(cost_trial, hessian_trial, gradient_trial)
+
+        # keep or reject the trial point (x0 is always kept); decisions are not differentiated,
+        # they only select between differentiable values
+        gain_ratio, actual = _gain_ratio(
+            sg((state.cost, cost_trial, state.step, state.hessian, state.gradient)), trial_finite
+        )
+        accept, solver_state = solver.update(sg(state.solver_state), gain_ratio, trial_finite)
+        accept = accept | first
+        solver_state = _tree_where(first, solver.init(dtype), solver_state)
+        x, cost, hessian, gradient = _tree_where(
+            accept,
+            (state.x_trial, cost_trial, hessian_trial, gradient_trial),
+            (state.x, state.cost, state.hessian, state.gradient),
+        )
+        iteration = jnp.where(first, state.iteration, state.iteration + 1)
+
+        # stop? (at x0 only on a non-finite residual or a zero gradient)
+        gradient_norm = jnp.max(jnp.abs(sg(gradient)), initial=0.0)
+        step_norm = jnp.sqrt(sg(state.step @ state.step))
+        small_step = ~first & (
+            step_norm <= parameter_tolerance * (sg(_parameter_norm(state.x)) + parameter_tolerance)
+        )
+        small_change = ~first & (jnp.abs(actual) < function_tolerance * sg(state.cost))
+        converged = (small_step & trial_finite) | (
+            accept & (small_change | (gradient_norm <= gradient_tolerance))
+        )
+        nonfinite = ~trial_finite & (first | small_step | (not solver.rejects_steps))
+        diverged = ~first & solver.diverged(solver_state, sg(cost), sg(state.cost_history[0]))
+        step = solver.step(solver_state, hessian, gradient).astype(dtype)
+        status = jnp.select(
+            [
+                nonfinite | ~_all_finite(sg(step)),
+                converged,
+                diverged,
+                iteration >= max_iterations,
+            ],
+            [Status.NONFINITE, Status.CONVERGED, Status.DIVERGED, Status.MAX_ITERATIONS],
+            Status.RUNNING,
+        ).astype(jnp.int32)
+        if verbose:
+            jax.debug.callback(
+                _print_row,
+                state.status == Status.RUNNING,  # stopped problems run on masked under vmap
+                first,
+                iteration,
+                sg(cost),
+                jnp.where(accept & ~first, actual, 0.0),
+                gradient_norm,
+                jnp.where(first, 0.0, step_norm),
+                jnp.where(first, 0.0, gain_ratio),
+                solver.damping(solver_state),
+                accept,
+            )
+        return _State(
+            x=x,
+            cost=cost,
+            hessian=hessian,
+            gradient=gradient,
+            solver_state=solver_state,
+            x_trial=rplus(x, unflatten_tangents(x, step)),
+            step=step,
+            first=jnp.zeros((), bool),
+            iteration=iteration,
+            status=status,
+            cost_history=state.cost_history.at[iteration].set(sg(cost)),
+        )
+
+    initial = _State(
+        x=x0,
+        cost=jnp.zeros((), dtype),
+        hessian=jnp.zeros((n, n), dtype),
+        gradient=jnp.zeros((n,), dtype),
+        solver_state=solver.init(dtype),
+        x_trial=x0,
+        step=jnp.zeros((n,), dtype),
+        first=jnp.ones((), bool),
+        iteration=jnp.zeros((), jnp.int32),
+        status=jnp.asarray(Status.RUNNING, jnp.int32),
+        cost_history=jnp.full((max_iterations + 1,), jnp.nan, dtype),
+    )
+
+    def running(state):
+        return state.status == Status.RUNNING
+
+    if implicit:
+        final = lax.while_loop(running, body, initial)
+    else:  # a fixed number of masked iterations, so that reverse mode can go through them
+
+        def masked(state, _):
+            return _tree_where(running(state), body(state), state), None
+
+        final, _ = lax.scan(masked, initial, None, length=max_iterations + 1)
+    if verbose:
+        jax.debug.callback(
+            _print_summary, final.status, final.iteration, final.cost_history[0], sg(final.cost)
+        )
+
+    value, cost = final.x, final.cost
+    if implicit:
+        value, cost = with_implicit_derivatives(residual_fn, value, cost, (args, loss))
+    return Solution(
+        value=value,
+        cost=cost,
+        iterations=final.iteration,
+        status=final.status,
+        cost_history=final.cost_history,
+    )
+
+
+# ---- errors --------------------------------------------------------------------------------
+
+
+def _raise_on_failure(solution: Solution):
+    status = solution.status
+    if isinstance(status, jax.core.Tracer):
+        return  # under jit / vmap: the status is the report
+    code = Status(int(np.asarray(status)))
+    iterations = int(np.asarray(solution.iterations))
+    if code == Status.NONFINITE:
+        where = "at x0" if iterations == 0 else f"after {iterations} iterations"
+        raise SolveError(
+            f"least_squares stopped: the residual or its Jacobian is NaN or infinite {where}"
+            f"{_describe_cost(solution) if iterations else ''}. Check residual_fn there, or pass "
+            "throw=False to get the Solution back."
+        )
+    if code == Status.DIVERGED:
+        raise SolveError(
+            f"least_squares diverged after {iterations} iterations{_describe_cost(solution)}: the "
+            "cost grew without bound (GaussNewton) or no damping made it decrease "
+            "(LevenbergMarquardt). Try LevenbergMarquardt, a better x0 or a robust loss, or pass "
+            "throw=False to get the Solution back."
+        )
+
+
+def _describe_cost(solution: Solution) -> str:
+    """`' (cost a at the start, b at the end)'` when the costs are concrete (not under `jvp`)."""
+    if any(isinstance(a, jax.core.Tracer) for a in (solution.cost, solution.cost_history)):
+        return ""
+    initial, final = float(np.asarray(solution.cost_history[0])), float(np.asarray(solution.cost))
+    return f" (cost {initial:.6e} at the start, {final:.6e} at the last finite iterate)"
+
+
+# ---- the iteration table -------------------------------------------------------------------
+
+_HEADER = (
+    f"{'iter':>5}  {'cost':>13}  {'cost_change':>11}  {'|gradient|':>10}  {'|step|':>10}  "
+    f"{'gain_ratio':>10}  {'damping':>10}  accepted"
+)
+
+
+def _print_row(
+    active, first, iteration, cost, change, gradient_norm, step_norm, gain_ratio, damping, accepted
+):
+    if not bool(active):
+        return
+    if bool(first):
+        print(_HEADER)
+    print(
+        f"{int(iteration):>5d}  {float(cost):>13.6e}  {float(change):>11.2e}  "
+        f"{float(gradient_norm):>10.2e}  {float(step_norm):>10.2e}  {float(gain_ratio):>10.2e}  "
+        f"{float(damping):>10.2e}  {'yes' if bool(accepted) else 'no'}"
+    )
+
+
+def _print_summary(status, iterations, initial_cost, final_cost):
+    print(
+        f"{Status(int(status)).name}: {int(iterations)} iterations, "
+        f"cost {float(initial_cost):.6e} -> {float(final_cost):.6e}"
+    )

@@ -1,0 +1,64 @@
+"""What a solve returns: the `Solution` pytree, the `Status` codes and the error `throw` raises."""
+
+import enum
+from typing import NamedTuple
+
+import jax
+import numpy as np
+
+
+class Status(enum.IntEnum):
+    """Why a solve stopped; `Solution.status` holds the integer code.
+
+    - `CONVERGED`: a tolerance was met (step, relative cost change or gradient).
+    - `MAX_ITERATIONS`: `max_iterations` iterations ran without meeting a tolerance.
+    - `DIVERGED`: the cost grew without bound (Gauss-Newton) or no damping, however large, made
+      the cost decrease (Levenberg-Marquardt).
+    - `NONFINITE`: the residual or its Jacobian was NaN or infinite at the current point (or,
+      for Levenberg-Marquardt, at every trial point down to the smallest step).
+
+    `RUNNING` is the state inside the loop and is never returned.
+    """
+
+    RUNNING = -1
+    CONVERGED = 0
+    MAX_ITERATIONS = 1
+    DIVERGED = 2
+    NONFINITE = 3
+
+
+class SolveError(RuntimeError):
+    """Raised by `least_squares(..., throw=True)` when a solve ends `DIVERGED` or `NONFINITE`."""
+
+
+class Solution(NamedTuple):
+    """The result of `lieax.lstsq.least_squares`, a pytree (so it batches under `vmap`).
+
+    **Fields:**
+    - `value`: the solution, the same pytree as `x0` (groups and arrays mixed).
+    - `cost`: $\\tfrac12 \\sum_i \\rho(\\|r_i\\|^2)$ at `value` ($\\tfrac12\\|r\\|^2$ without a
+      loss).
+    - `iterations`: iterations run, rejected Levenberg-Marquardt steps included.
+    - `status`: an integer `Status` code; `status_name` reads it.
+    - `cost_history`: shape `(max_iterations + 1,)`: the initial cost, then the cost after each
+      iteration; NaN after the last one.
+    """
+
+    value: object
+    cost: jax.Array
+    iterations: jax.Array
+    status: jax.Array
+    cost_history: jax.Array
+
+    @property
+    def status_name(self):
+        """The `Status` name (`"CONVERGED"`, ...), or an array of names for a batch of solutions.
+        Needs a concrete status (outside `jit`)."""
+        codes = np.asarray(self.status)
+        names = np.vectorize(lambda code: Status(int(code)).name, otypes=[object])(codes)
+        return names.item() if names.ndim == 0 else names
+
+    @property
+    def converged(self) -> jax.Array:
+        """`status == Status.CONVERGED`, as a boolean array (works under `jit` and `vmap`)."""
+        return self.status == Status.CONVERGED
