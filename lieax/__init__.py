@@ -18,7 +18,7 @@ from ._se2 import SE2
 from ._se3 import SE3
 from ._so2 import SO2
 from ._so3 import SO3
-from . import lstsq, optax  # noqa: E402  (after the groups they build on)
+from . import graph, lstsq, optax  # noqa: E402  (after the groups they build on)
 
 __version__ = "0.1.0"
 
@@ -30,6 +30,7 @@ __all__ = [
     "SO3",
     "flatten_tangents",
     "grad",
+    "graph",
     "jacobian",
     "lstsq",
     "optax",
