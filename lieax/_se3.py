@@ -245,9 +245,11 @@ def _act_jvp(primals, tangents):
     """$\\dot y = R(v + \\omega \\times p + \\dot p)$: blocks $[R, -R[p]_\\times]$ and $R$ (Solà eq. 181-182)."""
     (params, points), (params_dot, points_dot) = primals, tangents
     moved = act(params, points)
-    xi = _rules.local_tangent(to_local, params, params_dot)
+    # Read (v, ω) straight from the carrier (ρ, ω, v): no concatenation, so no pads in the transpose.
     direction = _rules.add(
-        None if xi is None else xi[..., :3] + cross(xi[..., 3:], points),
+        None
+        if _rules.is_zero(params_dot)
+        else params_dot[..., 4:] + cross(params_dot[..., 1:4], points),
         None if _rules.is_zero(points_dot) else points_dot,
     )
     if direction is None:
