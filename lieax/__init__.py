@@ -4,8 +4,16 @@ Conventions (right perturbation, wxyz quaternions, translation-first tangents) a
 README's "Conventions" section.
 """
 
+from . import conventions
+from ._align import align
 from ._autodiff import grad, jacobian, value_and_grad, value_and_jacobian
-from ._base import AbstractGroup
+from ._base import AbstractGroup, AbstractManifold
+from ._implicit_function import (
+    implicit_jacobian,
+    inverse_function_jacobian,
+    with_implicit_derivative,
+    with_inverse_derivative,
+)
 from ._manifold import (
     flatten_tangents,
     rminus,
@@ -14,8 +22,10 @@ from ._manifold import (
     unflatten_tangents,
     zero_tangents,
 )
+from ._s2 import S2
 from ._se2 import SE2
 from ._se3 import SE3
+from ._sim3 import Sim3
 from ._so2 import SO2
 from ._so3 import SO3
 from . import graph, lstsq, optax  # noqa: E402  (after the groups they build on)
@@ -24,13 +34,20 @@ __version__ = "0.1.0"
 
 __all__ = [
     "AbstractGroup",
+    "AbstractManifold",
+    "S2",
     "SE2",
     "SE3",
     "SO2",
     "SO3",
+    "Sim3",
+    "align",
+    "conventions",
     "flatten_tangents",
     "grad",
     "graph",
+    "implicit_jacobian",
+    "inverse_function_jacobian",
     "jacobian",
     "lstsq",
     "optax",
@@ -40,5 +57,7 @@ __all__ = [
     "unflatten_tangents",
     "value_and_grad",
     "value_and_jacobian",
+    "with_implicit_derivative",
+    "with_inverse_derivative",
     "zero_tangents",
 ]

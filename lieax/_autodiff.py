@@ -17,7 +17,7 @@ import math
 import jax
 import jax.numpy as jnp
 
-from ._base import AbstractGroup
+from ._base import AbstractManifold
 from ._manifold import (
     leaf_array,
     leaf_tangent_from_local,
@@ -129,7 +129,7 @@ def value_and_grad(f, argnums=0, *, has_aux=False):
     def scalar_f(*args):
         result = f(*args)
         value = result[0] if has_aux else result
-        if isinstance(value, AbstractGroup) or jnp.shape(value) != ():
+        if isinstance(value, AbstractManifold) or jnp.shape(value) != ():
             raise TypeError(
                 f"grad needs a function with a scalar result, got {_describe(value)}; "
                 "use lieax.jacobian for other results."
@@ -155,7 +155,7 @@ def grad(f, argnums=0, *, has_aux=False):
 
 
 def _rebuild(leaf, array):
-    return type(leaf)._wrap(array) if isinstance(leaf, AbstractGroup) else array
+    return type(leaf)._wrap(array) if isinstance(leaf, AbstractManifold) else array
 
 
 def _transpose_local_from_tangent(leaf, local_cotangent):
@@ -200,6 +200,6 @@ def _input_structure(rows, out_shape, in_shapes, flattened, single):
 
 
 def _describe(value):
-    if isinstance(value, AbstractGroup):
+    if isinstance(value, AbstractManifold):
         return f"a {type(value).__name__}"
     return f"shape {jnp.shape(value)}"

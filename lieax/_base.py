@@ -19,21 +19,26 @@ import jax.numpy as jnp
 from ._checks import as_float_array, broadcast_batch, check_last_axis, check_matrix
 
 
-class AbstractGroup:
-    """A batch of elements of one matrix Lie group, stored as `parameters()` of shape
-    `(*batch_shape, parameters_dim)`; a JAX pytree with that one array as its leaf."""
+class AbstractManifold:
+    """A batch of points of one manifold, stored as `parameters()` of shape
+    `(*batch_shape, parameters_dim)`; a JAX pytree with that one array as its leaf.
+
+    A concrete manifold supplies `rplus(tangent)`, `rminus(other)` and the carrier maps
+    `_local_from_tangent(params, tangent)` / `_tangent_from_local(params, local)` between the JAX
+    tangent of the parameter leaf and the local tangent of shape `(*batch_shape, tangent_dim)`;
+    that is all `lieax.rplus`, `lieax.jacobian` and the solvers use. Groups (`AbstractGroup`) are
+    manifolds whose $\\oplus$ is $X\\,\\mathrm{Exp}(\\xi)$; `S2` is a manifold that is not a group."""
 
     tangent_dim: ClassVar[int]
     parameters_dim: ClassVar[int]
-    space_dim: ClassVar[int]
-    matrix_dim: ClassVar[int]
     parameters_layout: ClassVar[str]
 
     __slots__ = ("_params",)
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
-        jax.tree_util.register_pytree_node(cls, _flatten, lambda _, leaves: cls._wrap(leaves[0]))
+        if not cls.__name__.startswith("Abstract"):
+            jax.tree_util.register_pytree_node(cls, _flatten, lambda _, leaves: cls._wrap(leaves[0]))
 
     def __init__(self, parameters):
         """Wraps parameters as given (after checking shape and dtype); see `normalize()`."""
@@ -54,6 +59,45 @@ class AbstractGroup:
     def __repr__(self):
         return f"{type(self).__name__}({self._params!r})"
 
+    # The carrier of the parameter leaf's JAX tangent (see AbstractGroup); by default the raw
+    # derivative of the parameters.
+    _from_parameters = staticmethod(lambda params: params)
+    _to_parameters = staticmethod(lambda params: params)
+
+    def parameters(self) -> jax.Array:
+        """The parameter array, layout `parameters_layout` (differentiable as a raw array)."""
+        return self._to_parameters(self._params)
+
+    @property
+    def batch_shape(self) -> tuple:
+        return tuple(self._params.shape[:-1])
+
+    @property
+    def dtype(self):
+        return self._params.dtype
+
+    def __getitem__(self, index):
+        index = index if isinstance(index, tuple) else (index,)
+        return self._wrap(self._params[(*index, slice(None))])
+
+    def rplus(self, tangent):
+        """$X \\oplus \\xi$ for tangents of shape `(*batch, tangent_dim)`."""
+        raise NotImplementedError
+
+    def rminus(self, other) -> jax.Array:
+        """$X \\ominus Y$, so that `Y.rplus(X.rminus(Y)) == X`."""
+        raise NotImplementedError
+
+
+class AbstractGroup(AbstractManifold):
+    """A batch of elements of one matrix Lie group, stored as `parameters()` of shape
+    `(*batch_shape, parameters_dim)`; a JAX pytree with that one array as its leaf."""
+
+    space_dim: ClassVar[int]
+    matrix_dim: ClassVar[int]
+
+    __slots__ = ()
+
     # ---- array kernels, supplied by each group -----------------------------------------------
     # _exp, _log, _compose, _inverse, _act, _adjoint, _as_matrix, _from_matrix, _normalize,
     # _hat, _vee, _right_jacobian, _right_jacobian_inverse: parameter and tangent arrays in/out.
@@ -63,9 +107,7 @@ class AbstractGroup:
     # SE3 carry the local tangent itself); then `_from_parameters` / `_to_parameters` (identity on
     # values) convert derivatives where raw parameters enter and leave, and
     # `_local_from_tangent(params, carrier)` / `_tangent_from_local(params, local)` map the carrier
-    # to the right-local tangent and back. The defaults below: the carrier is the raw derivative.
-    _from_parameters = staticmethod(lambda params: params)
-    _to_parameters = staticmethod(lambda params: params)
+    # to the right-local tangent and back. The defaults: AbstractManifold's (the raw derivative).
 
     # ---- construction ------------------------------------------------------------------------
     @classmethod
@@ -90,23 +132,6 @@ class AbstractGroup:
     def sample_uniform(cls, key, batch_shape=(), dtype=None):
         """Random elements: rotations uniform (Haar), translations uniform in [-1, 1]."""
         return cls._wrap(cls._sample_uniform(key, tuple(batch_shape), dtype))
-
-    # ---- accessors ---------------------------------------------------------------------------
-    def parameters(self) -> jax.Array:
-        """The parameter array, layout `parameters_layout` (differentiable as a raw array)."""
-        return self._to_parameters(self._params)
-
-    @property
-    def batch_shape(self) -> tuple:
-        return tuple(self._params.shape[:-1])
-
-    @property
-    def dtype(self):
-        return self._params.dtype
-
-    def __getitem__(self, index):
-        index = index if isinstance(index, tuple) else (index,)
-        return self._wrap(self._params[(*index, slice(None))])
 
     # ---- group operations --------------------------------------------------------------------
     def log(self) -> jax.Array:

@@ -11,11 +11,11 @@ import math
 import jax
 import jax.numpy as jnp
 
-from ._base import AbstractGroup
+from ._base import AbstractManifold
 
 
 def _is_leaf(x) -> bool:
-    return isinstance(x, AbstractGroup) or x is None
+    return isinstance(x, AbstractManifold) or x is None
 
 
 def manifold_leaves(tree, what: str = "argument"):
@@ -27,7 +27,7 @@ def manifold_leaves(tree, what: str = "argument"):
         where = f"{what}{jax.tree_util.keystr(path)}"
         if leaf is None:
             raise TypeError(f"{where} is None; lieax differentiates groups and float arrays only.")
-        if not isinstance(leaf, AbstractGroup):
+        if not isinstance(leaf, AbstractManifold):
             dtype = getattr(leaf, "dtype", None) or jnp.asarray(leaf).dtype
             if not jnp.issubdtype(dtype, jnp.floating):
                 raise TypeError(
@@ -40,28 +40,28 @@ def manifold_leaves(tree, what: str = "argument"):
 
 
 def leaf_tangent_shape(leaf) -> tuple:
-    if isinstance(leaf, AbstractGroup):
+    if isinstance(leaf, AbstractManifold):
         return (*leaf.batch_shape, leaf.tangent_dim)
     return tuple(jnp.shape(leaf))
 
 
 def leaf_local_from_tangent(leaf, tangent):
     """Right-local tangent of the JAX tangent of `leaf_array(leaf)` (see `AbstractGroup`)."""
-    if isinstance(leaf, AbstractGroup):
+    if isinstance(leaf, AbstractManifold):
         return leaf._local_from_tangent(leaf._params, tangent)
     return tangent
 
 
 def leaf_tangent_from_local(leaf, local):
     """The JAX tangent of `leaf_array(leaf)` that moves `leaf` along a right-local tangent."""
-    if isinstance(leaf, AbstractGroup):
+    if isinstance(leaf, AbstractManifold):
         return leaf._tangent_from_local(leaf._params, local)
     return local
 
 
 def leaf_array(leaf):
     """The array that carries a leaf's derivatives: a group's parameter leaf, or the array."""
-    return leaf._params if isinstance(leaf, AbstractGroup) else leaf
+    return leaf._params if isinstance(leaf, AbstractManifold) else leaf
 
 
 def rplus(tree, tangents):
@@ -69,7 +69,7 @@ def rplus(tree, tangents):
     leaves, treedef = manifold_leaves(tree, "tree")
     deltas = treedef.flatten_up_to(tangents)
     moved = [
-        leaf.rplus(d) if isinstance(leaf, AbstractGroup) else leaf + d
+        leaf.rplus(d) if isinstance(leaf, AbstractManifold) else leaf + d
         for leaf, d in zip(leaves, deltas)
     ]
     return treedef.unflatten(moved)
@@ -81,7 +81,7 @@ def rminus(tree_a, tree_b):
     leaves_a, treedef = manifold_leaves(tree_a, "tree_a")
     leaves_b = treedef.flatten_up_to(tree_b)
     differences = [
-        a.rminus(b) if isinstance(a, AbstractGroup) else a - b for a, b in zip(leaves_a, leaves_b)
+        a.rminus(b) if isinstance(a, AbstractManifold) else a - b for a, b in zip(leaves_a, leaves_b)
     ]
     return treedef.unflatten(differences)
 

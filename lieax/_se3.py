@@ -394,6 +394,15 @@ class SE3(AbstractGroup):
             SO3.identity(translation.shape[:-1], dtype=translation.dtype), translation
         )
 
+    @classmethod
+    def align(cls, points_a, points_b, weights=None, *, with_scale=False):
+        """The least-squares $T_{ab}$ with $a_i \\approx T_{ab} b_i$ (SVD of the correlation matrix,
+        proper rotation; Umeyama scale and a `Sim3` result with `with_scale`), differentiable with
+        respect to the points and weights; see `lieax.align`."""
+        from ._align import align
+
+        return align(points_a, points_b, weights, with_scale=with_scale)
+
     def rotation(self) -> SO3:
         return SO3._wrap(self._params[..., :4])
 

@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import optax  # the optax package (absolute import; this module is lieax.optax)
 
 from ._autodiff import value_and_grad
-from ._base import AbstractGroup
+from ._base import AbstractManifold
 from ._manifold import manifold_leaves, rplus, zero_tangents
 
 __all__ = ["MinimizeResult", "apply_updates", "minimize", "on_manifold"]
@@ -44,7 +44,7 @@ def _chart_params(params):
     return treedef.unflatten(
         [
             jnp.zeros((*leaf.batch_shape, leaf.tangent_dim), leaf.dtype)
-            if isinstance(leaf, AbstractGroup)
+            if isinstance(leaf, AbstractManifold)
             else leaf
             for leaf in leaves
         ]
@@ -58,7 +58,7 @@ def _from_chart(params, chart):
     coordinates = treedef.flatten_up_to(chart)
     return treedef.unflatten(
         [
-            leaf.rplus(u) if isinstance(leaf, AbstractGroup) else u
+            leaf.rplus(u) if isinstance(leaf, AbstractManifold) else u
             for leaf, u in zip(leaves, coordinates)
         ]
     )

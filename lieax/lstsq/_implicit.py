@@ -23,7 +23,7 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from .._base import AbstractGroup
+from .._base import AbstractManifold
 from .._manifold import (
     leaf_array,
     leaf_tangent_from_local,
@@ -66,7 +66,7 @@ def _with_implicit_derivatives_jvp(residual_fn, primals, tangents):
     x_dot = treedef.unflatten(
         [
             type(leaf)._wrap(leaf_tangent_from_local(leaf, d))
-            if isinstance(leaf, AbstractGroup)
+            if isinstance(leaf, AbstractManifold)
             else d.astype(leaf.dtype)
             for leaf, d in zip(leaves, local)
         ]

@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 
 from .._autodiff import value_and_jacobian
-from .._base import AbstractGroup
+from .._base import AbstractManifold
 from .._manifold import manifold_leaves
 from ._losses import AbstractLoss
 from ._normal_equations import normal_equations
@@ -30,12 +30,12 @@ def _is_loss_leaf(node) -> bool:
 def residual_leaves(residuals) -> list:
     """The residual's array leaves, checked: floating arrays only, no group elements."""
     with_paths, _ = jax.tree_util.tree_flatten_with_path(
-        residuals, is_leaf=lambda node: isinstance(node, AbstractGroup)
+        residuals, is_leaf=lambda node: isinstance(node, AbstractManifold)
     )
     leaves = []
     for path, leaf in with_paths:
         where = f"residual_fn(x, args){jax.tree_util.keystr(path)}"
-        if isinstance(leaf, AbstractGroup):
+        if isinstance(leaf, AbstractManifold):
             raise TypeError(
                 f"{where} is a {type(leaf).__name__}; residuals must be arrays (for an error "
                 "between group elements return a tangent, e.g. `lieax.rminus(X, Y)` or `.log()`)."
