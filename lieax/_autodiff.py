@@ -77,22 +77,25 @@ def value_and_jacobian(f, argnums=0, *, has_aux=False, mode="auto"):
                 )
 
             flat = jax.vmap(pull)(jnp.eye(out_size, dtype=dtype))
+            rows = [flat[a:b] for a, b in _offsets(out_shapes)]
         else:
 
             def push(direction):
                 pieces = _split(direction, in_shapes)
                 seeds = [leaf_tangent_from_local(x, d) for x, d in zip(in_leaves, pieces)]
                 pushed = linear(*seeds)
-                return jnp.concatenate(
-                    [jnp.ravel(leaf_local_from_tangent(y, t)) for y, t in zip(out_leaves, pushed)]
-                )
+                # one array per output leaf, never concatenated: a leaf sharded along its rows
+                # (lieax.sharding.shard_residuals) keeps its sharding, and none is copied
+                return [
+                    jnp.ravel(leaf_local_from_tangent(y, t)) for y, t in zip(out_leaves, pushed)
+                ]
 
-            flat = jax.vmap(push, out_axes=1)(jnp.eye(in_size, dtype=dtype))
+            rows = jax.vmap(push, out_axes=1)(jnp.eye(in_size, dtype=dtype))
 
         jac = out_treedef.unflatten(
             [
-                _input_structure(flat[a:b], out_shape, in_shapes, flattened, single)
-                for (a, b), out_shape in zip(_offsets(out_shapes), out_shapes)
+                _input_structure(leaf_rows, out_shape, in_shapes, flattened, single)
+                for leaf_rows, out_shape in zip(rows, out_shapes)
             ]
         )
         return ((value, aux) if has_aux else value), jac

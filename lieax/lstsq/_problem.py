@@ -85,46 +85,43 @@ def cost(residuals, loss) -> jax.Array:
     return 0.5 * total
 
 
-def _row_weights(residuals, loss):
-    """$\\rho'(s_i)$ repeated over each block's rows, raveled like the residual; `None` if no leaf
-    has a loss."""
-    leaves = residual_leaves(residuals)
-    losses = losses_per_leaf(loss, residuals)
-    if all(leaf_loss is None for leaf_loss in losses):
+def _leaf_row_weights(leaf, leaf_loss):
+    """$\\rho'(s_i)$ repeated over each block's rows of one residual leaf, raveled like it;
+    `None` without a loss."""
+    if leaf_loss is None:
         return None
-    pieces = []
-    for leaf, leaf_loss in zip(leaves, losses):
-        if leaf_loss is None:
-            pieces.append(jnp.ones(leaf.size, dtype=leaf.dtype))
-            continue
-        weight = leaf_loss.weight(_block_squared_norms(leaf))
-        if leaf.ndim >= 2:
-            weight = jnp.broadcast_to(weight[..., None], leaf.shape)
-        pieces.append(jnp.ravel(weight).astype(leaf.dtype))
-    return jnp.concatenate(pieces)
+    weight = leaf_loss.weight(_block_squared_norms(leaf))
+    if leaf.ndim >= 2:
+        weight = jnp.broadcast_to(weight[..., None], leaf.shape)
+    return jnp.ravel(weight).astype(leaf.dtype)
 
 
 def linearize(residual_fn, x, args, loss):
     """At `x`: the cost, $H = J^\\top W J$ and $g = J^\\top W r$ in flattened tangent coordinates
     (layout of `lieax.flatten_tangents`), with $W$ the loss's weights. The Jacobian comes from
-    `lieax.value_and_jacobian` (forward mode when there are more residuals than unknowns)."""
+    `lieax.value_and_jacobian` (forward mode when there are more residuals than unknowns).
+
+    $H$ and $g$ are sums over the residual leaves, $\\sum_\\ell J_\\ell^\\top W_\\ell J_\\ell$, each
+    leaf's rows reduced on their own: no Jacobian of all residuals is ever assembled, so a leaf
+    split over devices along its rows (`lieax.sharding.shard_residuals`) is reduced where it
+    lies and summed by one all-reduce."""
     residuals, jac_tree = value_and_jacobian(lambda state: residual_fn(state, args))(x)
     leaves = residual_leaves(residuals)
+    losses = losses_per_leaf(loss, residuals)
     state_leaves, _ = manifold_leaves(x, "x")
     blocks = jax.tree_util.tree_leaves(jac_tree)
-    rows = []
-    for i, leaf in enumerate(leaves):
+    hessian = gradient = 0.0
+    for i, (leaf, leaf_loss) in enumerate(zip(leaves, losses)):
         row_blocks = blocks[i * len(state_leaves) : (i + 1) * len(state_leaves)]
-        rows.append(
-            jnp.concatenate(
-                [
-                    jnp.reshape(block, (leaf.size, math.prod(block.shape[leaf.ndim :])))
-                    for block in row_blocks
-                ],
-                axis=1,
-            )
+        jac = jnp.concatenate(
+            [
+                jnp.reshape(block, (leaf.size, math.prod(block.shape[leaf.ndim :])))
+                for block in row_blocks
+            ],
+            axis=1,
         )
-    jac = jnp.concatenate(rows, axis=0)
-    residual = jnp.concatenate([jnp.ravel(leaf) for leaf in leaves])
-    hessian, gradient = normal_equations(jac, residual, _row_weights(residuals, loss))
+        leaf_hessian, leaf_gradient = normal_equations(
+            jac, jnp.ravel(leaf), _leaf_row_weights(leaf, leaf_loss)
+        )
+        hessian, gradient = hessian + leaf_hessian, gradient + leaf_gradient
     return cost(residuals, loss), hessian, gradient
