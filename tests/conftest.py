@@ -1,0 +1,34 @@
+"""Test configuration: float64 by default (float32 tests pass `dtype=jnp.float32` explicitly).
+
+The group registry, regimes, operations and tolerances live in `registry.py` next to this file.
+"""
+
+import importlib.metadata
+import os
+
+# The checks run on tiny matrices, so the test suite's time is almost all XLA compilation of many
+# small jitted programs. Unoptimized code generation compiles them 3x faster (and gains nothing at
+# these sizes); multithreaded BLAS only adds overhead (scipy.linalg.logm is 30x slower with
+# threads on a loaded 2-core machine). Set LIEAX_TEST_XLA_OPTIMIZE=1 to test the optimized code
+# generation instead.
+for _variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_variable, "1")
+if os.environ.get("LIEAX_TEST_XLA_OPTIMIZE") != "1":
+    _flags = ["--xla_backend_optimization_level=0", "--xla_llvm_disable_expensive_passes=true"]
+    _jaxlib = tuple(int(part) for part in importlib.metadata.version("jaxlib").split(".")[:2])
+    if (0, 10) <= _jaxlib < (0, 11):  # an unknown flag aborts the process: only where tested
+        _flags.append("--xla_cpu_use_fusion_emitters=false")
+    os.environ["XLA_FLAGS"] = " ".join([os.environ.get("XLA_FLAGS", ""), *_flags]).strip()
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import pytest
+from registry import GROUP_IDS, GROUPS
+
+
+@pytest.fixture(params=GROUPS, ids=GROUP_IDS)
+def spec(request):
+    """Each registered group in turn."""
+    return request.param
