@@ -111,13 +111,13 @@ def flatten_tangents(tangents) -> jax.Array:
 def unflatten_tangents(tree, vector):
     """Tangents of `tree` from one vector laid out as `flatten_tangents` lays it out."""
     leaves, treedef = manifold_leaves(tree, "tree")
+    shapes = [leaf_tangent_shape(leaf) for leaf in leaves]
+    total = sum(math.prod(shape) for shape in shapes)
+    if vector.shape[-1] != total:
+        raise ValueError(f"unflatten_tangents: expected a vector of {total} entries, got {vector.shape}.")
     pieces, start = [], 0
-    for leaf in leaves:
-        shape = leaf_tangent_shape(leaf)
+    for shape in shapes:
         size = math.prod(shape)
         pieces.append(jnp.reshape(vector[start : start + size], shape))
         start += size
-    if start != vector.shape[-1]:
-        raise ValueError(f"unflatten_tangents: expected a vector of {start} entries, got {vector.shape}.")
     return treedef.unflatten(pieces)
-
