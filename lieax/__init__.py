@@ -8,6 +8,7 @@ from . import conventions
 from ._align import align
 from ._autodiff import grad, jacobian, value_and_grad, value_and_jacobian
 from ._base import AbstractGroup, AbstractManifold
+from ._pointcloud_io import read_pcd, read_ply, read_point_cloud, write_pcd, write_ply
 from ._implicit_function import (
     implicit_jacobian,
     inverse_function_jacobian,
@@ -28,7 +29,7 @@ from ._se3 import SE3
 from ._sim3 import Sim3
 from ._so2 import SO2
 from ._so3 import SO3
-from . import graph, lstsq, optax  # noqa: E402  (after the groups they build on)
+from . import graph, icp, lstsq, optax, sharding  # noqa: E402  (after the groups they build on)
 
 __version__ = "0.1.0"
 
@@ -46,6 +47,10 @@ __all__ = [
     "flatten_tangents",
     "grad",
     "graph",
+    "icp",
+    "read_pcd",
+    "read_ply",
+    "read_point_cloud",
     "implicit_jacobian",
     "inverse_function_jacobian",
     "jacobian",
@@ -53,8 +58,11 @@ __all__ = [
     "optax",
     "rminus",
     "rplus",
+    "sharding",
     "tangent_dim",
     "unflatten_tangents",
+    "write_pcd",
+    "write_ply",
     "value_and_grad",
     "value_and_jacobian",
     "with_implicit_derivative",

@@ -1,0 +1,383 @@
+"""ICP benchmark: `lieax.icp.point_to_plane` against Open3D's `registration_icp`.
+
+Same clouds, same target normals (Open3D's `estimate_normals` with a 6 mm radius and 30
+neighbours, handed to both), same `max_correspondence_distance` (1 cm), same iteration cap (30)
+and convergence criteria (1e-6), Open3D with its default threading; every variant is compiled and
+warmed up, then timed interleaved with the others (medians over rounds, wall clock). The lieax
+wall time is one call of `point_to_plane`, including the build of its index on the target (Open3D
+builds its k-d tree inside `registration_icp` too).
+
+Tables:
+1. One registration from the identity: the Stanford bunny at 2 mm (about 7k points) and in full
+   (about 40k), lieax in float32 and float64; errors against the reference transform and against
+   Open3D's result.
+2. 64 registrations of the 2 mm pair from 64 perturbed initial guesses: lieax in one `vmap`ped
+   call against Open3D in a Python loop.
+3. Growth with cloud size (both scans resampled to 10k, 40k and 160k points): compile time, the
+   cost of one iteration (matching by graph descent and the Gauss-Newton step), the one-off costs
+   (index build, exact check) and the totals.
+4. Matching exactness: the share of source points whose match is their exact nearest neighbour
+   (within the distance) for the graph descent alone and after the exact check, against SciPy's
+   cKDTree.
+
+Run `LIEAX_DATA_DIR=../shared/data python benchmarks/icp.py` (needs the `bench` extra: open3d,
+scipy; Open3D needs the system library libusb-1.0-0). `--quick` runs a small smoke version.
+"""
+
+import argparse
+import os
+import sys
+import time
+
+import jax
+
+jax.config.update("jax_enable_x64", True)  # float64 variants; float32 ones pass float32 arrays
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+import open3d as o3d  # noqa: E402
+from scipy.spatial import cKDTree  # noqa: E402
+
+from lieax import SE3, icp  # noqa: E402
+from lieax.icp import _neighbors, _registration  # noqa: E402
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+from _timing import (  # noqa: E402
+    format_ratio,
+    format_seconds,
+    machine_description,
+    markdown_table,
+    time_interleaved,
+)
+
+MAX_DISTANCE = 0.01
+MAX_ITERATIONS = 30
+NORMALS_RADIUS, NORMALS_NN = 0.006, 30
+
+
+# ---- inputs --------------------------------------------------------------------------------------
+
+
+def load_pair(data_dir, name):
+    data = np.load(os.path.join(data_dir, "clouds", "bunny_045_to_000", name))
+    return data["source"], data["target"], data["T_target_source"]
+
+
+def open3d_cloud(points, normals=None):
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array(points, np.float64)))
+    if normals is not None:
+        cloud.normals = o3d.utility.Vector3dVector(np.array(normals, np.float64))
+    return cloud
+
+
+def open3d_normals(target):
+    cloud = open3d_cloud(target)
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(NORMALS_RADIUS, NORMALS_NN))
+    return np.asarray(cloud.normals).copy()
+
+
+def resample(points, count, seed):
+    """`count` points on the scanned surface: a random subset, or (to grow) random points on the
+    segments between a point and one of its 8 nearest neighbours."""
+    rng = np.random.default_rng(seed)
+    if count <= len(points):
+        return points[rng.choice(len(points), count, replace=False)]
+    _, neighbours = cKDTree(points).query(points, 9)
+    base = rng.integers(0, len(points), count)
+    other = neighbours[base, rng.integers(1, 9, count)]
+    t = rng.uniform(0, 1, (count, 1))
+    return points[base] + t * (points[other] - points[base])
+
+
+def rotation_deg(a, b):
+    r = a[:3, :3].T @ b[:3, :3]
+    return float(np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1, 1))))
+
+
+def translation_gap(a, b):
+    return float(np.linalg.norm(a[:3, 3] - b[:3, 3]))
+
+
+# ---- runners -------------------------------------------------------------------------------------
+
+
+def open3d_runner(source, target, normals):
+    """`run(start=identity, cap=30)`: Open3D's point-to-plane ICP on these clouds."""
+    source_cloud, target_cloud = open3d_cloud(source), open3d_cloud(target, normals)
+    estimation = o3d.pipelines.registration.TransformationEstimationPointToPlane()
+
+    def run(start=np.eye(4), cap=MAX_ITERATIONS):
+        criteria = o3d.pipelines.registration.ICPConvergenceCriteria(1e-6, 1e-6, cap)
+        return o3d.pipelines.registration.registration_icp(
+            source_cloud, target_cloud, MAX_DISTANCE, start, estimation, criteria
+        )
+
+    return run
+
+
+def lieax_runner(source, target, normals, dtype):
+    s, t, n = (jnp.asarray(a, dtype) for a in (source, target, normals))
+
+    def run():
+        return icp.point_to_plane(s, t, target_normals=n, max_correspondence_distance=MAX_DISTANCE)
+
+    return run
+
+
+def open3d_iterations(run, full):
+    """Open3D does not report its iteration count: the smallest cap that reproduces the result."""
+    lo, hi = 1, MAX_ITERATIONS
+    while lo < hi:
+        mid = (lo + hi) // 2
+        capped = np.asarray(run(cap=mid).transformation)  # threaded sums: equal up to rounding
+        if np.allclose(capped, np.asarray(full.transformation), rtol=0, atol=1e-12):
+            hi = mid
+        else:
+            lo = mid + 1
+    return lo
+
+
+def timed(run):
+    """A zero-argument callable for `time_interleaved` (Open3D returns no JAX arrays)."""
+    return lambda: (run(), None)[1]
+
+
+# ---- 1. one registration ------------------------------------------------------------------------
+
+
+def single(data_dir, rounds):
+    rows, notes = [], []
+    for name, label in (("bunny_v0.002.npz", "bunny 2 mm"), ("bunny_full.npz", "bunny full")):
+        source, target, reference = load_pair(data_dir, name)
+        extent = float(np.max(np.ptp(target, axis=0)))
+        normals = open3d_normals(target)
+        o3d_run = open3d_runner(source, target, normals)
+        variants = {
+            "open3d": timed(o3d_run),
+            "lieax f32": lieax_runner(source, target, normals, jnp.float32),
+            "lieax f64": lieax_runner(source, target, normals, jnp.float64),
+        }
+        timings = time_interleaved(variants, rounds, warmup=1, min_sample_s=0)
+        full = o3d_run()
+        o3d_pose = np.asarray(full.transformation)
+        n_o3d = open3d_iterations(o3d_run, full)
+        row = [label, f"{len(source)}/{len(target)}", format_seconds(timings["open3d"].median)]
+        for key in ("lieax f32", "lieax f64"):
+            result = variants[key]()
+            pose = np.asarray(result.transform.as_matrix(), np.float64)
+            row += [
+                format_seconds(timings[key].median),
+                format_ratio(timings[key].median, timings["open3d"].median),
+            ]
+            notes.append(
+                f"{label}, {key}: compile {timings[key].compile_s:.1f} s; {int(result.iterations)} "
+                f"iterations (Open3D {n_o3d}), {result.status_name}; fitness {float(result.fitness):.5f} "
+                f"(Open3D {full.fitness:.5f}), RMSE {float(result.inlier_rmse) * 1e3:.4f} mm "
+                f"(Open3D {full.inlier_rmse * 1e3:.4f} mm); vs reference {rotation_deg(pose, reference):.3f}° "
+                f"/ {translation_gap(pose, reference) / extent:.2e} of the extent "
+                f"(Open3D {rotation_deg(o3d_pose, reference):.3f}° / "
+                f"{translation_gap(o3d_pose, reference) / extent:.2e}); vs Open3D "
+                f"{rotation_deg(pose, o3d_pose):.5f}° / {translation_gap(pose, o3d_pose) / extent:.1e} of the extent"
+            )
+        rows.append(row)
+    headers = ["cloud", "points (source/target)", "Open3D", "lieax f32", "ratio", "lieax f64", "ratio"]
+    return markdown_table(headers, rows), notes
+
+
+# ---- 2. a batch of initial guesses --------------------------------------------------------------
+
+
+def perturbations(count, seed, degrees=5.0, metres=0.005):
+    """`count` initial guesses around the identity: rotations of up to `degrees` about random
+    axes, translations of up to `metres` in random directions."""
+    rng = np.random.default_rng(seed)
+    axes = rng.normal(size=(count, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    directions = rng.normal(size=(count, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    omega = axes * np.deg2rad(rng.uniform(0, degrees, (count, 1)))
+    v = directions * rng.uniform(0, metres, (count, 1))
+    return SE3.exp(jnp.asarray(np.concatenate([v, omega], axis=1)))
+
+
+def batch(data_dir, count, rounds):
+    source, target, reference = load_pair(data_dir, "bunny_v0.002.npz")
+    normals = open3d_normals(target)
+    inits = perturbations(count, seed=7)
+    init_matrices = np.asarray(inits.as_matrix())
+    o3d_run = open3d_runner(source, target, normals)
+    s, t, n = (jnp.asarray(a, jnp.float32) for a in (source, target, normals))
+    params = inits.parameters().astype(jnp.float32)
+
+    @jax.jit
+    def batched(params):
+        return jax.vmap(
+            lambda p: icp.point_to_plane(
+                s, t, target_normals=n, max_correspondence_distance=MAX_DISTANCE, init=SE3(p)
+            )
+        )(params)
+
+    variants = {
+        "open3d loop": timed(lambda: [o3d_run(m) for m in init_matrices]),
+        "lieax vmap": lambda: batched(params),
+    }
+    timings = time_interleaved(variants, rounds, warmup=1, min_sample_s=0)
+    results = batched(params)
+    poses = np.asarray(results.transform.as_matrix(), np.float64)
+    o3d_poses = [np.asarray(o3d_run(m).transformation) for m in init_matrices]
+    gaps = [rotation_deg(p, q) for p, q in zip(poses, o3d_poses)]
+    reached = np.mean([rotation_deg(p, reference) < 0.5 for p in poses])
+    reached_o3d = np.mean([rotation_deg(p, reference) < 0.5 for p in o3d_poses])
+    rows = [[
+        f"{count} × bunny 2 mm",
+        format_seconds(timings["open3d loop"].median),
+        format_seconds(timings["lieax vmap"].median),
+        format_ratio(timings["open3d loop"].median, timings["lieax vmap"].median),
+        f"{timings['lieax vmap'].compile_s:.1f} s",
+    ]]  # fmt: skip
+    note = (
+        f"iterations per run {int(np.min(results.iterations))}–{int(np.max(results.iterations))} "
+        f"(the batch runs {int(np.max(results.iterations))}); statuses "
+        f"{dict(zip(*np.unique(results.status_name, return_counts=True)))}; within 0.5° of the "
+        f"reference: lieax {reached:.0%}, Open3D {reached_o3d:.0%}; lieax vs Open3D per run: "
+        f"median {np.median(gaps):.4f}°, max {np.max(gaps):.4f}°"
+    )
+    headers = ["registrations", "Open3D loop", "lieax vmap (f32)", "speed-up", "lieax compile"]
+    return markdown_table(headers, rows), note
+
+
+# ---- 3. growth with cloud size ------------------------------------------------------------------
+
+
+def growth(data_dir, sizes, rounds):
+    source, target, reference = load_pair(data_dir, "bunny_full.npz")
+    rows = []
+    for size in sizes:
+        s_np, t_np = resample(source, size, 1), resample(target, size, 2)
+        normals = open3d_normals(t_np)
+        o3d_run = open3d_runner(s_np, t_np, normals)
+        lieax_run = lieax_runner(s_np, t_np, normals, jnp.float32)
+        parts = component_timings(s_np, t_np, normals, reference, rounds)
+        timings = time_interleaved(
+            {"open3d": timed(o3d_run), "lieax": lieax_run}, rounds, warmup=1, min_sample_s=0
+        )
+        result = lieax_run()
+        full = o3d_run()
+        n_o3d = open3d_iterations(o3d_run, full)
+        rows.append([
+            f"{size // 1000}k",
+            f"{timings['lieax'].compile_s:.1f} s",
+            format_seconds(parts["build"]),
+            format_seconds(parts["match"]),
+            format_seconds(parts["step"]),
+            format_seconds(parts["exact"]),
+            f"{int(result.iterations)} / {n_o3d}",
+            format_seconds(timings["open3d"].median / n_o3d),
+            format_seconds(timings["lieax"].median),
+            format_seconds(timings["open3d"].median),
+            format_ratio(timings["lieax"].median, timings["open3d"].median),
+        ])  # fmt: skip
+    headers = [
+        "points", "lieax compile", "index build", "match / it.", "GN step / it.", "exact check",
+        "iterations (lieax / Open3D)", "Open3D / it.", "lieax total", "Open3D total", "ratio",
+    ]  # fmt: skip
+    return markdown_table(headers, rows)
+
+
+def component_timings(source, target, normals, reference, rounds):
+    """Seconds for the pieces of one registration, at the reference pose (float32): index build,
+    one matching step (descent warm-started from the converged matches), one Gauss-Newton step
+    (Jacobian rows through `lieax.jacobian`), and the exact check."""
+    s, t, n = (jnp.asarray(a, jnp.float32) for a in (source, target, normals))
+    params = SE3.from_matrix(jnp.asarray(reference, jnp.float32)).parameters()
+    build = jax.jit(_neighbors.build_index)
+    index = build(t)
+    queries = _registration.transform_points(params, s)
+    first = _neighbors.nearest(index, queries, radius=MAX_DISTANCE, exact=False)
+    track = jax.jit(lambda i, q, p: _neighbors.track(i, q, p, max_steps=_registration._DESCENT_STEPS)[:2])
+    slot, d2 = track(index, queries, first.slot)
+    inliers = d2 <= MAX_DISTANCE**2
+    normals_slots = n[index.order]
+    step = jax.jit(
+        lambda p, q, m, w: _registration._plane_step(p, s, index.points[m], normals_slots[m], w, lambda x: jnp.ones_like(x))
+    )
+    certified = _neighbors.certify(index, slot, d2, MAX_DISTANCE)
+    exact = jax.jit(
+        lambda i, q, sl, e, c: _neighbors.refine_uncertified(i, q, sl, e, c, MAX_DISTANCE, scan=False)
+    )
+    variants = {
+        "build": lambda: build(t),
+        "match": lambda: track(index, queries, slot),
+        "step": lambda: step(params, queries, slot, inliers),
+        "exact": lambda: exact(index, queries, slot, d2, certified),
+    }
+    timings = time_interleaved(variants, rounds, warmup=1)
+    return {key: timing.median for key, timing in timings.items()}
+
+
+# ---- 4. exactness -------------------------------------------------------------------------------
+
+
+def exactness(data_dir):
+    rows = []
+    for name, label in (("bunny_v0.002.npz", "bunny 2 mm"), ("bunny_full.npz", "bunny full")):
+        source, target, reference = load_pair(data_dir, name)
+        tree = cKDTree(target)
+        t = jnp.asarray(target, jnp.float32)
+        index = _neighbors.build_index(t)
+        for pose_label, pose in (("identity", np.eye(4)), ("reference", reference)):
+            moved = source @ pose[:3, :3].T + pose[:3, 3]
+            distance, nearest = tree.query(moved)
+            within = distance <= MAX_DISTANCE
+            q = jnp.asarray(moved, jnp.float32)
+            descent = _neighbors.nearest(index, q, radius=MAX_DISTANCE, exact=False)
+            certified = _neighbors.certify(index, descent.slot, descent.distance**2, MAX_DISTANCE)
+            checked = _neighbors.nearest(index, q, radius=MAX_DISTANCE)
+            share = lambda found: np.mean(  # noqa: E731
+                (np.asarray(found.index) == nearest)[within]
+                | np.isclose(np.asarray(found.distance), distance, rtol=1e-6, atol=0)[within]  # ties
+            )
+            rows.append([
+                label, pose_label, f"{within.mean():.1%}", f"{share(descent):.2%}",
+                f"{np.asarray(certified).mean():.1%}", f"{share(checked):.3%}",
+            ])  # fmt: skip
+    headers = [
+        "cloud", "pose", "pairs within 1 cm", "descent exact", "certified by coverage",
+        "after exact check",
+    ]  # fmt: skip
+    return markdown_table(headers, rows)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data-dir", default=os.environ.get("LIEAX_DATA_DIR"))
+    parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument("--batch", type=int, default=64)
+    parser.add_argument("--sizes", default="10000,40000,160000")
+    parser.add_argument("--quick", action="store_true", help="2 rounds, a batch of 8, 10k only")
+    parser.add_argument("--skip", default="", help="comma-separated sections to skip: single,batch,growth,exactness")
+    args = parser.parse_args()
+    if args.data_dir is None:
+        sys.exit("Set LIEAX_DATA_DIR (or --data-dir) to the shared data folder.")
+    if args.quick:
+        args.rounds, args.batch, args.sizes = 2, 8, "10000"
+    skip = set(filter(None, args.skip.split(",")))
+    print(f"# ICP benchmark\n\n{machine_description()}, Open3D {o3d.__version__}, "
+          f"{os.cpu_count()} CPUs; {time.strftime('%Y-%m-%d %H:%M')}\n")  # fmt: skip
+    if "single" not in skip:
+        table, notes = single(args.data_dir, args.rounds)
+        print("## One registration from the identity\n\n" + table + "\n")
+        print("\n".join(f"- {note}" for note in notes) + "\n")
+    if "batch" not in skip:
+        table, note = batch(args.data_dir, args.batch, max(2, args.rounds // 2))
+        print(f"## {args.batch} registrations from perturbed initial guesses\n\n{table}\n\n- {note}\n")
+    if "growth" not in skip:
+        sizes = [int(s) for s in args.sizes.split(",")]
+        print("## Growth with cloud size (float32, resampled full bunny)\n\n" + growth(args.data_dir, sizes, args.rounds) + "\n")
+    if "exactness" not in skip:
+        print("## Matching exactness (float32)\n\n" + exactness(args.data_dir) + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,486 @@
+"""Point-to-point and point-to-plane ICP: one jitted loop, fixed shapes, batchable with `vmap`.
+
+Conventions: `transform` is `T_target_source` (it maps source coordinates into the target frame),
+a `lieax.SE3` with right perturbation $T \\oplus \\xi = T\\,\\mathrm{Exp}(\\xi)$, tangent
+$\\xi = (v, \\omega)$ translation first (the README's "Conventions").
+
+The loop is Open3D's `registration_icp`: match every source point to its nearest target point,
+reject pairs farther than `max_correspondence_distance` (masked, never dropped), update the pose
+from the matched pairs, match again, and stop when neither the fitness nor the inlier RMSE changed
+by more than its tolerance, or after `max_iterations` updates.
+
+- Point-to-plane: one Gauss-Newton step per iteration on $r_i = n_i^\\top (T s_i - d_i)$, whose
+  $1 \\times 6$ Jacobian block $n_i^\\top [R, -R[s_i]_\\times]$ comes from `lieax.value_and_jacobian`
+  through `SE3`'s closed-form action rule; the $6 \\times 6$ normal equations are a reduction over
+  the cloud, weighted by the robust loss (iteratively reweighted least squares).
+- Point-to-point: the closed-form weighted Kabsch / Umeyama step (Arun et al. 1987), as Open3D.
+
+Matching inside the iterations is a warm-started descent on the target's neighbour graph (see
+`lieax.icp._neighbors`); when the stopping test passes, the matches are recomputed exactly (within
+`max_correspondence_distance`), and the loop resumes if that changed the fitness or RMSE, so the
+result is the one exact nearest neighbours give.
+"""
+
+import enum
+import functools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jax.scipy.linalg import cho_solve
+import numpy as np
+
+from .._autodiff import jacobian
+from .._se3 import SE3
+from .._so3 import quat_to_matrix
+from ..lstsq import Cauchy, GemanMcClure, Huber, Tukey
+from . import _neighbors
+from ._checks import check_cloud, check_mask, check_same_length
+from ._normals import estimate_normals
+
+MIN_CORRESPONDENCES = 6
+_IDENTITY = (1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+_DESCENT_STEPS = 4
+
+
+class Status(enum.IntEnum):
+    """Why an ICP run stopped; `ICPResult.status` holds the integer code (shared with
+    `lieax.lstsq.Status` where the meaning is the same).
+
+    - `CONVERGED`: fitness and inlier RMSE changed by less than their tolerances.
+    - `MAX_ITERATIONS`: `max_iterations` updates ran.
+    - `NONFINITE`: a valid source or target point (or target normal, or `init`) is NaN or
+      infinite; `transform` is `init` (the identity if `init` itself is not finite).
+    - `DEGENERATE`: fewer than 6 pairs lay within `max_correspondence_distance` (empty or
+      non-overlapping clouds), or the update was not finite; `transform` is the last pose reached.
+
+    `RUNNING` is the state inside the loop and is never returned.
+    """
+
+    RUNNING = -1
+    CONVERGED = 0
+    MAX_ITERATIONS = 1
+    NONFINITE = 3
+    DEGENERATE = 4
+
+
+class ICPError(RuntimeError):
+    """Raised outside `jit`/`vmap` (with `throw=True`) when a run ends `NONFINITE` or `DEGENERATE`."""
+
+
+class ICPResult(NamedTuple):
+    """The result of `point_to_point` / `point_to_plane`, a pytree (it batches under `vmap`).
+
+    **Fields:**
+    - `transform`: `SE3`, `T_target_source`, mapping source coordinates into the target frame.
+    - `fitness`: fraction of (valid) source points with a target point within
+      `max_correspondence_distance` at `transform`.
+    - `inlier_rmse`: root mean square distance of those pairs (0 when there are none).
+    - `iterations`: pose updates made.
+    - `status`: an integer `Status` code; `status_name` reads it.
+    - `correspondences`: `(n,)` int32, index of each source point's match in the target, `-1`
+      where it has none (rejected, or masked out).
+    """
+
+    transform: SE3
+    fitness: jax.Array
+    inlier_rmse: jax.Array
+    iterations: jax.Array
+    status: jax.Array
+    correspondences: jax.Array
+
+    @property
+    def status_name(self):
+        """The `Status` name, or an array of names for a batch (needs a concrete status)."""
+        codes = np.asarray(self.status)
+        names = np.vectorize(lambda code: Status(int(code)).name, otypes=[object])(codes)
+        return names.item() if names.ndim == 0 else names
+
+    @property
+    def converged(self) -> jax.Array:
+        return self.status == Status.CONVERGED
+
+
+class _State(NamedTuple):
+    params: jax.Array
+    slot: jax.Array
+    d2: jax.Array
+    fitness: jax.Array
+    rmse: jax.Array
+    iterations: jax.Array
+    status: jax.Array
+
+
+# ---- public entry points ------------------------------------------------------------------------
+
+
+def point_to_plane(
+    source,
+    target,
+    *,
+    max_correspondence_distance,
+    target_normals=None,
+    init=None,
+    max_iterations=30,
+    relative_fitness=1e-6,
+    relative_rmse=1e-6,
+    loss=None,
+    source_mask=None,
+    target_mask=None,
+    exact=True,
+    normals_k=30,
+    throw=True,
+) -> ICPResult:
+    """Point-to-plane ICP: minimize $\\sum_i \\rho\\big((n_i^\\top (T s_i - d_i))^2\\big)$ over
+    $T$ = `T_target_source`, re-matching $d_i$ (nearest target point of $T s_i$) every iteration.
+
+    **Arguments:**
+    - `source`, `target`: clouds of shape `(n, 3)` and `(m, 3)`, the same floating dtype.
+    - `max_correspondence_distance`: pairs farther apart are rejected (masked).
+    - `target_normals`: `(m, 3)` unit normals; default `estimate_normals(target, k=normals_k)`.
+    - `init`: initial `SE3` guess of `T_target_source` (default identity).
+    - `max_iterations`: most pose updates.
+    - `relative_fitness`, `relative_rmse`: stop when both changed by less than this in one
+      iteration (Open3D's criteria: absolute changes of the fitness and of the RMSE).
+    - `loss`: robust loss with a `weight(s)` method of the squared residual `s` (the
+      `lieax.lstsq` losses: `Huber`, `Cauchy`, `Tukey`, `GemanMcClure`); default least squares.
+    - `source_mask`, `target_mask`: `(n,)`, `(m,)` bools, False for padding (see `pad_clouds`).
+    - `exact`: verify the final matches with an exact search (see the module docstring).
+    - `normals_k`: neighbours for the default normals.
+    - `throw`: raise `ICPError` for a `NONFINITE` or `DEGENERATE` result when called outside
+      `jit`/`vmap` (inside, read `status`).
+
+    **Returns:** an `ICPResult`.
+    """
+    return _register(
+        "plane", source, target, max_correspondence_distance, target_normals, init,
+        max_iterations, relative_fitness, relative_rmse, loss, source_mask, target_mask,
+        exact, normals_k, throw,
+    )  # fmt: skip
+
+
+def point_to_point(
+    source,
+    target,
+    *,
+    max_correspondence_distance,
+    init=None,
+    max_iterations=30,
+    relative_fitness=1e-6,
+    relative_rmse=1e-6,
+    loss=None,
+    source_mask=None,
+    target_mask=None,
+    exact=True,
+    throw=True,
+) -> ICPResult:
+    """Point-to-point ICP: minimize $\\sum_i \\rho(\\|T s_i - d_i\\|^2)$ over $T$ = `T_target_source`
+    with the closed-form (weighted Kabsch) step each iteration, re-matching $d_i$.
+
+    Arguments as `point_to_plane` (no normals). **Returns:** an `ICPResult`.
+    """
+    return _register(
+        "point", source, target, max_correspondence_distance, None, init, max_iterations,
+        relative_fitness, relative_rmse, loss, source_mask, target_mask, exact, 0, throw,
+    )  # fmt: skip
+
+
+# ---- argument handling --------------------------------------------------------------------------
+
+
+def _register(
+    kind, source, target, max_distance, target_normals, init, max_iterations, relative_fitness,
+    relative_rmse, loss, source_mask, target_mask, exact, normals_k, throw,
+):  # fmt: skip
+    source = check_cloud(source, "source")
+    target = check_cloud(target, "target")
+    if source.dtype != target.dtype:
+        raise TypeError(f"source and target must share a dtype, got {source.dtype} and {target.dtype}.")
+    dtype = source.dtype
+    source_mask = check_mask(source_mask, source, "source_mask")
+    target_mask = check_mask(target_mask, target, "target_mask")
+    if kind == "plane":
+        if target_normals is None:
+            target_normals = estimate_normals(target, k=normals_k, mask=target_mask)
+        target_normals = check_cloud(target_normals, "target_normals")
+        check_same_length(target_normals, target, "target_normals", "target")
+    else:
+        target_normals = None
+    if init is not None and (not isinstance(init, SE3) or init.batch_shape != ()):
+        raise TypeError(f"init must be a single lieax.SE3 (use vmap for batches), got {init!r}.")
+    init_params = None if init is None else init.parameters()
+    if not isinstance(max_iterations, int) or max_iterations < 0:
+        raise ValueError(f"max_iterations must be a non-negative int, got {max_iterations!r}.")
+    if isinstance(max_distance, (int, float)) and not max_distance > 0:
+        raise ValueError(f"max_correspondence_distance must be positive, got {max_distance}.")
+
+    options = (kind, max_iterations, bool(exact), _DESCENT_STEPS)
+    dynamic_loss, static_loss = _split_loss(loss)
+    result = _solve(
+        source, source_mask, target, target_mask, target_normals, init_params, max_distance,
+        relative_fitness, relative_rmse, dynamic_loss, options=options, static_loss=static_loss,
+    )  # fmt: skip
+    if throw and not isinstance(result.status, jax.core.Tracer):
+        status = Status(int(result.status))
+        if status == Status.NONFINITE:
+            raise ICPError(
+                "ICP input is not finite: a valid source or target point, a target normal or init "
+                "holds NaN or inf (mask such rows out, or pass throw=False)."
+            )
+        if status == Status.DEGENERATE:
+            raise ICPError(
+                f"ICP is degenerate: fewer than {MIN_CORRESPONDENCES} source points had a target "
+                f"point within max_correspondence_distance={float(max_distance):g} (or the update "
+                "was singular); check the initial guess and the distance, or pass throw=False."
+            )
+    return result
+
+
+_KNOWN_LOSSES = (None, Huber, Cauchy, Tukey, GemanMcClure)
+
+
+def _split_loss(loss):
+    """`(dynamic, static)`: no loss and the `lieax.lstsq` losses become a traced `(kind, scale)`
+    pair, so that they share one compiled loop; any other object with a `weight(s)` method is
+    passed as a static argument (it must be hashable)."""
+    if loss is None:
+        return (0, 1.0), None
+    if type(loss) in _KNOWN_LOSSES:
+        return (_KNOWN_LOSSES.index(type(loss)), loss.scale), None
+    if not callable(getattr(loss, "weight", None)):
+        raise TypeError(f"loss must have a weight(s) method (see lieax.lstsq losses), got {loss!r}.")
+    return None, loss
+
+
+def _weights(loss, static_loss, squared):
+    """IRLS weights $\\rho'(s)$ of squared residuals."""
+    if static_loss is not None:
+        return static_loss.weight(squared)
+    kind, scale = loss
+    scale = jnp.asarray(scale).astype(squared.dtype)
+    branches = [lambda s, c: jnp.ones_like(s)] + [
+        (lambda cls: lambda s, c: cls(c).weight(s))(cls) for cls in _KNOWN_LOSSES[1:]
+    ]
+    return jax.lax.switch(kind, branches, squared, scale)
+
+
+# ---- the jitted loop ----------------------------------------------------------------------------
+
+
+@functools.partial(jax.jit, static_argnames=("options", "static_loss"))
+def _solve(
+    source, source_mask, target, target_mask, target_normals, init, max_distance,
+    relative_fitness, relative_rmse, loss, *, options, static_loss,
+):  # fmt: skip
+    kind, max_iterations, exact, steps = options
+    dtype = source.dtype
+    n = source.shape[0]
+    if target_normals is None:
+        target_normals = jnp.zeros_like(target)
+    target_normals = target_normals.astype(dtype)
+    init = jnp.asarray(_IDENTITY, dtype) if init is None else init.astype(dtype)
+    max_distance, relative_fitness, relative_rmse = (
+        jnp.asarray(x).astype(dtype) for x in (max_distance, relative_fitness, relative_rmse)
+    )
+
+    def weights(squared):
+        return _weights(loss, static_loss, squared)
+
+    finite = (
+        jnp.all(jnp.isfinite(source) | ~source_mask[:, None])
+        & jnp.all(jnp.isfinite(target) | ~target_mask[:, None])
+        & jnp.all(jnp.isfinite(target_normals) | ~target_mask[:, None])
+    )
+    init_finite = jnp.all(jnp.isfinite(init))
+    finite = finite & init_finite
+    source_mask = source_mask & jnp.all(jnp.isfinite(source), axis=1)
+    target_mask = target_mask & jnp.all(jnp.isfinite(target), axis=1)
+    source = jnp.where(source_mask[:, None], source, 0.0)
+    target = jnp.where(target_mask[:, None], target, 0.0)
+    init = jnp.where(init_finite, init, jnp.asarray(_IDENTITY, dtype))
+
+    # Visit the source in a space-filling-curve order: consecutive queries then read nearby rows of
+    # the target's tables (its slots are in k-d tree order), which keeps the gathers in cache.
+    order = _neighbors.spatial_order(source, source_mask)
+    source, source_mask = source[order], source_mask[order]
+    index = _neighbors.build_index(target, target_mask)
+    target_points = index.points
+    normals = jnp.where(index.valid[:, None], target_normals[index.order], 0.0)
+    n_valid = jnp.maximum(jnp.sum(source_mask), 1)
+    r2 = max_distance * max_distance
+
+    def moved(params):
+        return jnp.where(source_mask[:, None], transform_points(params, source), 0.0)
+
+    def statistics(d2):
+        inliers = (d2 <= r2) & source_mask
+        count = jnp.sum(inliers)
+        fitness = count / n_valid
+        rmse = jnp.sqrt(jnp.sum(jnp.where(inliers, d2, 0.0)) / jnp.maximum(count, 1))
+        return inliers, fitness.astype(dtype), jnp.where(count > 0, rmse, 0.0).astype(dtype)
+
+    def update(params, slot, inliers):
+        matched = target_points[slot]
+        if kind == "plane":
+            return _plane_step(params, source, matched, normals[slot], inliers, weights)
+        return _point_step(params, source, matched, inliers, weights)
+
+    def inner_step(state):
+        """Update the pose from the current matches, then match again. The very first pass (the
+        matches are not there yet) only matches, at `init`."""
+        first = state.iterations < 0
+        inliers, _, _ = statistics(state.d2)
+        enough = jnp.sum(inliers) >= MIN_CORRESPONDENCES
+        candidate = update(state.params, state.slot, inliers)
+        ok = enough & jnp.all(jnp.isfinite(candidate))
+        params = jnp.where(ok & ~first, candidate, state.params)
+        slot, d2, _ = _neighbors.track(
+            index, moved(params), state.slot, max_steps=steps, mask=source_mask
+        )
+        d2 = jnp.where(source_mask, d2, jnp.inf)
+        _, fitness, rmse = statistics(d2)
+        iterations = state.iterations + (ok | first).astype(jnp.int32)
+        converged = (jnp.abs(fitness - state.fitness) < relative_fitness) & (
+            jnp.abs(rmse - state.rmse) < relative_rmse
+        )
+        status = jnp.where(
+            ~(ok | first),
+            Status.DEGENERATE,
+            jnp.where(
+                converged & ~first,
+                Status.CONVERGED,
+                jnp.where(iterations >= max_iterations, Status.MAX_ITERATIONS, Status.RUNNING),
+            ),
+        )
+        keep = lambda new, old: jnp.where(ok | first, new, old)  # noqa: E731
+        return _State(
+            params, keep(slot, state.slot), keep(d2, state.d2), keep(fitness, state.fitness),
+            keep(rmse, state.rmse), iterations, status.astype(jnp.int32),
+        )  # fmt: skip
+
+    def running(state):
+        return state.status == Status.RUNNING
+
+    def verified(state):
+        """Iterate, then check the matches exactly; resume if that changed the statistics."""
+        state = jax.lax.while_loop(running, inner_step, state)
+        if not exact:
+            return state
+        queries = moved(state.params)
+        certified = _neighbors.certify(index, state.slot, state.d2, max_distance) | ~source_mask
+        slot, d2, _ = _neighbors.refine_uncertified(
+            index, queries, state.slot, state.d2, certified, max_distance, scan=False
+        )
+        d2 = jnp.where(source_mask, d2, jnp.inf)
+        _, fitness, rmse = statistics(d2)
+        same = (jnp.abs(fitness - state.fitness) < relative_fitness) & (
+            jnp.abs(rmse - state.rmse) < relative_rmse
+        )
+        resume = (state.status == Status.CONVERGED) & ~same & (state.iterations < max_iterations)
+        status = jnp.where(resume, Status.RUNNING, state.status).astype(jnp.int32)
+        checked = state.status != Status.DEGENERATE
+        keep = lambda new, old: jnp.where(checked, new, old)  # noqa: E731
+        return state._replace(
+            slot=keep(slot, state.slot), d2=keep(d2, state.d2), fitness=keep(fitness, state.fitness),
+            rmse=keep(rmse, state.rmse), status=status,
+        )  # fmt: skip
+
+    start_status = jnp.where(finite, Status.RUNNING, Status.NONFINITE).astype(jnp.int32)
+    minus_one = jnp.asarray(-1.0, dtype)
+    state = _State(
+        init, jnp.zeros((n,), jnp.int32), jnp.full((n,), jnp.inf, dtype), minus_one, minus_one,
+        jnp.asarray(-1, jnp.int32), start_status,
+    )  # fmt: skip
+    if exact:
+        state = jax.lax.while_loop(running, verified, state)
+    else:
+        state = verified(state)
+
+    inliers, _, _ = statistics(state.d2)
+    correspondences = jnp.where(inliers, index.order[state.slot], -1)
+    correspondences = jnp.zeros_like(correspondences).at[order].set(correspondences)
+    params = jnp.where(finite, state.params, init)
+    zero = jnp.zeros((), dtype)
+    return ICPResult(
+        SE3._wrap(params),
+        jnp.where(finite, state.fitness, zero),
+        jnp.where(finite, state.rmse, zero),
+        jnp.maximum(state.iterations, 0),
+        state.status,
+        correspondences,
+    )
+
+
+# ---- one update ---------------------------------------------------------------------------------
+
+
+def transform_points(params, points):
+    """$R p + t$ for SE3 parameters `(w, x, y, z, tx, ty, tz)` and points `(n, 3)`, written out per
+    coordinate. (XLA's CPU backend, jaxlib 0.10.2, miscompiles the broadcast-multiply-and-sum
+    form `sum(R * p[:, None, :], -1) + t` in float32 for 10923 to 65535 points: rows from 10922 on
+    come out shifted. `SE3.act` uses that form; the Jacobian of its rule is unaffected.)"""
+    rotation = quat_to_matrix(params[:4])
+    x, y, z = points[:, 0], points[:, 1], points[:, 2]
+    return jnp.stack(
+        [rotation[i, 0] * x + rotation[i, 1] * y + rotation[i, 2] * z + params[4 + i] for i in range(3)],
+        axis=1,
+    )
+
+
+def _plane_residual(pose, source_point, matched_point, normal):
+    """$r_i = n_i^\\top (T s_i - d_i)$ for one pair."""
+    return jnp.sum(normal * (pose @ source_point - matched_point))
+
+
+def _plane_step(params, source, matched, normals, inliers, loss_weights):
+    """One Gauss-Newton step $T \\leftarrow T \\oplus \\delta$, $\\delta = -(J^\\top W J)^{-1} J^\\top W r$.
+
+    Each row $J_i = n_i^\\top [R, -R[s_i]_\\times]$ is `lieax.jacobian` of the per-pair residual
+    through `SE3`'s closed-form action rule, under `vmap` (measured: 2.5x the cost of the row
+    written out by hand, 6x cheaper than one forward-mode pass over the whole cloud)."""
+    pose = SE3._wrap(params)
+    jac = jax.vmap(jacobian(_plane_residual), in_axes=(None, 0, 0, 0))(pose, source, matched, normals)
+    residuals = jnp.sum(normals * (transform_points(params, source) - matched), axis=-1)
+    weights = inliers.astype(params.dtype) * loss_weights(residuals * residuals)
+    weighted = jac * weights[:, None]
+    hessian = jnp.matmul(weighted.T, jac, precision=jax.lax.Precision.HIGHEST)
+    gradient = jnp.matmul(weighted.T, residuals, precision=jax.lax.Precision.HIGHEST)
+    step = -_solve_spd(hessian, gradient)
+    return pose.rplus(step).parameters()
+
+
+def _solve_spd(matrix, rhs):
+    """$(H + \\lambda I)^{-1} b$ by Cholesky, $\\lambda = 10\\,n\\,\\varepsilon \\max_i H_{ii}$: a ridge at
+    rounding level, so that a rank-deficient $H$ (a plane slides along itself) still gives a
+    finite step with no component along its null space. Fixed points ($b = 0$) are unchanged."""
+    n = matrix.shape[-1]
+    scale = jnp.max(jnp.abs(jnp.diagonal(matrix)))
+    ridge = 10 * n * jnp.finfo(matrix.dtype).eps * jnp.maximum(scale, jnp.finfo(matrix.dtype).tiny)
+    factor = jnp.linalg.cholesky(matrix + ridge * jnp.eye(n, dtype=matrix.dtype))
+    return cho_solve((factor, True), rhs)
+
+
+def _point_step(params, source, matched, inliers, loss_weights):
+    """The rigid motion that best maps the moved source onto its matches (weighted Kabsch),
+    composed on the left: $T \\leftarrow \\Delta T \\cdot T$."""
+    moved = transform_points(params, source)
+    weights = inliers.astype(params.dtype) * loss_weights(jnp.sum((moved - matched) ** 2, axis=-1))
+    total = jnp.maximum(jnp.sum(weights), jnp.finfo(params.dtype).tiny)
+    mean_moved = jnp.sum(weights[:, None] * moved, axis=0) / total
+    mean_matched = jnp.sum(weights[:, None] * matched, axis=0) / total
+    covariance = jnp.einsum(
+        "n,ni,nj->ij", weights, matched - mean_matched, moved - mean_moved,
+        precision=jax.lax.Precision.HIGHEST,
+    )  # fmt: skip
+    u, _, vt = jnp.linalg.svd(covariance)
+    sign = jnp.sign(jnp.linalg.det(u @ vt))
+    sign = jnp.where(sign == 0, 1.0, sign)
+    rotation = (u * jnp.array([1.0, 1.0, 0.0], params.dtype) + u * jnp.array([0.0, 0.0, 1.0], params.dtype) * sign) @ vt
+    translation = mean_matched - rotation @ mean_moved
+    delta = SE3.from_matrix(
+        jnp.concatenate(
+            [jnp.concatenate([rotation, translation[:, None]], axis=1), jnp.array([[0.0, 0.0, 0.0, 1.0]], params.dtype)],
+            axis=0,
+        )
+    )
+    return (delta @ SE3._wrap(params)).parameters()
