@@ -11,7 +11,7 @@ column contiguously, LZF-compressed).
 
 import os
 import struct
-from typing import NamedTuple, Optional
+from typing import NamedTuple
 
 import numpy as np
 
@@ -28,8 +28,8 @@ class PointCloudData(NamedTuple):
     """
 
     points: np.ndarray
-    normals: Optional[np.ndarray]
-    colors: Optional[np.ndarray]
+    normals: np.ndarray | None
+    colors: np.ndarray | None
     fields: dict
 
 
@@ -101,7 +101,11 @@ def _ply_header(stream, path):
         if words[0] == "end_header":
             break
         if words[0] == "format":
-            if len(words) < 2 or words[1] not in ("ascii", "binary_little_endian", "binary_big_endian"):
+            if len(words) < 2 or words[1] not in (
+                "ascii",
+                "binary_little_endian",
+                "binary_big_endian",
+            ):
                 raise ValueError(f"{path}: unsupported PLY format line {line.strip()!r}.")
             header["format"] = words[1]
         elif words[0] == "element":
@@ -111,7 +115,9 @@ def _ply_header(stream, path):
                 raise ValueError(f"{path}: PLY property before any element.")
             properties = elements[-1][1]["properties"]
             if words[1] == "list":
-                properties.append((words[4], ("list", _ply_type(words[2], path), _ply_type(words[3], path))))
+                properties.append(
+                    (words[4], ("list", _ply_type(words[2], path), _ply_type(words[3], path)))
+                )
             else:
                 properties.append((words[2], _ply_type(words[1], path)))
     if "format" not in header:
@@ -132,9 +138,13 @@ def _ply_ascii_element(stream, element, path):
         return None  # a list element (faces): skipped line by line
     if count and not lines[-1]:
         raise ValueError(f"{path}: the PLY file ends before its {count} rows.")
-    values = np.loadtxt(lines, dtype=np.float64, ndmin=2) if count else np.zeros((0, len(properties)))
+    values = (
+        np.loadtxt(lines, dtype=np.float64, ndmin=2) if count else np.zeros((0, len(properties)))
+    )
     if values.shape[1] < len(properties):
-        raise ValueError(f"{path}: PLY rows have {values.shape[1]} values, expected {len(properties)}.")
+        raise ValueError(
+            f"{path}: PLY rows have {values.shape[1]} values, expected {len(properties)}."
+        )
     return {name: values[:, i].astype(kind) for i, (name, kind) in enumerate(properties)}
 
 
@@ -235,7 +245,9 @@ def read_pcd(path, *, dtype=np.float64) -> PointCloudData:
             raise ValueError(f"{path}: unsupported PCD field {name!r} of type {kind}{size}.")
         kinds.append(_PCD_TYPES[(kind, size)])
     mode = header["DATA"][0].lower()
-    record = np.dtype([(f"f{i}", "<" + kind, (count,)) for i, (kind, count) in enumerate(zip(kinds, counts))])
+    record = np.dtype(
+        [(f"f{i}", "<" + kind, (count,)) for i, (kind, count) in enumerate(zip(kinds, counts))]
+    )
     if mode == "ascii":
         text = body.decode("ascii", "replace").split("\n")
         text = [row for row in text if row.strip()][:n]
@@ -362,7 +374,10 @@ def _read_numpy(path, key, dtype):
             f"{where} must have shape (n, 3) (points) or (n, 6) (points, normals), got {array.shape}."
         )
     normals = array[:, 3:6].astype(dtype) if array.shape[1] == 6 else None
-    fields = {name: array[:, i] for i, name in enumerate(("x", "y", "z", "nx", "ny", "nz")[: array.shape[1]])}
+    fields = {
+        name: array[:, i]
+        for i, name in enumerate(("x", "y", "z", "nx", "ny", "nz")[: array.shape[1]])
+    }
     return PointCloudData(array[:, :3].astype(dtype), normals, None, fields)
 
 
@@ -385,9 +400,13 @@ def _assemble(fields, path, dtype):
         colors = colors / 255.0
     elif "rgb" in fields or "rgba" in fields:
         packed = np.asarray(fields.get("rgb", fields.get("rgba")))
-        bits = packed.astype(np.float32).view(np.uint32) if packed.dtype.kind == "f" else packed.astype(np.uint32)
+        bits = (
+            packed.astype(np.float32).view(np.uint32)
+            if packed.dtype.kind == "f"
+            else packed.astype(np.uint32)
+        )
         colors = np.stack([(bits >> 16) & 255, (bits >> 8) & 255, bits & 255], axis=1) / 255.0
-    as_dtype = lambda a: None if a is None else a.astype(dtype)  # noqa: E731
+    as_dtype = lambda a: None if a is None else a.astype(dtype)
     return PointCloudData(as_dtype(points), as_dtype(normals), as_dtype(colors), dict(fields))
 
 

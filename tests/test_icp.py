@@ -32,7 +32,9 @@ def padded(points, rows=ROWS):
 def pose_error(estimate: SE3, truth: SE3):
     """(rotation error in radians, translation error) between two poses."""
     xi = np.asarray(truth.inverse().compose(estimate).log())
-    return float(np.linalg.norm(xi[3:])), float(np.linalg.norm(np.asarray(estimate.translation() - truth.translation())))
+    return float(np.linalg.norm(xi[3:])), float(
+        np.linalg.norm(np.asarray(estimate.translation() - truth.translation()))
+    )
 
 
 def brute_force(queries, target):
@@ -44,7 +46,7 @@ def brute_force(queries, target):
 def register(kind, source, target, normals=None, **kwargs):
     s, sm = padded(source)
     t, tm = padded(target)
-    options = dict(max_correspondence_distance=RADIUS, source_mask=sm, target_mask=tm)
+    options = {"max_correspondence_distance": RADIUS, "source_mask": sm, "target_mask": tm}
     options.update(kwargs)
     if kind == "plane":
         return icp.point_to_plane(s, t, target_normals=padded(normals)[0], **options)
@@ -70,8 +72,12 @@ def nearest_jit():
 
 def test_nearest_is_exact_within_radius(nearest_jit):
     rng = np.random.default_rng(0)
-    target = np.concatenate([rng.normal(size=(300, 3)) * [0.3, 0.3, 0.02], rng.uniform(-1, 1, (100, 3))])
-    queries = np.concatenate([target[:150] + rng.normal(size=(150, 3)) * 0.01, rng.uniform(-1.2, 1.2, (150, 3))])
+    target = np.concatenate(
+        [rng.normal(size=(300, 3)) * [0.3, 0.3, 0.02], rng.uniform(-1, 1, (100, 3))]
+    )
+    queries = np.concatenate(
+        [target[:150] + rng.normal(size=(150, 3)) * 0.01, rng.uniform(-1.2, 1.2, (150, 3))]
+    )
     mask = np.arange(len(target)) < 350  # the last 50 target points are padding
     found = nearest_jit(jnp.asarray(target), jnp.asarray(mask), jnp.asarray(queries))
     index, distance = brute_force(queries, target[:350])
@@ -165,15 +171,26 @@ def test_point_to_point_recovers_the_motion(pair):
     assert rotation < 1e-6 and translation < 1e-6
 
 
+def test_verbose_prints_every_iteration_from_the_compiled_loop(pair, capfd):
+    source, target, normals, _ = pair
+    result = register("plane", source, target, normals, verbose=True)
+    jax.effects_barrier()
+    lines = [line for line in capfd.readouterr().out.splitlines() if "icp iteration" in line]
+    assert len(lines) >= int(result.iterations)
+    assert f"fitness {float(result.fitness):.6f}" in lines[-1]
+
+
 def test_fitness_and_rmse_are_open3d_definitions(pair):
-    source, target, normals, truth = pair
+    source, target, normals, _ = pair
     noisy_target = np.asarray(target) + np.random.default_rng(4).normal(size=target.shape) * 0.01
     result = register("plane", source, noisy_target, normals, max_correspondence_distance=0.05)
     moved = np.asarray(result.transform @ source)
     index, distance = brute_force(moved, noisy_target)
     inliers = distance <= 0.05
     assert float(result.fitness) == pytest.approx(inliers.mean(), abs=1e-12)
-    assert float(result.inlier_rmse) == pytest.approx(np.sqrt(np.mean(distance[inliers] ** 2)), rel=1e-9)
+    assert float(result.inlier_rmse) == pytest.approx(
+        np.sqrt(np.mean(distance[inliers] ** 2)), rel=1e-9
+    )
     correspondences = np.asarray(result.correspondences)[: len(source)]
     np.testing.assert_array_equal(correspondences, np.where(inliers, index, -1))
 
@@ -207,7 +224,10 @@ def test_float32(pair):
 def test_batched_pairs_of_different_sizes(pair):
     """Pairs of 250, 320 and 380 points, padded, in one vmapped call compiled once; each result
     equals the unbatched one."""
-    pairs = [icp.synthetic_pair(n, rotation_deg=6.0, translation=0.05, seed=s) for n, s in ((250, 10), (320, 11), (380, 3))]
+    pairs = [
+        icp.synthetic_pair(n, rotation_deg=6.0, translation=0.05, seed=s)
+        for n, s in ((250, 10), (320, 11), (380, 3))
+    ]
     sources, source_mask = icp.pad_clouds([p[0] for p in pairs], ROWS)
     targets, target_mask = icp.pad_clouds([p[1] for p in pairs], ROWS)
     normals, _ = icp.pad_clouds([p[2] for p in pairs], ROWS)
@@ -216,7 +236,12 @@ def test_batched_pairs_of_different_sizes(pair):
     @jax.vmap
     def batch(s, sm, t, tm, n):
         return icp.point_to_plane(
-            s, t, target_normals=n, source_mask=sm, target_mask=tm, max_correspondence_distance=RADIUS
+            s,
+            t,
+            target_normals=n,
+            source_mask=sm,
+            target_mask=tm,
+            max_correspondence_distance=RADIUS,
         )
 
     results = batch(sources, source_mask, targets, target_mask, normals)
@@ -226,7 +251,9 @@ def test_batched_pairs_of_different_sizes(pair):
         assert rotation < 1e-6 and translation < 1e-6
         single = register("plane", source, target, normal)
         np.testing.assert_allclose(
-            np.asarray(results.transform[k].parameters()), np.asarray(single.transform.parameters()), atol=1e-9
+            np.asarray(results.transform[k].parameters()),
+            np.asarray(single.transform.parameters()),
+            atol=1e-9,
         )
         assert int(results.iterations[k]) == int(single.iterations)
     # Bad input inside vmap is a status, never an exception or a NaN transform.
@@ -244,13 +271,19 @@ def test_batched_pairs_of_different_sizes(pair):
 def test_bad_shapes_raise(pair):
     source, target, normals, _ = pair
     with pytest.raises(ValueError, match="empty"):
-        icp.point_to_plane(jnp.zeros((0, 3)), target, target_normals=normals, max_correspondence_distance=1.0)
+        icp.point_to_plane(
+            jnp.zeros((0, 3)), target, target_normals=normals, max_correspondence_distance=1.0
+        )
     with pytest.raises(ValueError, match=r"shape \(n, 3\)"):
         icp.point_to_point(source[:, :2], target, max_correspondence_distance=1.0)
     with pytest.raises(ValueError, match="target_normals must have the shape of target"):
-        icp.point_to_plane(source, target, target_normals=normals[:10], max_correspondence_distance=1.0)
+        icp.point_to_plane(
+            source, target, target_normals=normals[:10], max_correspondence_distance=1.0
+        )
     with pytest.raises(ValueError, match="source_mask"):
-        icp.point_to_point(source, target, source_mask=jnp.ones(3, bool), max_correspondence_distance=1.0)
+        icp.point_to_point(
+            source, target, source_mask=jnp.ones(3, bool), max_correspondence_distance=1.0
+        )
     with pytest.raises(TypeError, match="dtype"):
         icp.point_to_point(source.astype(jnp.float32), target, max_correspondence_distance=1.0)
 
@@ -264,7 +297,9 @@ def test_nonfinite_rows_raise_unless_masked(pair):
     init = SE3.exp(jnp.array([0.01, 0.0, 0.0, 0.0, 0.0, 0.02]))
     result = register("plane", broken, target, normals, throw=False, init=init)
     assert result.status_name == "NONFINITE"
-    np.testing.assert_array_equal(np.asarray(result.transform.parameters()), np.asarray(init.parameters()))
+    np.testing.assert_array_equal(
+        np.asarray(result.transform.parameters()), np.asarray(init.parameters())
+    )
     # The same row masked out is ignored.
     s, sm = padded(broken)
     t, tm = padded(target)
@@ -314,12 +349,14 @@ def test_stanford_bunny_reaches_the_reference():
     truth = SE3.from_matrix(jnp.asarray(data["T_target_source"]))
     extent = float(np.max(np.ptp(data["target"], axis=0)))
     normals = icp.estimate_normals(target, k=30, radius=0.006)
-    result = icp.point_to_plane(source, target, target_normals=normals, max_correspondence_distance=0.01)
+    result = icp.point_to_plane(
+        source, target, target_normals=normals, max_correspondence_distance=0.01
+    )
     rotation, translation = pose_error(result.transform, truth)
     assert result.status_name == "CONVERGED"
     assert np.rad2deg(rotation) < 0.5 and translation < 0.02 * extent
     o3d = pytest.importorskip("open3d")
-    vectors = lambda p: o3d.utility.Vector3dVector(np.array(p, np.float64))  # noqa: E731
+    vectors = lambda p: o3d.utility.Vector3dVector(np.array(p, np.float64))
     target_cloud = o3d.geometry.PointCloud(vectors(target))
     target_cloud.normals = vectors(normals)
     reference = o3d.pipelines.registration.registration_icp(

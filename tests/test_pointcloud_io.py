@@ -92,13 +92,17 @@ def test_ply_ascii_with_faces(tmp_path):
         "property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n"
         "0 0 0\n1 0 0\n0 1 0.5\n3 0 1 2\n"
     )
-    np.testing.assert_array_equal(pcio.read_point_cloud(path).points, [[0, 0, 0], [1, 0, 0], [0, 1, 0.5]])
+    np.testing.assert_array_equal(
+        pcio.read_point_cloud(path).points, [[0, 0, 0], [1, 0, 0], [0, 1, 0.5]]
+    )
 
 
 def test_pcd_organized_with_padding_and_packed_rgb(tmp_path):
     """HEIGHT > 1 (flattened, NaN kept), a `_` padding field, a float-packed rgb, a uint field."""
     rgb = np.array([0x00FF8000, 0x000000FF, 0, 0x00FFFFFF], np.uint32).view(np.float32)
-    record = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("_", "<f4"), ("rgb", "<f4"), ("ring", "<u2")])
+    record = np.dtype(
+        [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("_", "<f4"), ("rgb", "<f4"), ("ring", "<u2")]
+    )
     rows = np.zeros(4, record)
     rows["x"] = [1, 2, np.nan, 4]
     rows["y"] = [0.5, 0.25, np.nan, 1]
@@ -128,7 +132,9 @@ def test_numpy_arrays(tmp_path, cloud):
     np.testing.assert_array_equal(pcio.read_point_cloud(tmp_path / "points.npy").points, points)
     both = pcio.read_point_cloud(tmp_path / "both.npy")
     np.testing.assert_array_equal(both.normals, normals)
-    np.testing.assert_array_equal(pcio.read_point_cloud(tmp_path / "pair.npz", key="target").points, points + 1)
+    np.testing.assert_array_equal(
+        pcio.read_point_cloud(tmp_path / "pair.npz", key="target").points, points + 1
+    )
     np.testing.assert_array_equal(pcio.read_point_cloud(tmp_path / "points.npz").points, points)
     with pytest.raises(ValueError, match="pass key="):
         pcio.read_point_cloud(tmp_path / "pair.npz")

@@ -1,8 +1,7 @@
 """Padding clouds of different sizes into one array, so that pairs batch under `vmap`."""
 
-import numpy as np
-
 import jax.numpy as jnp
+import numpy as np
 
 
 def pad_clouds(clouds, size=None, *, dtype=None):

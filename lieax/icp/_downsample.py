@@ -2,8 +2,6 @@
 `voxel_down_sample`: voxels of side `voxel_size` anchored at the cloud's minimum minus half a
 voxel)."""
 
-import functools
-
 import jax
 import jax.numpy as jnp
 

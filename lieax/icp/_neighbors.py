@@ -3,32 +3,35 @@
 The index (`NeighborIndex`, a pytree of arrays) holds
 
 - a k-d tree with `2**L` leaves of equal size `B` (median splits on the widest axis), its points
-  stored leaf by leaf ("slots"), padding and masked points marked invalid;
-- the bounding box of each leaf, and for each leaf its `adjacent_leaves` nearest leaves (box to
-  box distance) with the distance `leaf_reach` beyond which no other leaf lies;
-- a graph of the `degree` nearest neighbours of every target point (exact up to a *coverage*
-  radius: every target point closer than `coverage[c]` to point `c` is in its neighbour list).
+  stored leaf by leaf ("slots"), padding and masked points marked invalid, and the bounding box
+  of every node;
+- a graph: each point's `degree` nearest neighbours, exact up to a *coverage* radius (every target
+  point closer than `coverage[c]` to point `c` is in its list), plus `links` longer edges to the
+  nearest point of each nearby leaf (range scans are sampled along lines; these edges cross them).
 
 A query follows three steps, all fixed-shape and batchable:
 
-1. **seed** (once): walk down the tree to the query's leaf and take the nearest point of that
-   leaf; or start from the previous match (ICP warm start);
-2. **descend** the graph: move to the best neighbour while that gets closer (a few steps once
-   warm-started);
+1. **seed**: a beam search down the tree (the `width` nearest leaves by box distance), or, for a
+   moving query (`track`), the better of its previous match and the representative point of the
+   leaf it now falls in;
+2. **descend** the graph: move to the best neighbour while that gets closer (one or two steps
+   once warm-started);
 3. **certify**: at the final point $c$ with distance $d$, any target point closer than
    $d' = \\min(d, r)$ lies within $d + d'$ of $c$, so if $d + d' \\le$ `coverage[c]` the match is
    exact (exact within the radius $r$: a query beyond $r$ is certified to have no neighbour
-   within $r$). Uncertified queries (a few percent: holes, borders, queries far from the cloud)
-   are compacted and searched exactly, leaf by leaf, over every leaf whose box is closer than
-   their current best.
+   within $r$). The uncertified queries (10-20% on range scans: holes, borders, queries far from
+   the surface) are gathered and searched in the 8 leaves a beam search keeps, which certifies
+   them by the beam's reach; what is still uncertified is searched leaf by leaf.
 
-`nearest(index, queries, radius=r)` runs all three and is exact within $r$; `descend` alone is the
-cheap step used inside the ICP iterations (measured exactness in `benchmarks/icp.py`).
+`nearest(index, queries, radius=r)` runs all three and is exact within $r$ (up to ties);
+`track` alone is the cheap step used inside the ICP iterations. Exactness and costs are measured
+in `benchmarks/icp.py`.
 
-Why not sort-based voxel grids or a per-query tree walk: on the CPU, XLA's float sorts, `top_k`
-and reductions fused with their producer are slow (tens of ns per element), so the build
-sorts packed 32-bit integer keys and selects the nearest candidates by rounds of integer minima,
-and every query step is a row gather plus a short elementwise loop.
+Why this shape: on the CPU, XLA's float and key-value sorts, `top_k`, and reductions fused with
+their producer are slow (tens of ns per element), and a per-query tree walk under `vmap` runs as
+many steps as the slowest query. So the build sorts packed 32-bit integer keys, selects nearest
+candidates with a compare-exchange network over packed keys, and every query step is a row
+gather plus short elementwise work.
 """
 
 import math
@@ -36,7 +39,6 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 _MAX_INDEX_BITS = 24  # 2**24 points at most: the kd sort packs an 8-bit key with the position
 
@@ -57,6 +59,8 @@ class NeighborIndex(NamedTuple):
     - `graph`: `(N, D)` int32, the slots of each point's nearest neighbours (itself excluded).
     - `graph_points`: `(N, 3, D)` their coordinates, coordinate-major (one row gather per step).
     - `coverage`: `(N,)` every valid target point closer than this to the slot is in its list.
+    - `representative`: `(leaves,)` int32, the slot of the valid point nearest to the centre of
+      each leaf's box (where `track` restarts a query that moved into that leaf).
     """
 
     points: jax.Array
@@ -69,6 +73,7 @@ class NeighborIndex(NamedTuple):
     graph: jax.Array
     graph_points: jax.Array
     coverage: jax.Array
+    representative: jax.Array
 
     @property
     def leaves(self) -> int:
@@ -80,7 +85,7 @@ class NeighborIndex(NamedTuple):
 
     @property
     def depth(self) -> int:
-        return int(round(math.log2(self.leaves)))
+        return round(math.log2(self.leaves))
 
     @property
     def degree(self) -> int:
@@ -113,7 +118,9 @@ def tree_shape(n: int, leaf_size: int) -> tuple:
 # ---- build --------------------------------------------------------------------------------------
 
 
-def build_index(points, mask=None, *, leaf_size=16, degree=8, links=4, adjacent_leaves=8) -> NeighborIndex:
+def build_index(
+    points, mask=None, *, leaf_size=16, degree=8, links=4, adjacent_leaves=16
+) -> NeighborIndex:
     """Prepare `points` (shape `(n, 3)`) for nearest-neighbour queries; runs under `jit` and `vmap`.
 
     **Arguments:**
@@ -156,11 +163,18 @@ def build_index(points, mask=None, *, leaf_size=16, degree=8, links=4, adjacent_
         node_lo, node_hi, leaf_lo, leaf_hi, depth, min(adjacent_leaves, leaves),
         own_leaf=jnp.arange(leaves, dtype=jnp.int32),
     )  # fmt: skip
-    graph, coverage = _neighbor_graph(points, valid, adjacent, jnp.sqrt(reach2), size, degree, links)
+    graph, coverage = _neighbor_graph(
+        points, valid, adjacent, jnp.sqrt(reach2), size, degree, links
+    )
     graph_points = jnp.transpose(points[graph], (0, 2, 1))
+    centre = 0.5 * (leaf_lo + leaf_hi)
+    d2 = jnp.where(block_valid[..., 0], jnp.sum((blocks - centre[:, None]) ** 2, axis=-1), jnp.inf)
+    representative = jnp.arange(leaves, dtype=jnp.int32) * size + jnp.argmin(d2, axis=1).astype(
+        jnp.int32
+    )
     return NeighborIndex(
         points, order, valid, split_axis, split_value, node_lo, node_hi, graph, graph_points,
-        coverage,
+        coverage, representative,
     )  # fmt: skip
 
 
@@ -186,7 +200,11 @@ def _build_tree(points, valid, depth, size):
     # One array, one gather per level: coordinates, original index (exact in float32 below 2**24),
     # and validity.
     packed = jnp.concatenate(
-        [points, jnp.arange(total, dtype=points.dtype)[:, None], valid[:, None].astype(points.dtype)],
+        [
+            points,
+            jnp.arange(total, dtype=points.dtype)[:, None],
+            valid[:, None].astype(points.dtype),
+        ],
         axis=1,
     )
 
@@ -197,8 +215,12 @@ def _build_tree(points, valid, depth, size):
         width = jnp.uint32(size) << (jnp.uint32(depth) - l)
         segment = slot // width
         ids = segment.astype(jnp.int32)
-        lo = jax.ops.segment_min(jnp.where(ok[:, None], coords, jnp.inf), ids, leaves, indices_are_sorted=True)
-        hi = jax.ops.segment_max(jnp.where(ok[:, None], coords, -jnp.inf), ids, leaves, indices_are_sorted=True)
+        lo = jax.ops.segment_min(
+            jnp.where(ok[:, None], coords, jnp.inf), ids, leaves, indices_are_sorted=True
+        )
+        hi = jax.ops.segment_max(
+            jnp.where(ok[:, None], coords, -jnp.inf), ids, leaves, indices_are_sorted=True
+        )
         extent = jnp.where(jnp.isfinite(hi - lo), hi - lo, 0.0)
         axis = jnp.where(
             (extent[:, 0] >= extent[:, 1]) & (extent[:, 0] >= extent[:, 2]),
@@ -222,7 +244,9 @@ def _build_tree(points, valid, depth, size):
         half = width // 2
         last_left = jnp.minimum(segment_ids * width + half - 1, total - 1).astype(jnp.int32)
         first_right = jnp.minimum(segment_ids * width + half, total - 1).astype(jnp.int32)
-        value = jnp.where(packed[first_right, 4] > 0, _pick_axis(packed[last_left, :3], axis), jnp.inf)
+        value = jnp.where(
+            packed[first_right, 4] > 0, _pick_axis(packed[last_left, :3], axis), jnp.inf
+        )
         count = jnp.uint32(1) << l
         node = jnp.where(segment_ids < count, count - 1 + segment_ids, nodes).astype(jnp.int32)
         split_axis = split_axis.at[node].set(axis, mode="drop")
@@ -327,9 +351,13 @@ def _neighbor_graph(points, valid, adjacent, reach, size, degree, links=0):
     slots = points.shape[0]
     own = points.reshape(leaves, size, 3)
     candidate_slots = adjacent[:, :, None] * size + jnp.arange(size, dtype=jnp.int32)
-    candidate_slots = jnp.where(adjacent[:, :, None] >= 0, candidate_slots, 0).reshape(leaves, count * size)
+    candidate_slots = jnp.where(adjacent[:, :, None] >= 0, candidate_slots, 0).reshape(
+        leaves, count * size
+    )
     present = jnp.repeat(adjacent >= 0, size, axis=1)
-    candidates = jnp.where(present[..., None], points[candidate_slots], jnp.inf)  # (leaves, count * size, 3)
+    candidates = jnp.where(
+        present[..., None], points[candidate_slots], jnp.inf
+    )  # (leaves, count * size, 3)
     d2 = sum(
         (own[:, :, None, axis] - candidates[:, None, :, axis]) ** 2 for axis in range(3)
     )  # (leaves, size, count * size)
@@ -350,7 +378,9 @@ def _neighbor_graph(points, valid, adjacent, reach, size, degree, links=0):
         per_leaf = d2.reshape(leaves, size, count, size)[:, :, 1 : links + 1]
         _, column = _min_and_argmin(per_leaf)  # (leaves, size, links)
         linked = adjacent[:, None, 1 : links + 1] * size + column
-        linked = jnp.where(adjacent[:, None, 1 : links + 1] >= 0, linked, graph.reshape(leaves, size, -1)[..., :1])
+        linked = jnp.where(
+            adjacent[:, None, 1 : links + 1] >= 0, linked, graph.reshape(leaves, size, -1)[..., :1]
+        )
         graph = jnp.concatenate([graph, linked.reshape(slots, links)], axis=1)
     return graph, jnp.where(valid, coverage, 0.0)
 
@@ -417,23 +447,26 @@ def seed(index: NeighborIndex, queries, *, width=2):
     m = queries.shape[0]
     slot = jnp.zeros((m,), jnp.int32)
     slot, d2, _ = _beam_match(
-        index, queries, slot, jnp.full((m,), jnp.inf, queries.dtype), jnp.inf, min(width, index.leaves)
+        index,
+        queries,
+        slot,
+        jnp.full((m,), jnp.inf, queries.dtype),
+        jnp.inf,
+        min(width, index.leaves),
     )
     return slot, d2
 
 
 def track(index: NeighborIndex, queries, previous, *, max_steps=16, mask=None):
-    """Follow moving queries: start each from the closer of its previous match and the nearest
-    point of the leaf it now falls in, then `descend`. (Descent alone can stay on the wrong sheet
-    of a surface after a large move: a neighbour graph is only locally connected.)
+    """Follow moving queries: start each from the closer of its previous match and the
+    representative point of the leaf it now falls in, then `descend`. (Descent alone can stay on
+    the wrong sheet of a surface after a large move: a neighbour graph is only locally connected.)
 
     **Returns:** `(slot, squared_distance, steps)`."""
-    leaf = locate_leaf(index, queries)
-    size = index.leaf_size
-    blocks = index.points.reshape(index.leaves, size, 3)[leaf]
-    seed_d2, column = _min_and_argmin(_squared_distances(blocks, queries))
+    candidate = index.representative[locate_leaf(index, queries)]
+    candidate_d2 = jnp.sum((index.points[candidate] - queries) ** 2, axis=-1)
     previous_d2 = jnp.sum((index.points[previous] - queries) ** 2, axis=-1)
-    start = jnp.where(seed_d2 < previous_d2, leaf * size + column, previous)
+    start = jnp.where(candidate_d2 < previous_d2, candidate, previous)
     return descend(index, queries, start, max_steps=max_steps, mask=mask)
 
 
@@ -482,7 +515,10 @@ def _scan_leaves(index: NeighborIndex, queries, slot, d2, radius, leaves_per_rou
     leaves, size = index.leaves, index.leaf_size
     blocks = index.points.reshape(leaves, size, 3)
     box2 = _box_distance_squared(
-        queries[:, None, :], queries[:, None, :], index.node_lo[None, leaves - 1 :], index.node_hi[None, leaves - 1 :]
+        queries[:, None, :],
+        queries[:, None, :],
+        index.node_lo[None, leaves - 1 :],
+        index.node_hi[None, leaves - 1 :],
     )  # (m, leaves)
     r2 = radius * radius
     rank = jnp.cumsum(box2 < jnp.minimum(d2, r2)[:, None], axis=1, dtype=jnp.int32)
@@ -506,7 +542,9 @@ def _scan_leaves(index: NeighborIndex, queries, slot, d2, radius, leaves_per_rou
         picks = jnp.minimum(lo, leaves - 1)
         present = (wanted <= total[:, None]) & (box2[rows, picks] < jnp.minimum(d2, r2)[:, None])
         candidates = blocks[picks].reshape(m, leaves_per_round * size, 3)
-        cd2 = jnp.where(jnp.repeat(present, size, axis=1), _squared_distances(candidates, queries), jnp.inf)
+        cd2 = jnp.where(
+            jnp.repeat(present, size, axis=1), _squared_distances(candidates, queries), jnp.inf
+        )
         best, column = _min_and_argmin(cd2)
         found = picks[jnp.arange(m), column // size] * size + column % size
         better = best < d2
@@ -527,22 +565,27 @@ def _beam_match(index: NeighborIndex, queries, slot, d2, radius, width):
     leaves, reach2 = _beam(index.node_lo, index.node_hi, queries, queries, index.depth, width)
     blocks = index.points.reshape(index.leaves, size, 3)[jnp.maximum(leaves, 0)]
     present = jnp.repeat(leaves >= 0, size, axis=1)
-    cd2 = jnp.where(present, _squared_distances(blocks.reshape(m, width * size, 3), queries), jnp.inf)
+    cd2 = jnp.where(
+        present, _squared_distances(blocks.reshape(m, width * size, 3), queries), jnp.inf
+    )
     best, column = _min_and_argmin(cd2)
-    found = jnp.take_along_axis(leaves, (column // size)[:, None], axis=1)[:, 0] * size + column % size
+    found = (
+        jnp.take_along_axis(leaves, (column // size)[:, None], axis=1)[:, 0] * size + column % size
+    )
     better = best < d2
     slot, d2 = jnp.where(better, found, slot), jnp.where(better, best, d2)
     return slot, d2, jnp.minimum(d2, radius * radius) <= reach2
 
 
 def _compacted(fn, queries, slot, d2, certified, chunk):
-    """Apply `fn(queries, slot, d2) -> (slot, d2, certified)` to the uncertified queries, `chunk`
-    at a time (gathered with `nonzero`, scattered back), until none is left."""
+    """Apply `fn(queries, slot, d2) -> (slot, d2, certified)` once to every uncertified query,
+    `chunk` at a time (gathered with `nonzero`, scattered back). A query `fn` leaves uncertified
+    is not visited again (a second pass would repeat the same search)."""
     n = queries.shape[0]
 
     def body(state):
-        slot, d2, certified, passes = state
-        (pending,) = jnp.nonzero(~certified, size=chunk, fill_value=n)
+        slot, d2, certified, visited = state
+        (pending,) = jnp.nonzero(~certified & ~visited, size=chunk, fill_value=n)
         present = pending < n
         rows = jnp.minimum(pending, n - 1)
         s, e, ok = fn(queries[rows], slot[rows], d2[rows])
@@ -550,18 +593,21 @@ def _compacted(fn, queries, slot, d2, certified, chunk):
         slot = slot.at[target].set(s, mode="drop")
         d2 = d2.at[target].set(e, mode="drop")
         certified = certified.at[target].set(ok, mode="drop")
-        return slot, d2, certified, passes + 1
+        visited = visited.at[target].set(True, mode="drop")
+        return slot, d2, certified, visited
 
     def keep_going(state):
-        return jnp.any(~state[2]) & (state[3] < (n + chunk - 1) // chunk)
+        return jnp.any(~state[2] & ~state[3])
 
     slot, d2, certified, _ = jax.lax.while_loop(
-        keep_going, body, (slot, d2, certified, jnp.asarray(0, jnp.int32))
+        keep_going, body, (slot, d2, certified, jnp.zeros_like(certified))
     )
     return slot, d2, certified
 
 
-def refine_uncertified(index: NeighborIndex, queries, slot, d2, certified, radius, *, width=8, scan=True):
+def refine_uncertified(
+    index: NeighborIndex, queries, slot, d2, certified, radius, *, width=8, scan=True
+):
     """Make every match exact within `radius`. Uncertified queries are gathered and searched in
     the `width` leaves of a beam search; with `scan`, the few that its reach cannot certify (more
     than `width` leaves within reach) are then searched leaf by leaf.
@@ -585,7 +631,9 @@ def refine_uncertified(index: NeighborIndex, queries, slot, d2, certified, radiu
     return _compacted(leaf_by_leaf, queries, slot, d2, certified, max(1, min(n, max(16, n // 64))))
 
 
-def nearest(index: NeighborIndex, queries, *, radius=jnp.inf, initial=None, mask=None, exact=True) -> Neighbors:
+def nearest(
+    index: NeighborIndex, queries, *, radius=jnp.inf, initial=None, mask=None, exact=True
+) -> Neighbors:
     """The nearest target point of every query, exact within `radius` when `exact`.
 
     **Arguments:**

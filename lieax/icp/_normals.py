@@ -8,7 +8,6 @@ two rows of $A - \\lambda I$), and flipped to face `viewpoint`.
 """
 
 import functools
-import math
 
 import jax
 import jax.numpy as jnp
@@ -35,7 +34,9 @@ def estimate_normals(points, *, k=30, radius=None, mask=None, viewpoint=(0.0, 0.
     if not isinstance(k, int) or k < 3:
         raise ValueError(f"k must be an int of at least 3, got {k!r}.")
     view = None if viewpoint is None else jnp.asarray(viewpoint, points.dtype)
-    return _estimate(points, mask, jnp.asarray(jnp.inf if radius is None else radius, points.dtype), view, k=k)
+    return _estimate(
+        points, mask, jnp.asarray(jnp.inf if radius is None else radius, points.dtype), view, k=k
+    )
 
 
 @functools.partial(jax.jit, static_argnames=("k",))
@@ -53,7 +54,6 @@ def _estimate(points, mask, radius, viewpoint, *, k):
     member_valid = jnp.concatenate([index.valid[:, None], index.valid[index.graph]], axis=1)
     inside = member_valid & (distance2 <= radius * radius)
     count = jnp.sum(inside, axis=1)
-    weights = inside.astype(points.dtype)
     offsets = jnp.where(inside[:, None, :], offsets, 0.0)
     mean = jnp.sum(offsets, axis=2) / jnp.maximum(count, 1)[:, None]
     centred = jnp.where(inside[:, None, :], offsets - mean[:, :, None], 0.0)

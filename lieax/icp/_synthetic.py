@@ -2,9 +2,8 @@
 corner (floor and two walls), a sphere and a capped cylinder, sampled uniformly by area, with
 exact normals, optional noise, and a pair of views related by a known rigid motion."""
 
-import numpy as np
-
 import jax.numpy as jnp
+import numpy as np
 
 from .._se3 import SE3
 
@@ -12,9 +11,30 @@ from .._se3 import SE3
 # a vertical cylinder standing on the floor. Together they constrain all six degrees of freedom of
 # point-to-plane ICP (planes alone would leave slides along their intersection line free).
 _PARTS = (
-    ("plane", (np.array([0.0, 0.0, 0.0]), np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]), 2.0, 2.0)),
-    ("plane", (np.array([-1.0, 0.0, 0.5]), np.array([0.0, 1.0, 0.0]), np.array([0.0, 0.0, 1.0]), 2.0, 1.0)),
-    ("plane", (np.array([0.0, -1.0, 0.5]), np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0]), 2.0, 1.0)),
+    (
+        "plane",
+        (np.array([0.0, 0.0, 0.0]), np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]), 2.0, 2.0),
+    ),
+    (
+        "plane",
+        (
+            np.array([-1.0, 0.0, 0.5]),
+            np.array([0.0, 1.0, 0.0]),
+            np.array([0.0, 0.0, 1.0]),
+            2.0,
+            1.0,
+        ),
+    ),
+    (
+        "plane",
+        (
+            np.array([0.0, -1.0, 0.5]),
+            np.array([1.0, 0.0, 0.0]),
+            np.array([0.0, 0.0, 1.0]),
+            2.0,
+            1.0,
+        ),
+    ),
     ("sphere", (np.array([0.35, 0.25, 0.3]), 0.3)),
     ("cylinder", (np.array([-0.45, 0.45, 0.0]), 0.2, 0.7)),
 )
@@ -89,7 +109,9 @@ def synthetic_pair(
     if same_samples:
         on_target = np.asarray(synthetic_scene(n, noise=0.0, seed=seed, dtype=dtype)[0])
         normals = np.asarray(target_normals)
-        on_target = on_target + noise * np.random.default_rng(seed + 2).normal(size=(n, 1)) * normals
+        on_target = (
+            on_target + noise * np.random.default_rng(seed + 2).normal(size=(n, 1)) * normals
+        )
     else:
         on_target = np.asarray(synthetic_scene(n, noise=noise, seed=seed + 1000, dtype=dtype)[0])
     axis = rng.normal(size=3)
