@@ -4,7 +4,7 @@ Conventions (right perturbation, wxyz quaternions, translation-first tangents) a
 README's "Conventions" section.
 """
 
-from . import conventions
+from . import conventions, retractions
 from ._align import align
 from ._autodiff import grad, jacobian, value_and_grad, value_and_jacobian
 from ._base import AbstractGroup, AbstractManifold
@@ -51,6 +51,7 @@ __all__ = [
     "read_pcd",
     "read_ply",
     "read_point_cloud",
+    "retractions",
     "implicit_jacobian",
     "inverse_function_jacobian",
     "jacobian",

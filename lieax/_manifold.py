@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 
 from ._base import AbstractManifold
+from .retractions import Retraction, exp
 
 
 def _is_leaf(x) -> bool:
@@ -64,26 +65,33 @@ def leaf_array(leaf):
     return leaf._params if isinstance(leaf, AbstractManifold) else leaf
 
 
-def rplus(tree, tangents):
-    """$X \\oplus \\delta$ leaf by leaf: `X.rplus(δ)` for groups, `x + δ` for arrays."""
+def check_retraction(retraction) -> Retraction:
+    """`retraction`, or a `TypeError` saying what is expected."""
+    if not isinstance(retraction, Retraction):
+        raise TypeError(
+            "retraction must be a lieax.retractions.Retraction (lieax.retractions.exp, cayley or "
+            f"first_order), got {retraction!r}."
+        )
+    return retraction
+
+
+def rplus(tree, tangents, retraction: Retraction = exp):
+    """$X \\oplus \\delta$ leaf by leaf: `X.rplus(δ)` for groups, `x + δ` for arrays; with a
+    `retraction` from `lieax.retractions` (e.g. `cayley`), $\\mathcal{R}_X(\\delta)$ instead."""
+    retract = check_retraction(retraction).rplus
     leaves, treedef = manifold_leaves(tree, "tree")
     deltas = treedef.flatten_up_to(tangents)
-    moved = [
-        leaf.rplus(d) if isinstance(leaf, AbstractManifold) else leaf + d
-        for leaf, d in zip(leaves, deltas)
-    ]
-    return treedef.unflatten(moved)
+    return treedef.unflatten([retract(leaf, d) for leaf, d in zip(leaves, deltas)])
 
 
-def rminus(tree_a, tree_b):
+def rminus(tree_a, tree_b, retraction: Retraction = exp):
     """$A \\ominus B$ leaf by leaf (`a.rminus(b)` for groups, `a - b` for arrays), so that
-    `rplus(tree_b, rminus(tree_a, tree_b)) == tree_a`."""
+    `rplus(tree_b, rminus(tree_a, tree_b)) == tree_a`; with a `retraction`, its inverse
+    $\\mathcal{R}_B^{-1}(A)$ (the same identity holds with the same `retraction` in `rplus`)."""
+    local = check_retraction(retraction).rminus
     leaves_a, treedef = manifold_leaves(tree_a, "tree_a")
     leaves_b = treedef.flatten_up_to(tree_b)
-    differences = [
-        a.rminus(b) if isinstance(a, AbstractManifold) else a - b for a, b in zip(leaves_a, leaves_b)
-    ]
-    return treedef.unflatten(differences)
+    return treedef.unflatten([local(a, b) for a, b in zip(leaves_a, leaves_b)])
 
 
 def zero_tangents(tree):
@@ -114,7 +122,9 @@ def unflatten_tangents(tree, vector):
     shapes = [leaf_tangent_shape(leaf) for leaf in leaves]
     total = sum(math.prod(shape) for shape in shapes)
     if vector.shape[-1] != total:
-        raise ValueError(f"unflatten_tangents: expected a vector of {total} entries, got {vector.shape}.")
+        raise ValueError(
+            f"unflatten_tangents: expected a vector of {total} entries, got {vector.shape}."
+        )
     pieces, start = [], 0
     for shape in shapes:
         size = math.prod(shape)

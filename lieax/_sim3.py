@@ -395,6 +395,8 @@ def _compose_jvp(primals, tangents):
         rotation2, t2, s2 = _components(params2)
         v1, omega1, sigma1 = xi1[..., :3], xi1[..., 3:6], xi1[..., 6:]
         v = rotate_back(rotation2, v1 + cross(omega1, t2) + sigma1 * t2) / s2
+        # a single T1 composed with a batch of T2: σ1 takes the batch shape of v and ω
+        sigma1 = jnp.broadcast_to(sigma1, (*v.shape[:-1], 1))
         moved = jnp.concatenate([v, rotate_back(rotation2, omega1), sigma1], axis=-1)
     xi = _rules.add(moved, xi2)
     return _rules.finish(params, None if xi is None else from_local(params, xi))

@@ -3,7 +3,10 @@
 Gradients are taken in right-local tangent coordinates (`lieax.grad`: group leaves get
 $\\nabla_\\delta f(X \\oplus \\delta)|_{\\delta = 0}$, shape `(*batch, tangent_dim)`), the optimizer
 turns them into tangent updates, and the updates are applied by retraction,
-$X \\leftarrow X \\oplus u$ (`x + u` for array leaves).
+$X \\leftarrow X \\oplus u$ (`x + u` for array leaves), or by another retraction from
+`lieax.retractions` (`retraction=lieax.retractions.cayley`: the gradients are the same, since every
+retraction's derivative at zero is the identity; pass the same one to `on_manifold` and
+`apply_updates`).
 
 The wrapped optimizer works in the chart centered at the current point: its `params` are the
 array leaves as they are and zero tangents for the group leaves, so transformations that read
@@ -33,7 +36,8 @@ import optax  # the optax package (absolute import; this module is lieax.optax)
 
 from ._autodiff import value_and_grad
 from ._base import AbstractManifold
-from ._manifold import manifold_leaves, rplus, zero_tangents
+from ._manifold import check_retraction, manifold_leaves, rplus, zero_tangents
+from .retractions import Retraction, exp
 
 __all__ = ["MinimizeResult", "apply_updates", "minimize", "on_manifold"]
 
@@ -51,24 +55,28 @@ def _chart_params(params):
     )
 
 
-def _from_chart(params, chart):
-    """The point of chart coordinates `chart` around `params`: $X \\oplus u$ for groups, `u` for
-    arrays (whose chart coordinates are their values)."""
+def _from_chart(params, chart, retraction: Retraction):
+    """The point of chart coordinates `chart` around `params`: $\\mathcal{R}_X(u)$ for groups
+    ($X \\oplus u$ by default), `u` for arrays (whose chart coordinates are their values)."""
     leaves, treedef = manifold_leaves(params, "params")
     coordinates = treedef.flatten_up_to(chart)
     return treedef.unflatten(
         [
-            leaf.rplus(u) if isinstance(leaf, AbstractManifold) else u
+            retraction.rplus(leaf, u) if isinstance(leaf, AbstractManifold) else u
             for leaf, u in zip(leaves, coordinates)
         ]
     )
 
 
-def on_manifold(optimizer: optax.GradientTransformation) -> optax.GradientTransformationExtraArgs:
+def on_manifold(
+    optimizer: optax.GradientTransformation, *, retraction: Retraction = exp
+) -> optax.GradientTransformationExtraArgs:
     """Wraps an optax optimizer to act on pytrees of lieax groups and arrays.
 
     **Arguments:**
     - `optimizer`: any `optax.GradientTransformation` (`optax.adam(1e-2)`, a `chain`, ...).
+    - `retraction`: the chart a `value_fn` is re-expressed in (`lieax.retractions.exp` by
+      default); use the same one in `apply_updates`.
 
     **Returns:** a `GradientTransformationExtraArgs` whose `init(params)` takes the manifold
     point and whose `update(grads, state, params, **extra)` takes tangent-space gradients (from
@@ -77,6 +85,7 @@ def on_manifold(optimizer: optax.GradientTransformation) -> optax.GradientTransf
     (it is re-expressed in the chart at `params`).
     """
     inner = optax.with_extra_args_support(optimizer)
+    retraction = check_retraction(retraction)
 
     def init(params):
         return inner.init(zero_tangents(params))
@@ -86,20 +95,23 @@ def on_manifold(optimizer: optax.GradientTransformation) -> optax.GradientTransf
             return inner.update(updates, state, None, **extra_args)
         if "value_fn" in extra_args:
             value_fn = extra_args["value_fn"]
-            extra_args["value_fn"] = lambda chart, **kw: value_fn(_from_chart(params, chart), **kw)
+            extra_args["value_fn"] = lambda chart, **kw: value_fn(
+                _from_chart(params, chart, retraction), **kw
+            )
         return inner.update(updates, state, _chart_params(params), **extra_args)
 
     return optax.GradientTransformationExtraArgs(init, update)
 
 
-def apply_updates(params, updates):
-    """$X \\oplus u$ leaf by leaf (the manifold version of `optax.apply_updates`); updates are cast
-    to each leaf's dtype."""
+def apply_updates(params, updates, *, retraction: Retraction = exp):
+    """$X \\oplus u$ leaf by leaf (the manifold version of `optax.apply_updates`), or
+    $\\mathcal{R}_X(u)$ with another `retraction` from `lieax.retractions`; updates are cast to
+    each leaf's dtype."""
     leaves, treedef = manifold_leaves(params, "params")
     cast = [
         jnp.asarray(u).astype(leaf.dtype) for leaf, u in zip(leaves, treedef.flatten_up_to(updates))
     ]
-    return rplus(params, treedef.unflatten(cast))
+    return rplus(params, treedef.unflatten(cast), retraction)
 
 
 class MinimizeResult(NamedTuple):
@@ -112,7 +124,13 @@ class MinimizeResult(NamedTuple):
 
 
 def minimize(
-    loss, x0, optimizer: optax.GradientTransformation, steps: int, args=None
+    loss,
+    x0,
+    optimizer: optax.GradientTransformation,
+    steps: int,
+    args=None,
+    *,
+    retraction: Retraction = exp,
 ) -> MinimizeResult:
     """Runs `steps` iterations of `optimizer` on `loss(x, args)` from `x0`, compiled as one
     `lax.scan`.
@@ -123,18 +141,20 @@ def minimize(
     - `optimizer`: an optax optimizer (wrapped with `on_manifold` here; do not wrap it yourself).
     - `steps`: the number of updates.
     - `args`: data passed to `loss`.
+    - `retraction`: how updates move the point (`lieax.retractions.exp` by default, or `cayley`,
+      `first_order`).
 
-    **Returns:** a `MinimizeResult`. Compiled once per `(loss, optimizer, steps)`: build the
-    optimizer once and reuse it to reuse the compilation.
+    **Returns:** a `MinimizeResult`. Compiled once per `(loss, optimizer, steps,
+    retraction)`: build the optimizer once and reuse it to reuse the compilation.
     """
     if not isinstance(steps, int) or steps < 0:
         raise ValueError(f"steps must be a non-negative int, got {steps!r}.")
-    return _minimize(loss, optimizer, steps, x0, args)
+    return _minimize(loss, optimizer, steps, check_retraction(retraction), x0, args)
 
 
-@jax.jit(static_argnums=(0, 1, 2))
-def _minimize(loss, optimizer, steps, x0, args):
-    transformation = on_manifold(optimizer)
+@jax.jit(static_argnums=(0, 1, 2, 3))
+def _minimize(loss, optimizer, steps, retraction, x0, args):
+    transformation = on_manifold(optimizer, retraction=retraction)
     value_and_gradient = value_and_grad(loss)
 
     def step(carry, _):
@@ -143,7 +163,7 @@ def _minimize(loss, optimizer, steps, x0, args):
         updates, state = transformation.update(
             gradient, state, x, value=value, grad=gradient, value_fn=lambda y: loss(y, args)
         )
-        return (apply_updates(x, updates), state), value
+        return (apply_updates(x, updates, retraction=retraction), state), value
 
     (x, _), history = jax.lax.scan(step, (x0, transformation.init(x0)), None, length=steps)
     final = loss(x, args)

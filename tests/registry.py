@@ -1,14 +1,15 @@
 """The one registry that drives the group tests.
 
-Adding a group (Sim3, S2, ...) means adding one `GroupSpec` to `GROUPS`: every test in
-`test_groups.py`, `test_jacobians.py` and `test_errors.py` is parametrized over it. Each spec
+Adding a group means adding one `GroupSpec` to `GROUPS`: every test in `test_groups.py`,
+`test_jacobians.py` and `test_errors.py` is parametrized over it (SO2, SE2, SO3, SE3 and Sim3 are
+registered; S2, a manifold and not a matrix group, has its own tests in `test_sim3_s2.py`). Each spec
 carries NumPy reference formulas (`hat`, `vee`, the action on points) written from the conventions in
 `shared/DESIGN.md`, independently of lieax, so that values and finite differences are computed on
 matrices: `X ⊕ δ = X · expm(hat(δ))` and `Y ⊖ X = vee(logm(X⁻¹ Y))`.
 
-Also here: the regimes of test points (identity, 1e-9 from it, pure translation, ~1e-4 rad, near π,
-random), the operations checked for every group (with their matrix formulas), and the documented
-tolerances (float64 finite differences, float32 accuracy).
+Also here: the regimes of test points (identity, 1e-9 from it, pure translation, translation and
+scale (Sim3), ~1e-4 rad, near π, random), the operations checked for every group (with their
+matrix formulas), and the documented tolerances (float64 finite differences, float32 accuracy).
 """
 
 import dataclasses
@@ -18,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
-from lieax import SE2, SE3, SO2, SO3
+from lieax import SE2, SE3, SO2, SO3, Sim3
 
 # ---- NumPy reference formulas ------------------------------------------------------------------
 
@@ -46,6 +47,7 @@ class GroupSpec:
     hat: Callable  # tangent (d,) -> Lie algebra matrix (n, n)
     vee: Callable  # Lie algebra matrix -> tangent
     rotation_parameters: int  # leading parameters that `normalize` rescales to unit norm
+    scale_index: tuple = ()  # tangent coordinate of the log-scale σ (Sim3), empty for rigid groups
 
     def __repr__(self):
         return self.name
@@ -66,6 +68,20 @@ class GroupSpec:
     def has_translation(self) -> bool:
         return len(self.translation_index) > 0
 
+    @property
+    def has_scale(self) -> bool:
+        return len(self.scale_index) > 0
+
+    def rotation_block(self, matrix):
+        """The rotation in a (batch of) matrices: the linear block divided by its scale
+        `det^(1/k)` for groups with a scale (so that `R Rᵀ = I` and `det R = 1` can be checked
+        for every group)."""
+        k = self.space
+        linear = np.asarray(matrix)[..., :k, :k]
+        if self.has_scale:
+            linear = linear / (np.linalg.det(linear) ** (1.0 / k))[..., None, None]
+        return linear
+
     def expm(self, xi):
         return scipy.linalg.expm(self.hat(xi))
 
@@ -77,12 +93,16 @@ class GroupSpec:
         `expm([L, I; 0, 0])` and `L` projected on the skew-symmetric matrices: `scipy.linalg.logm`
         is ill-conditioned near angle π (condition number ~θ / sin θ ≈ 3e6 at π - 1e-6): it loses
         ~4e-10 on the translation and in the symmetric part of `L`, which finite differences with
-        a 1e-7 step turn into errors of 1e-3. This form is accurate to ~1e-15 there."""
+        a 1e-7 step turn into errors of 1e-3. This form is accurate to ~1e-15 there. With a scale
+        (Sim3, `A = e^σ R`), `σ = log(det A) / 3` (never from the symmetric part of `logm(A)`,
+        which is the inaccurate part) and `L = σ I + skew(logm(R))`, `R = A e^(-σ)`."""
         if not self.has_translation:
             return self.vee(np.real(scipy.linalg.logm(matrix)))
         k = self.space
-        linear = np.real(scipy.linalg.logm(matrix[:k, :k]))
+        sigma = np.log(np.linalg.det(matrix[:k, :k])) / k if self.has_scale else 0.0
+        linear = np.real(scipy.linalg.logm(matrix[:k, :k] * np.exp(-sigma)))
         linear = 0.5 * (linear - linear.T)  # logm's symmetric part is rounding error, ~1e-10 near π
+        linear = linear + sigma * np.eye(k)
         augmented = np.zeros((2 * k, 2 * k))
         augmented[:k, :k], augmented[:k, k:] = linear, np.eye(k)
         phi = scipy.linalg.expm(augmented)[:k, k:]
@@ -124,6 +144,19 @@ def _se3_vee(m):
     return np.concatenate([m[:3, 3], unskew3(m[:3, :3])])
 
 
+def _sim3_hat(xi):
+    """`[[ω]× + σI, v; 0, 0]` for the tangent `(v, ω, σ)`."""
+    m = np.zeros((4, 4))
+    m[:3, :3] = skew3(xi[3:6]) + xi[6] * np.eye(3)
+    m[:3, 3] = xi[:3]
+    return m
+
+
+def _sim3_vee(m):
+    """`(v, ω, σ)`: ω from the skew part of the linear block, σ a third of its trace."""
+    return np.concatenate([m[:3, 3], unskew3(m[:3, :3]), [np.trace(m[:3, :3]) / 3.0]])
+
+
 GROUPS = [
     GroupSpec(
         "SO2",
@@ -137,6 +170,16 @@ GROUPS = [
     GroupSpec("SE2", SE2, (2,), (0, 1), hat=_se2_hat, vee=_se2_vee, rotation_parameters=2),
     GroupSpec("SO3", SO3, (0, 1, 2), (), hat=skew3, vee=unskew3, rotation_parameters=4),
     GroupSpec("SE3", SE3, (3, 4, 5), (0, 1, 2), hat=_se3_hat, vee=_se3_vee, rotation_parameters=4),
+    GroupSpec(
+        "Sim3",
+        Sim3,
+        (3, 4, 5),
+        (0, 1, 2),
+        hat=_sim3_hat,
+        vee=_sim3_vee,
+        rotation_parameters=4,
+        scale_index=(6,),
+    ),
 ]
 GROUP_IDS = [spec.name for spec in GROUPS]
 
@@ -155,17 +198,41 @@ REGIMES = (
     "random_2",
     "random_3",
     "random_large",
+    "scale",  # groups with a scale only: translation and log-scale, no rotation
 )
 
 
 def regimes_for(spec: GroupSpec) -> tuple:
-    """The regimes that make sense for a group (pure translations only for SE groups)."""
-    return tuple(r for r in REGIMES if spec.has_translation or r != "translation")
+    """The regimes that make sense for a group (pure translations only for groups with a
+    translation, translation and scale only for groups with a scale)."""
+    return tuple(
+        r
+        for r in REGIMES
+        if (spec.has_translation or r != "translation") and (spec.has_scale or r != "scale")
+    )
 
 
 def _rotation_tangent(spec: GroupSpec, rng, angle: float):
     axis = rng.normal(size=len(spec.rotation_index))
     return angle * axis / np.linalg.norm(axis)
+
+
+# The log-scale σ of each regime (groups with a scale; drawn after the other coordinates, so that
+# the other groups' test points do not depend on it). They cover each branch of Sim3's W
+# coefficients: σ = θ = 0 (pure translation), |σ| > 1 with θ = 0 ("scale"), the joint series
+# (σ and θ ~1e-4), θ² > σ² (near π, random_large) and σ² > θ² > 1 (some random ones).
+def _log_scale(regime: str, rng) -> float:
+    if regime == "translation":
+        return 0.0
+    if regime == "scale":
+        return 1.3 * rng.choice([-1.0, 1.0])
+    if regime == "small_rotation":
+        return 1e-4 * rng.uniform(-1.0, 1.0)
+    if regime == "near_pi":
+        return 0.4
+    if regime == "random_large":
+        return 2.0 * rng.choice([-1.0, 1.0])
+    return rng.uniform(-1.5, 1.5)
 
 
 def regime_tangent(spec: GroupSpec, regime: str, seed: int = 0) -> np.ndarray:
@@ -189,8 +256,10 @@ def regime_tangent(spec: GroupSpec, regime: str, seed: int = 0) -> np.ndarray:
     elif regime == "random_large":  # large translation, angle close to (but not near) π
         xi[trans] = 5.0 * translation
         xi[rot] = _rotation_tangent(spec, rng, rng.uniform(2.5, 3.0))
-    elif regime != "translation":
+    elif regime not in ("translation", "scale"):
         raise ValueError(regime)
+    if spec.has_scale:
+        xi[list(spec.scale_index)] = _log_scale(regime, rng)
     return xi
 
 
@@ -200,12 +269,15 @@ def regime_tangents(spec: GroupSpec, seed: int = 0) -> np.ndarray:
 
 
 def random_tangents(spec: GroupSpec, count: int, seed: int, max_angle: float = 3.0) -> np.ndarray:
-    """Random tangents with rotation angles uniform in [0, max_angle) and normal translations."""
+    """Random tangents with rotation angles uniform in [0, max_angle), normal translations and
+    log-scales uniform in [-1, 1]."""
     rng = np.random.default_rng([seed, 1000, *map(ord, spec.name)])
     xi = np.zeros((count, spec.dim))
     for i in range(count):
         xi[i, list(spec.translation_index)] = rng.normal(size=len(spec.translation_index))
         xi[i, list(spec.rotation_index)] = _rotation_tangent(spec, rng, rng.uniform(0, max_angle))
+        if spec.has_scale:
+            xi[i, list(spec.scale_index)] = rng.uniform(-1.0, 1.0)
     return xi
 
 
@@ -350,7 +422,10 @@ VALUE_ATOL_F64 = 1e-10
 # a sweep over 64 random elements (angles up to 3 rad, translations ~1) gave at most
 # 3.5e-7 / 5.4e-7. interpolate's Jacobian with respect to its first argument is a small
 # difference of terms of the size of the translation (SE3, 2.5 rad, |t| ~ 4: |J| = 0.27 from terms
-# ~4), hence its larger float32 error there. The tolerances leave a margin of 5x or more.
+# ~4), hence its larger float32 error there. Sim3 on its regime batch (scales up to e^±2,
+# translations up to ~7 times the scale): rminus 4.0e-7 / 9.7e-7, interpolate 3.3e-7 / 1.9e-6, the
+# others at most 2.9e-7 / 3.5e-7. The tolerances leave a margin of 4x or more (5x for the rigid
+# groups).
 FLOAT32_TOLERANCE = {
     # operation: (value, Jacobian)
     "exp": (2e-6, 2e-6),

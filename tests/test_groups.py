@@ -12,7 +12,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-import scipy.linalg
 from registry import (
     GROUPS,
     SE2,
@@ -20,6 +19,7 @@ from registry import (
     SO2,
     SO3,
     VALUE_ATOL_F64,
+    Sim3,
     random_points,
     random_tangents,
     regime_tangents,
@@ -126,6 +126,31 @@ def identities(group_name):
     return out, {"xis": xis, "etas": etas, "zetas": zetas, "points": points}
 
 
+def _w_by_quadrature(sigma, omega):
+    """`W = ∫₀¹ e^(στ) R(τω) dτ` by 40-point Gauss-Legendre quadrature (SciPy's rotation vectors):
+    the translation block of Sim3's Exp, computed without `expm` or `logm`."""
+    nodes, weights = np.polynomial.legendre.leggauss(40)
+    tau, weights = 0.5 * (nodes + 1.0), 0.5 * weights
+    rotations = Rotation.from_rotvec(tau[:, None] * omega).as_matrix()
+    return np.einsum("k,kij->ij", weights * np.exp(sigma * tau), rotations)
+
+
+def test_reference_matrix_functions(spec):
+    """The NumPy references the tests rely on: `logm(expm(ξ)) = ξ` on every regime and random
+    tangent (angles below π), and for a group with a scale, `expm` against the closed form
+    `[e^σ R(ω), W v; 0, 1]` with `W` by quadrature."""
+    _, inputs = identities(spec.name)
+    for xi in inputs["xis"]:
+        matrix = spec.expm(xi)
+        np.testing.assert_allclose(spec.logm(matrix), xi, rtol=0, atol=1e-12)
+        if spec.has_scale:
+            v, omega, sigma = xi[:3], xi[3:6], xi[6]
+            expected = np.eye(4)
+            expected[:3, :3] = np.exp(sigma) * Rotation.from_rotvec(omega).as_matrix()
+            expected[:3, 3] = _w_by_quadrature(sigma, omega) @ v
+            np.testing.assert_allclose(matrix, expected, rtol=0, atol=1e-13 * np.abs(matrix).max())
+
+
 def test_hat_and_vee(spec):
     out, inputs = identities(spec.name)
     expected = np.stack([spec.hat(xi) for xi in inputs["xis"]])
@@ -135,7 +160,7 @@ def test_hat_and_vee(spec):
 
 def test_exp_matches_expm_of_hat(spec):
     out, inputs = identities(spec.name)
-    expected = np.stack([scipy.linalg.expm(spec.hat(xi)) for xi in inputs["xis"]])
+    expected = np.stack([spec.expm(xi) for xi in inputs["xis"]])
     assert_close(out["x"], expected, f"{spec}.exp")
 
 
@@ -197,7 +222,7 @@ def test_between_rplus_rminus(spec):
     out, inputs = identities(spec.name)
     x, y = out["x"], out["y"]
     assert_close(out["between"], np.linalg.inv(x) @ y, f"{spec}.between")
-    expected_rplus = y @ np.stack([scipy.linalg.expm(spec.hat(xi)) for xi in inputs["xis"]])
+    expected_rplus = y @ np.stack([spec.expm(xi) for xi in inputs["xis"]])
     assert_close(out["rplus"], expected_rplus, f"{spec}.rplus")
     expected_rminus = np.stack([spec.logm(np.linalg.inv(b) @ a) for a, b in zip(x, y)])
     assert_close(out["rminus"], expected_rminus, f"{spec}.rminus = Log(Y⁻¹ X)")
@@ -211,8 +236,8 @@ def test_interpolate(spec):
     assert_close(out["interpolate_0"], x, f"{spec}.interpolate(t=0)")
     assert_close(out["interpolate_1"], y, f"{spec}.interpolate(t=1)", atol=1e-9)
     expected = np.stack(
-        [a @ scipy.linalg.expm(0.5 * scipy.linalg.logm(np.linalg.inv(a) @ b)) for a, b in zip(x, y)]
-    ).real
+        [a @ spec.expm(0.5 * spec.logm(np.linalg.inv(a) @ b)) for a, b in zip(x, y)]
+    )
     assert_close(out["interpolate_half"], expected, f"{spec}.interpolate(t=0.5)")
     assert_close(out["interpolate_half"], out["interpolate_half_reversed"], f"{spec} midpoint")
 
@@ -243,7 +268,7 @@ def test_from_matrix_projects_onto_the_group(spec):
     k = spec.space
     noisy[..., :k, :k] += 1e-3 * rng.normal(size=noisy[..., :k, :k].shape)
     projected = np.asarray(spec.cls.from_matrix(jnp.asarray(noisy)).as_matrix())
-    rotation = projected[..., :k, :k]
+    rotation = spec.rotation_block(projected)
     assert_close(
         rotation @ np.swapaxes(rotation, -1, -2),
         np.broadcast_to(np.eye(k), rotation.shape),
@@ -253,7 +278,7 @@ def test_from_matrix_projects_onto_the_group(spec):
     assert np.max(np.abs(projected - out["x"])) < 1e-2
 
 
-@pytest.mark.parametrize("G", [SO3, SE3], ids=lambda G: G.__name__)
+@pytest.mark.parametrize("G", [SO3, SE3, Sim3], ids=lambda G: G.__name__)
 def test_quaternion_sign_does_not_matter(G):
     """`q` and `-q` are the same rotation: same matrix, Log, action, adjoint and Jacobians
     (random rotations of any angle up to π, from both hemispheres)."""
@@ -340,7 +365,7 @@ def test_sample_uniform_is_valid_and_deterministic(spec):
     assert not np.allclose(first.parameters(), other.parameters())
     matrices = as_matrices(first)
     k = spec.space
-    rotation = matrices[:, :k, :k]
+    rotation = spec.rotation_block(matrices)
     np.testing.assert_allclose(
         rotation @ np.swapaxes(rotation, 1, 2),
         np.broadcast_to(np.eye(k), rotation.shape),
@@ -349,6 +374,9 @@ def test_sample_uniform_is_valid_and_deterministic(spec):
     np.testing.assert_allclose(np.linalg.det(rotation), 1.0, atol=1e-12)
     if spec.has_translation:
         assert np.all(np.abs(matrices[:, :k, k]) <= 1.0)
+    if spec.has_scale:  # log-scales uniform in [-1, 1]
+        log_scales = np.log(np.linalg.det(matrices[:, :k, :k])) / k
+        assert np.all(np.abs(log_scales) <= 1.0) and np.std(log_scales) > 0.4
     # uniform rotations: the mean of the rotation matrices is near zero
     assert np.max(np.abs(rotation.mean(axis=0))) < 0.25
 

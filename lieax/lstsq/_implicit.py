@@ -51,6 +51,10 @@ def _with_implicit_derivatives_jvp(residual_fn, primals, tangents):
     leaves, treedef = manifold_leaves(x_star, "solution")
     dtype = jnp.result_type(*(leaf_array(leaf) for leaf in leaves))
 
+    # The Hessian is taken along Exp, whatever retraction the solve used: at a stationary point
+    # (zero gradient) the second derivative of the cost along a retraction is the same for every
+    # retraction that agrees with Exp to first order (they differ at second order in δ, and that
+    # term is multiplied by the gradient), so the derivative of the solution does not depend on it.
     def objective(delta, theta):
         args, loss = theta
         return cost(residual_fn(rplus(x_star, unflatten_tangents(x_star, delta)), args), loss)

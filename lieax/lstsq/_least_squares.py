@@ -17,7 +17,15 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from .._manifold import leaf_array, manifold_leaves, rplus, tangent_dim, unflatten_tangents
+from .._manifold import (
+    check_retraction,
+    leaf_array,
+    manifold_leaves,
+    rplus,
+    tangent_dim,
+    unflatten_tangents,
+)
+from ..retractions import Retraction, exp
 from ._implicit import with_implicit_derivatives
 from ._losses import AbstractLoss
 from ._problem import linearize
@@ -43,11 +51,13 @@ def least_squares(
     gradient_tolerance=None,
     parameter_tolerance=None,
     differentiation: str = "implicit",
+    retraction: Retraction = exp,
     verbose: bool = False,
     throw: bool = True,
 ) -> Solution:
     """Minimizes $\\tfrac12 \\sum_i \\rho(\\|r_i(x, \\text{args})\\|^2)$ over a state `x` that
-    mixes group elements and arrays, every update a retraction $x \\leftarrow x \\oplus \\delta$.
+    mixes group elements and arrays, every update a retraction $x \\leftarrow x \\oplus \\delta$
+    ($x \\leftarrow \\mathcal{R}_x(\\delta)$ with another `retraction`).
 
     **Arguments:**
     - `residual_fn`: `residual_fn(x, args)` returns an array or a pytree of arrays (typically one
@@ -73,6 +83,11 @@ def least_squares(
       gets the derivative of the point it returned as if it were the optimum. `"unrolled"`: the
       loop runs as a `lax.scan` of `max_iterations + 1` masked iterations and JAX differentiates
       through it (for comparison: every iteration runs, and reverse mode stores them all).
+    - `retraction`: how a step moves the state, from `lieax.retractions`: `exp` (default,
+      $X\\,\\mathrm{Exp}(\\delta)$), `cayley` (SO3, SE3) or `first_order` (SE3); leaves it has
+      no rule for move by `exp`. The Jacobians are the same (every retraction's derivative at
+      $\\delta = 0$ is the identity), and so is the optimum (a zero of the gradient); the
+      iterates differ at second order in the step. Compiled once per retraction.
     - `verbose`: print an iteration table (cost, cost change, gradient and step norms, gain ratio,
       damping) from inside the compiled loop. Under `vmap` every problem prints its rows, the
       problems' rows interleaved.
@@ -118,6 +133,7 @@ def least_squares(
         int(max_iterations),
         bool(verbose),
         differentiation,
+        check_retraction(retraction),
         x0,
         args,
         solver,
@@ -181,9 +197,18 @@ def _gain_ratio(values, trial_finite):
     return jnp.where(unmeasurable, 1.0, ratio), actual
 
 
-@jax.jit(static_argnums=(0, 1, 2, 3))
+@jax.jit(static_argnums=(0, 1, 2, 3, 4))
 def _solve(
-    residual_fn, max_iterations, verbose, differentiation, x0, args, solver, loss, tolerances
+    residual_fn,
+    max_iterations,
+    verbose,
+    differentiation,
+    retraction,
+    x0,
+    args,
+    solver,
+    loss,
+    tolerances,
 ):
     function_tolerance, gradient_tolerance, parameter_tolerance = tolerances
     implicit = differentiation == "implicit"
@@ -262,7 +287,7 @@ def _solve(
             hessian=hessian,
             gradient=gradient,
             solver_state=solver_state,
-            x_trial=rplus(x, unflatten_tangents(x, step)),
+            x_trial=rplus(x, unflatten_tangents(x, step), retraction),
             step=step,
             first=jnp.zeros((), bool),
             iteration=iteration,

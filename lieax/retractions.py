@@ -1,0 +1,204 @@
+"""Retractions: ways to move a point $X$ along a tangent $\\delta$ other than $X\\,\\mathrm{Exp}(\\delta)$.
+
+A retraction $\\mathcal{R}_X(\\delta)$ agrees with the exponential map to first order,
+$\\mathcal{R}_X(\\delta) = X\\,\\mathrm{Exp}(\\delta + O(|\\delta|^2))$ (GTSAM math notes, Sec. 6.1):
+its derivative at $\\delta = 0$ is the identity, so Jacobians and gradients in tangent coordinates,
+and the points where a solver stops (zero gradient), are the same whichever retraction moves the
+state; only the path to them changes, and a step may cost less. Each retraction here comes with
+its inverse (local coordinates), `rminus(Y, X)` $= \\mathcal{R}_X^{-1}(Y)$, so that
+`rplus(X, rminus(Y, X)) == Y` where the inverse is defined.
+
+| retraction | SO3 | SE3 | other groups, manifolds, arrays |
+|---|---|---|---|
+| `exp` | $R\\,\\mathrm{Exp}(\\omega)$ | $T\\,\\mathrm{Exp}(v, \\omega)$ | $X \\oplus \\delta$, $x + \\delta$ |
+| `cayley` | $R\\,\\mathrm{cay}(\\omega)$ | $(R\\,\\mathrm{cay}(\\omega),\\ t + R v)$ | as `exp` |
+| `first_order` | $R\\,\\mathrm{Exp}(\\omega)$ | $(R\\,\\mathrm{Exp}(\\omega),\\ t + R v)$ | as `exp` |
+
+with the Cayley transform
+$\\mathrm{cay}(\\omega) = (I - \\tfrac12[\\omega]_\\times)^{-1}(I + \\tfrac12[\\omega]_\\times)$,
+a rotation by $2\\arctan(|\\omega|/2)$ about $\\omega$ (GTSAM math notes Sec. 12.4,
+$R\\,\\mathcal{C}(-\\tfrac12[\\omega]_\\times)$; GTSAM's `Rot3::CayleyChart`, the default `Rot3`
+retraction when GTSAM is built with rotation matrices). The SE3 retractions move the translation
+along the body-frame $v$ in a straight line, $t + R v$ instead of $t + R\\,W(\\omega) v$ (notes
+Sec. 13.6, Example 13; `cayley` is GTSAM's `Pose3::ChartAtOrigin` without
+`GTSAM_POSE3_EXPMAP`). Tangents keep lieax's order $(v, \\omega)$, translation first.
+
+Use them in `lieax.rplus` / `lieax.rminus`, `lieax.lstsq.least_squares` and `lieax.optax` with
+`retraction=lieax.retractions.cayley`. They work under `jit`, `vmap` and every differentiation
+mode: the Cayley kernels carry closed-form `custom_jvp` rules like the group kernels.
+
+Conventions: the README's "Conventions".
+"""
+
+import dataclasses
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+
+from . import _se3 as se3
+from . import _so3 as so3
+from ._base import AbstractManifold
+from ._checks import check_last_axis
+from ._se3 import SE3
+from ._so3 import SO3, cross, dot
+
+__all__ = ["Retraction", "cayley", "exp", "first_order"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Retraction:
+    """A retraction and its inverse, each acting on one manifold element (a group or `S2` batch)
+    or one array; `lieax.rplus(tree, tangents, retraction=...)` and `lieax.rminus` apply them leaf
+    by leaf to pytrees. Hashable, so solvers take it as a static argument.
+
+    **Fields:**
+    - `name`: a short name (`"exp"`, `"cayley"`, `"first_order"`).
+    - `rplus`: `rplus(x, delta)` $= \\mathcal{R}_x(\\delta)$, `delta` of shape
+      `(*batch, tangent_dim)` for a manifold element, `x.shape` for an array.
+    - `rminus`: `rminus(y, x)` $= \\mathcal{R}_x^{-1}(y)$, so that `rplus(x, rminus(y, x)) == y`.
+    """
+
+    name: str
+    rplus: Callable
+    rminus: Callable
+
+    def __repr__(self):
+        return f"lieax.retractions.{self.name}"
+
+
+# ---- the exponential map (the default) ----------------------------------------------------------
+
+
+def _exp_rplus(x, delta):
+    """$X \\oplus \\delta = X\\,\\mathrm{Exp}(\\delta)$ (the manifold's own `rplus`), `x + δ` for arrays."""
+    return x.rplus(delta) if isinstance(x, AbstractManifold) else x + delta
+
+
+def _exp_rminus(y, x):
+    """$Y \\ominus X = \\mathrm{Log}(X^{-1} Y)$ (the manifold's own `rminus`), `y - x` for arrays."""
+    return y.rminus(x) if isinstance(y, AbstractManifold) else y - x
+
+
+exp = Retraction("exp", _exp_rplus, _exp_rminus)  # the default everywhere
+
+
+# ---- the Cayley transform on unit quaternions ---------------------------------------------------
+
+
+@jax.custom_jvp
+def cayley_quaternion(omega):
+    """$\\mathrm{cay}(\\omega)$ as a unit quaternion: $q = (2, \\omega) / \\sqrt{4 + |\\omega|^2}$,
+    i.e. $(1, \\omega/2)$ normalized, $\\tan(\\alpha/2) = |\\omega|/2$ for the rotation angle
+    $\\alpha$. Its matrix is GTSAM's `Rot3::CayleyChart::Retract`,
+    $[(4 - |\\omega|^2) I + 2\\omega\\omega^\\top + 4[\\omega]_\\times] / (4 + |\\omega|^2)$."""
+    n = jnp.sqrt(4.0 + dot(omega, omega))[..., None]
+    return jnp.concatenate([2.0 / n, omega / n], axis=-1)
+
+
+@cayley_quaternion.defjvp
+def _cayley_quaternion_jvp(primals, tangents):
+    """Local block (the Cayley map's right Jacobian, $\\mathrm{cay}(\\omega + \\dot\\omega) \\approx
+    \\mathrm{cay}(\\omega)\\,\\mathrm{Exp}(J\\dot\\omega)$): with $q = (a, u)$,
+    $2\\,\\mathrm{Im}(\\bar q \\otimes \\dot q) = 2(a\\dot u - \\dot a u - u \\times \\dot u)$ gives
+    $J = \\frac{4}{4 + |\\omega|^2}\\,(I - \\tfrac12[\\omega]_\\times)$ (the identity at zero)."""
+    (omega,), (omega_dot,) = primals, tangents
+    q = cayley_quaternion(omega)
+    factor = (4.0 / (4.0 + dot(omega, omega)))[..., None]
+    local = factor * (omega_dot - 0.5 * cross(omega, omega_dot))
+    return q, so3.from_local(q, local)
+
+
+@jax.custom_jvp
+def cayley_quaternion_inverse(q):
+    """$\\mathrm{cay}^{-1}(q) = 2\\,u / w$ for $q = (w, u)$: the Gibbs vector of the rotation,
+    $2\\tan(\\alpha/2)$ along the axis; the same for $q$ and $-q$ (no sign to fix), and scale-free
+    (any nonzero multiple of a unit quaternion). Defined for rotation angles below $\\pi$ ($w \\ne 0$);
+    it grows without bound as the angle nears $\\pi$ (GTSAM's `Rot3::CayleyChart::Local`)."""
+    return 2.0 * q[..., 1:] / q[..., :1]
+
+
+@cayley_quaternion_inverse.defjvp
+def _cayley_quaternion_inverse_jvp(primals, tangents):
+    """$\\dot\\omega = J^{-1}\\omega_{local} = \\omega_{local} + \\tfrac12 \\omega \\times \\omega_{local}
+    + \\tfrac14 \\omega\\,(\\omega^\\top \\omega_{local})$, the inverse of `cayley_quaternion`'s block
+    ($(I - \\tfrac12[\\omega]_\\times)^{-1} = I + (2[\\omega]_\\times + [\\omega]_\\times^2)/(4 + |\\omega|^2)$);
+    the radial part of the carrier does not move $u / w$."""
+    (q,), (carrier,) = primals, tangents
+    omega = cayley_quaternion_inverse(q)
+    local = so3.to_local(q, carrier)
+    omega_dot = local + 0.5 * cross(omega, local) + 0.25 * omega * dot(omega, local)[..., None]
+    return omega, omega_dot
+
+
+# ---- SO3 and SE3 --------------------------------------------------------------------------------
+
+
+def _so3_cayley_rplus(x, omega):
+    """$R\\,\\mathrm{cay}(\\omega)$."""
+    omega = check_last_axis(omega, 3, "SO3 tangent")
+    return x.compose(SO3._wrap(cayley_quaternion(omega)))
+
+
+def _so3_cayley_rminus(y, x):
+    """$\\mathrm{cay}^{-1}(R_x^\\top R_y)$."""
+    x._check_same_group(y, "rminus")
+    return cayley_quaternion_inverse(x.between(y)._params)
+
+
+def _se3_increment(rotation_q, v):
+    """The SE3 element $(Q, v)$ from a quaternion kernel output and a translation."""
+    return SE3._wrap(se3.join(rotation_q, v))
+
+
+def _se3_rplus(rotation_kernel):
+    def rplus(x, delta):
+        """$(R\\,Q(\\omega),\\ t + R v) = T \\cdot (Q(\\omega), v)$."""
+        delta = check_last_axis(delta, 6, "SE3 tangent")
+        return x.compose(_se3_increment(rotation_kernel(delta[..., 3:]), delta[..., :3]))
+
+    return rplus
+
+
+def _se3_rminus(rotation_inverse):
+    def rminus(y, x):
+        """$(v, \\omega)$ with $T_x^{-1} T_y = (Q(\\omega), v)$."""
+        x._check_same_group(y, "rminus")
+        relative = x.between(y)
+        omega = rotation_inverse(relative.rotation())
+        return jnp.concatenate([relative.translation(), omega], axis=-1)
+
+    return rminus
+
+
+def _dispatch(name, rules):
+    """A `Retraction` using `rules[type(x)]` for the listed groups and `exp` for anything else."""
+
+    def rplus(x, delta):
+        rule = rules.get(type(x))
+        return _exp_rplus(x, delta) if rule is None else rule[0](x, delta)
+
+    def rminus(y, x):
+        rule = rules.get(type(y))
+        return _exp_rminus(y, x) if rule is None else rule[1](y, x)
+
+    rplus.__doc__ = f"The `{name}` retraction of one element or array (see `lieax.retractions`)."
+    rminus.__doc__ = f"The inverse of the `{name}` retraction (see `lieax.retractions`)."
+    return Retraction(name, rplus, rminus)
+
+
+cayley = _dispatch(
+    "cayley",
+    {
+        SO3: (_so3_cayley_rplus, _so3_cayley_rminus),
+        SE3: (
+            _se3_rplus(cayley_quaternion),
+            _se3_rminus(lambda rotation: cayley_quaternion_inverse(rotation._params)),
+        ),
+    },
+)
+
+first_order = _dispatch(
+    "first_order",
+    {SE3: (_se3_rplus(so3.exp), _se3_rminus(lambda rotation: rotation.log()))},
+)
