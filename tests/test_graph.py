@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import lieax
-from lieax import SE2, SE3
+from lieax import SE2, SE3, retractions
 from lieax import graph as lg
 from lieax.graph import _optimize, _sparse
 
@@ -230,13 +230,23 @@ def test_block_cholesky_matches_dense(n, extra, d):
     np.testing.assert_allclose(x, expected, rtol=1e-7, atol=1e-9)
     # not positive definite: NaN, not an exception (the optimizer then raises the damping)
     assert np.all(np.isnan(plan.solve(-diag, off, rhs)))
+    # from traced code, through the host call, also under vmap (one host call per element)
+    args = jnp.asarray(diag), jnp.asarray(off)
+    traced = jax.jit(lambda r: _sparse.cholesky_solve(plan, *args, r))(jnp.asarray(rhs))
+    np.testing.assert_allclose(traced, expected, rtol=1e-9, atol=1e-12)
+    stacked = jnp.stack([jnp.asarray(rhs), 2.0 * jnp.asarray(rhs)])
+    batched = jax.jit(jax.vmap(lambda r: _sparse.cholesky_solve(plan, *args, r)))(stacked)
+    np.testing.assert_allclose(batched[1], 2.0 * expected, rtol=1e-9, atol=1e-12)
+    if n * d <= 300:
+        dense_x = _sparse.dense_solve(pattern, *args, jnp.asarray(rhs))
+        np.testing.assert_allclose(dense_x, expected, rtol=1e-9, atol=1e-12)
 
 
 # ---- optimization --------------------------------------------------------------------------------
 
 
 def gradient_norm(graph, poses):
-    problem = _optimize._problem(graph, "cholesky", True, 16, False, None)
+    problem = _optimize._problem(graph, "cholesky", True, 16, False, None, retractions.exp)
     data = (
         graph.between.measured,
         graph.between.sqrt_information,
@@ -296,6 +306,38 @@ def test_optimize_generated_3d_with_prior_and_robust_loss():
     # robust cost: the outlier contributes ρ(s) < s
     plain = float(lg.cost(anchored.with_loss(None), result.poses))
     assert result.cost < plain
+
+
+def test_retractions_reach_the_same_optimum():
+    # Cayley and first-order steps take other paths to the same stationary point
+    graph, _ = noisy_graph(SE3, n=30, loops=40, sigma=0.02, init_sigma=0.05, seed=4)
+    tight = {"relative_tolerance": 1e-12, "absolute_tolerance": 1e-12}
+    reference = lg.optimize(graph, **tight)
+    for retraction in (retractions.cayley, retractions.first_order):
+        result = lg.optimize(graph, retraction=retraction, **tight)
+        assert result.status == lg.Status.CONVERGED
+        assert relative_close(result.cost, reference.cost, 1e-9)
+        assert np.abs(np.asarray(result.poses.rminus(reference.poses))).max() < 1e-6
+        assert not np.allclose(result.cost_history[1], reference.cost_history[1], rtol=1e-12)
+    with pytest.raises(TypeError, match="retraction"):
+        lg.optimize(graph, retraction="cayley")
+
+
+def test_dense_and_multifrontal_steps_agree(monkeypatch):
+    # small graphs factor the dense matrix in JAX; larger ones call the host's multifrontal
+    # Cholesky: the same iterates either way
+    from lieax.lstsq import Huber
+
+    graph, _ = noisy_graph(SE3, n=30, loops=40, sigma=0.02, init_sigma=0.05, seed=4)
+    graph = graph.with_loss(Huber(3.0))
+    assert graph.num_poses * 6 <= _optimize._DENSE_LIMIT
+    dense = lg.optimize(graph, relative_tolerance=1e-10, absolute_tolerance=1e-10)
+    monkeypatch.setattr(_optimize, "_DENSE_LIMIT", 0)
+    sparse = lg.optimize(graph, relative_tolerance=1e-10, absolute_tolerance=1e-10)
+    assert _optimize._problem(graph, "cholesky", True, 128, False, None, retractions.exp).plan is not None
+    assert sparse.iterations == dense.iterations
+    assert sparse.linear_solves == dense.linear_solves
+    np.testing.assert_allclose(sparse.cost_history, dense.cost_history, rtol=1e-10)
 
 
 def test_disconnected_graph_is_reported():

@@ -6,24 +6,26 @@ holds $H_{ab}$ for the pairs `rows[k] = a < b = cols[k]` of a fixed `BlockPatter
 ($H_{ba} = H_{ab}^\\top$). Assembly is a segment sum over edges into these fixed slots, so
 nothing is rebuilt from one iteration to the next.
 
-Two solvers work on these blocks, both in JAX (so inside `jit` and `lax.while_loop`, on any
-backend):
+Three solvers work on these blocks:
 
 - `CholeskyPlan`: a multifrontal block Cholesky factorization $H = L L^\\top$. The symbolic part
   runs once per graph in numpy: a minimum-degree ordering of the block graph (SuperLU's multiple
   minimum degree on $A^\\top + A$, through `scipy.sparse.linalg.splu`; SciPy is already a dependency
   of JAX), the elimination tree, supernodes with relaxed amalgamation, and a schedule that groups
-  fronts of the same height in the tree and similar size into batches. The numeric part then
-  factors each batch with dense batched kernels (`cholesky`, `triangular_solve`, `matmul`) on
-  fronts of `d × d` blocks, assembled by scatter-adds with precomputed indices (Duff and Reid's
-  multifrontal method; Liu, "The multifrontal method for sparse matrix solution", SIAM Review
-  1992). Costs: one factorization is a few dozen batched dense kernels, whatever the number of
-  poses.
+  fronts of the same height in the tree and similar size into batches. The numeric part runs on
+  the host with numpy and LAPACK (called from the jitted loop through `host_call`): per batch,
+  one sparse 0/1 product assembles the fronts (original entries and the extend-add of the
+  children's update matrices), then LAPACK factors the pivot blocks and one batched product
+  forms the Schur complement (Duff and Reid's multifrontal method; Liu, "The multifrontal
+  method for sparse matrix solution", SIAM Review 1992).
+- `dense_solve`: the dense matrix and its Cholesky factor, inside JAX, for graphs of a few
+  hundred unknowns (`lieax.graph.optimize` picks it below a measured crossover).
 - `pcg`: conjugate gradients preconditioned by the inverse diagonal blocks (block Jacobi), with
   matrix-vector products by segment sums; no factorization, for large graphs on GPUs.
 """
 
 import dataclasses
+import threading
 
 import jax
 import jax.numpy as jnp
@@ -168,6 +170,7 @@ class _Batch:
     assembly: object  # scipy CSR (B S S, rows of the work array): 0/1 entries
     padding: np.ndarray  # (B, P d) 1.0 on padded pivot rows
     work_offset: int  # first row of this batch's update matrices in the work array
+    padded: bool  # whether any front is padded
 
     @property
     def shape(self):
@@ -179,15 +182,21 @@ class CholeskyPlan:
 
     Build it once with `CholeskyPlan.analyze(pattern)`; `plan.factor(diag, off)` then factors
     numerically (numpy and LAPACK on the host) and `plan.solve(diag, off, rhs)` factors and
-    solves; `cholesky_solve` calls it from inside `jit`.
+    solves; `cholesky_solve` calls it from inside `jit`. Each thread keeps its own work
+    array, so threads may share a plan.
 
-    The numeric phase keeps every block of the assembly in one work array of `d²`-vectors: the
-    rows of $H$'s diagonal blocks, its off-diagonal blocks and their transposes, then the update
-    matrix of every front. A batch's fronts are one sparse 0/1 matrix times that array (their
-    original entries and the extend-add of their children's updates in one product), then a
-    batched Cholesky of the pivot blocks, the inverse of those factors (so that every later
-    triangular solve, here and in the substitutions, is a batched matrix product), and the Schur
-    complement, written back to the work array for the parents.
+    The numeric phase keeps every entry of the assembly in one work array of rows of `d` scalars
+    (a `d × d` block is `d` such rows): the rows of $H$'s diagonal blocks, of its off-diagonal
+    blocks and of their transposes, then the update matrix of every front, each stored as a
+    plain `(U d, U d)` matrix. A batch's fronts are one sparse 0/1 matrix times that array,
+    reshaped to `(B, S d, S d)` without any transpose; only the lower block triangle is
+    assembled (positions in a front follow the elimination order, so an update's lower blocks
+    land in its parent's lower blocks, and nothing reads the upper ones). A batch of one front
+    is factored by LAPACK (`potrf`, `trtrs`, and a `syrk`-shaped product for the Schur
+    complement); a batch of several gets the inverses of its pivot factors (`potrf` and `trtri`
+    per front, or batched numpy for the smallest), so that its triangular solves, here and in the
+    substitutions, are batched products. The Schur complements are written in place into the
+    work array for the parents, and the work array is kept between factorizations.
 
     **Attributes:** `stats` (fronts, batches, tree height, multiply-adds of one factorization with
     and without padding, stored blocks of $L$).
@@ -198,6 +207,16 @@ class CholeskyPlan:
         self.batches = batches
         self.work_rows = work_rows
         self.stats = stats
+        self._buffers = threading.local()
+
+    def _work(self, dtype):
+        """The work array, kept between factorizations (one per thread): a fresh one would cost
+        a page fault per 4 KiB at every factorization."""
+        work = getattr(self._buffers, "work", None)
+        if work is None or work.dtype != dtype:
+            work = np.empty((self.work_rows, self.pattern.block_size), dtype=dtype)
+            self._buffers.work = work
+        return work
 
     def __repr__(self):
         return f"CholeskyPlan({self.stats})"
@@ -242,7 +261,7 @@ class CholeskyPlan:
 
         where = np.empty((num_fronts, 2), dtype=np.int64)  # front -> (batch, position)
         shapes = []
-        work_rows = n + 2 * p
+        work_rows = (n + 2 * p) * d
         offsets = []
         for g, members in enumerate(members_of):
             where[members, 0] = g
@@ -251,7 +270,7 @@ class CholeskyPlan:
             bu = max(len(upd[k]) for k in members)
             shapes.append((len(members), bp, bu))
             offsets.append(work_rows)
-            work_rows += len(members) * bu * bu
+            work_rows += len(members) * bu * d * bu
         front_of = np.empty(n, dtype=np.int64)  # elimination position -> front
         for k, a in enumerate(piv):
             front_of[a] = k
@@ -264,27 +283,36 @@ class CholeskyPlan:
             is_pivot = piv[k][in_pivots_clipped] == positions
             return np.where(is_pivot, in_pivots, bp + np.searchsorted(upd[k], positions))
 
+        # every block is d segments (rows of d scalars) of the work array, at base + r * stride
         dst = [[] for _ in members_of]
         src = [[] for _ in members_of]
 
-        def add(k, r, c, source):
+        def add(k, r, c, source_base, source_stride):
+            """Blocks (r, c) of front k from the work array; only the lower block triangle
+            (r >= c) is assembled: the factorization reads no other block."""
             g, b = where[k]
             s = shapes[g][1] + shapes[g][2]
-            dst[g].append((b * s + r) * s + c)
-            src[g].append(source)
+            r, c = np.broadcast_arrays(np.asarray(r), np.asarray(c))
+            source = np.broadcast_to(np.asarray(source_base), r.shape)
+            lower = r >= c
+            r, c, source = r[lower], c[lower], source[lower]
+            base = ((b * s + r) * d) * s + c
+            t = np.arange(d)
+            dst[g].append((base[..., None] + t * s).ravel())
+            src[g].append((source[..., None] + t * source_stride).ravel())
 
         # diagonal blocks of H
         for k in range(num_fronts):
             s_piv = np.arange(len(piv[k]))
-            add(k, s_piv, s_piv, order[piv[k]])
+            add(k, s_piv, s_piv, order[piv[k]] * d, 1)
         # off-diagonal blocks: in the front where the earlier of the two is a pivot
         pa, pb = position[rows], position[cols]
         owner = front_of[np.minimum(pa, pb)]
         for k in np.unique(owner):
             q = np.flatnonzero(owner == k)
             sa, sb = slots(k, pa[q]), slots(k, pb[q])
-            add(k, sa, sb, n + q)  # H[r, c]
-            add(k, sb, sa, n + p + q)  # H[c, r] = H[r, c]^T
+            add(k, sa, sb, (n + q) * d, 1)  # H[r, c]
+            add(k, sb, sa, (n + p + q) * d, 1)  # H[c, r] = H[r, c]^T
         # children's update matrices (extend-add)
         for k in range(num_fronts):
             for c in kids[k]:
@@ -296,7 +324,8 @@ class CholeskyPlan:
                     k,
                     np.repeat(s, len(s)),
                     np.tile(s, len(s)),
-                    offsets[gc] + ((bc * cu + t)[:, None] * cu + t[None, :]).ravel(),
+                    offsets[gc] + ((bc * cu + t)[:, None] * d * cu + t[None, :]).ravel(),
+                    cu,
                 )
 
         batches, flops = [], 0.0
@@ -310,11 +339,15 @@ class CholeskyPlan:
                 update_index[b, : len(upd[k])] = order[upd[k]]
             d_all, s_all = np.concatenate(dst[g]), np.concatenate(src[g])
             assembly = csr_matrix(
-                (np.ones(len(d_all)), (d_all, s_all)), shape=(bsize * s * s, work_rows)
+                (np.ones(len(d_all)), (d_all, s_all)), shape=(bsize * s * d * s, work_rows)
             )
             assembly.sum_duplicates()
             padding = np.repeat((pivot_index == n).astype(np.float64), d, axis=1)
-            batches.append(_Batch(pivot_index, update_index, assembly, padding, offsets[g]))
+            batches.append(
+                _Batch(
+                    pivot_index, update_index, assembly, padding, offsets[g], bool(padding.any())
+                )
+            )
             flops += bsize * _front_work(bp, bu) * d**3
         stats = {
             "fronts": num_fronts,
@@ -331,53 +364,81 @@ class CholeskyPlan:
     # ---- numeric phase (numpy) -------------------------------------------------------------------
     def factor(self, diag, off):
         """The numeric factorization of $H$ from `diag` `(n, d, d)` and `off` `(p, d, d)`
-        (numpy arrays): per batch, `(L11⁻¹, L21)` of shapes `(B, P d, P d)` and `(B, U d, P d)`.
+        (numpy arrays), per batch `(L11, L11⁻¹, L21)`: a batch of one front keeps its factor
+        `L11` `(P d, P d)` (triangular solves: one LAPACK call each, no inverse to form), a larger
+        batch the inverses `L11⁻¹` `(B, P d, P d)` (batched products); `L21` is `(B, U d, P d)`.
         Raises `numpy.linalg.LinAlgError` when $H$ is not positive definite."""
+        from scipy.linalg import lapack
+
         n, d, p = self.pattern.num_blocks, self.pattern.block_size, self.pattern.num_pairs
         diag, off = np.asarray(diag), np.asarray(off)
-        work = np.empty((self.work_rows, d * d), dtype=diag.dtype)
-        work[:n] = diag.reshape(n, d * d)
-        work[n : n + p] = off.reshape(p, d * d)
-        work[n + p : n + 2 * p] = np.swapaxes(off, 1, 2).reshape(p, d * d)
+        potrf, trtrs = lapack.get_lapack_funcs(("potrf", "trtrs"), (diag,))
+        work = self._work(diag.dtype)
+        work[: n * d] = diag.reshape(n * d, d)
+        work[n * d : (n + p) * d] = off.reshape(p * d, d)
+        work[(n + p) * d : (n + 2 * p) * d] = np.swapaxes(off, 1, 2).reshape(p * d, d)
         factors = []
         for batch in self.batches:
             B, P, U = batch.shape
-            S = P + U
-            front = (batch.assembly @ work).reshape(B, S, S, d, d)
-            front = front.transpose(0, 1, 3, 2, 4).reshape(B, S * d, S * d)
-            pd = P * d
+            pd, ud = P * d, U * d
+            front = (batch.assembly @ work).reshape(B, pd + ud, pd + ud)
+            schur = work[batch.work_offset : batch.work_offset + B * ud * U].reshape(B, ud, ud)
+            if B == 1:
+                l11, info = potrf(front[0, :pd, :pd], lower=1, clean=1)
+                if info != 0:
+                    raise np.linalg.LinAlgError("matrix is not positive definite")
+                if U == 0:
+                    factors.append((l11, None, None))
+                    continue
+                # L21ᵀ = L11⁻¹ F12, then the Schur complement F22 - L21 L21ᵀ (a syrk)
+                l21t, info = trtrs(l11, front[0, pd:, :pd].T, lower=1)
+                np.subtract(front[0, pd:, pd:], l21t.T @ l21t, out=schur[0])
+                factors.append((l11, None, l21t.T[None]))
+                continue
             f11 = front[:, :pd, :pd]
-            f11[:, np.arange(pd), np.arange(pd)] += batch.padding
+            if batch.padded:
+                f11[:, np.arange(pd), np.arange(pd)] += batch.padding
             l11_inv = _inverse_cholesky(f11)
             if U == 0:
-                factors.append((l11_inv, None))
+                factors.append((None, l11_inv, None))
                 continue
             l21 = front[:, pd:, :pd] @ np.swapaxes(l11_inv, 1, 2)
-            schur = front[:, pd:, pd:] - l21 @ np.swapaxes(l21, 1, 2)
-            schur = schur.reshape(B, U, d, U, d).transpose(0, 1, 3, 2, 4)
-            work[batch.work_offset : batch.work_offset + B * U * U] = schur.reshape(-1, d * d)
-            factors.append((l11_inv, l21))
+            # the Schur complement, written in place into the work array for the parents
+            np.matmul(l21, np.swapaxes(l21, 1, 2), out=schur)
+            np.subtract(front[:, pd:, pd:], schur, out=schur)
+            factors.append((None, l11_inv, l21))
         return factors
 
     def solve_factored(self, factors, rhs):
         """$H^{-1}$ `rhs` for `rhs` `(n, d)` (numpy), by forward and back substitution."""
+        from scipy.linalg import lapack
+
         n, d = self.pattern.num_blocks, self.pattern.block_size
+        (trtrs,) = lapack.get_lapack_funcs(("trtrs",), (rhs,))
         x = np.zeros((n + 1, d), dtype=rhs.dtype)
         x[:n] = rhs
-        solved = []
-        for batch, (l11_inv, l21) in zip(self.batches, factors):
+        for batch, (l11, l11_inv, l21) in zip(self.batches, factors):
             B, P, U = batch.shape
+            if l11 is not None:
+                y = trtrs(l11, x[batch.pivot_index[0]].reshape(P * d), lower=1)[0]
+                x[batch.pivot_index[0]] = y.reshape(P, d)
+                if U:  # one front: its update rows are distinct
+                    x[batch.update_index[0]] -= (l21[0] @ y).reshape(U, d)
+                continue
             y = l11_inv @ x[batch.pivot_index].reshape(B, P * d, 1)
             x[batch.pivot_index] = y.reshape(B, P, d)
             if U:
                 np.add.at(x, batch.update_index, -(l21 @ y).reshape(B, U, d))
-            solved.append(y)
-        for batch, (l11_inv, l21) in zip(reversed(self.batches), reversed(factors)):
+        for batch, (l11, l11_inv, l21) in zip(reversed(self.batches), reversed(factors)):
             B, P, U = batch.shape
             y = x[batch.pivot_index].reshape(B, P * d, 1)
             if U:
                 y = y - np.swapaxes(l21, 1, 2) @ x[batch.update_index].reshape(B, U * d, 1)
-            x[batch.pivot_index] = (np.swapaxes(l11_inv, 1, 2) @ y).reshape(B, P, d)
+            if l11 is not None:
+                y = trtrs(l11, y[0, :, 0], lower=1, trans=1)[0]
+                x[batch.pivot_index[0]] = y.reshape(P, d)
+            else:
+                x[batch.pivot_index] = (np.swapaxes(l11_inv, 1, 2) @ y).reshape(B, P, d)
         x[n] = 0.0
         return x[:n]
 
@@ -391,17 +452,86 @@ class CholeskyPlan:
 
 
 def cholesky_solve(plan, diag, off, rhs):
-    """`plan.solve` from inside JAX (`jit`, `lax.while_loop`): a host callback, so on an
-    accelerator the blocks travel to the host and back. NaN when $H$ is not positive definite."""
+    """`plan.solve` from inside JAX (`jit`, `lax.while_loop`): a host callback (`host_call`), so
+    on an accelerator the blocks travel to the host and back. NaN when $H$ is not positive
+    definite."""
     result = jax.ShapeDtypeStruct(rhs.shape, rhs.dtype)
-    return jax.pure_callback(
-        lambda a, o, r: plan.solve(a, o, r).astype(r.dtype),
-        result,
-        diag,
-        off,
-        rhs,
-        vmap_method="sequential",
-    )
+    return host_call(plan.solve, result, diag, off, rhs)
+
+
+def host_call(fn, result, *args):
+    """`fn(*args)` on the host, from traced code: `fn` takes and returns numpy arrays, the result
+    shaped like `result` (a `jax.ShapeDtypeStruct`); under `vmap`, one call per element.
+
+    `jax.pure_callback` puts every operand on a device as a `jax.Array` and converts the result
+    back, about 0.2 ms per call for a pose graph's normal equations (10% of an iteration on
+    smallGrid3D); this primitive hands XLA's host buffers to `fn` as numpy arrays (7 µs). It
+    lowers through JAX's own `emit_python_callback`, which is not public API: when that is
+    missing, `host_call` falls back to `jax.pure_callback`."""
+    if _HOST_CALL is None:
+        return jax.pure_callback(
+            lambda *a: np.asarray(fn(*(np.asarray(x) for x in a)), result.dtype),
+            result,
+            *args,
+            vmap_method="sequential",
+        )
+    return _HOST_CALL.bind(*args, fn=fn, shape=tuple(result.shape), dtype=np.dtype(result.dtype))
+
+
+def _host_call_primitive():
+    import inspect
+
+    try:
+        from jax._src.callback import emit_python_callback
+        from jax.extend.core import Primitive
+        from jax.interpreters import batching, mlir
+    except ImportError:  # pragma: no cover - depends on JAX's internals
+        return None
+    parameters = inspect.signature(emit_python_callback).parameters
+    if not {"has_side_effect", "returns_token"} <= parameters.keys():  # pragma: no cover
+        return None
+
+    primitive = Primitive("lieax_host_call")
+
+    def impl(*args, fn, shape, dtype):
+        return jnp.asarray(np.asarray(fn(*(np.asarray(a) for a in args)), dtype))
+
+    def abstract_eval(*args, fn, shape, dtype):
+        return jax.core.ShapedArray(shape, dtype)
+
+    def lowering(ctx, *args, fn, shape, dtype):
+        def call(*arrays):
+            return (np.asarray(fn(*arrays), dtype),)
+
+        result, _, _ = emit_python_callback(
+            ctx,
+            call,
+            None,
+            list(args),
+            ctx.avals_in,
+            ctx.avals_out,
+            has_side_effect=False,
+            returns_token=False,
+        )
+        return result
+
+    def batch(args, dims, *, fn, shape, dtype):
+        size = next(a.shape[d] for a, d in zip(args, dims) if d is not None)
+        args = [
+            jnp.broadcast_to(a, (size, *a.shape)) if d is None else jnp.moveaxis(a, d, 0)
+            for a, d in zip(args, dims)
+        ]
+        out = lax.map(lambda xs: primitive.bind(*xs, fn=fn, shape=shape, dtype=dtype), args)
+        return out, 0
+
+    primitive.def_impl(impl)
+    primitive.def_abstract_eval(abstract_eval)
+    mlir.register_lowering(primitive, lowering, cacheable=False)
+    batching.primitive_batchers[primitive] = batch
+    return primitive
+
+
+_HOST_CALL = _host_call_primitive()
 
 
 def _inverse_cholesky(matrix):
@@ -409,7 +539,7 @@ def _inverse_cholesky(matrix):
     (`potrf`, then `getrf`/`getri` through `numpy.linalg.inv`) for small blocks, `potrf` and
     `trtri` one matrix at a time for large ones."""
     size = matrix.shape[-1]
-    if size <= _BATCHED_INVERSE_LIMIT or matrix.shape[0] > 8:
+    if size <= _BATCHED_INVERSE_LIMIT:
         return np.linalg.inv(np.linalg.cholesky(matrix))
     from scipy.linalg import lapack
 
@@ -425,7 +555,7 @@ def _inverse_cholesky(matrix):
     return result
 
 
-_BATCHED_INVERSE_LIMIT = 48  # scalar size below which batched numpy beats LAPACK one by one
+_BATCHED_INVERSE_LIMIT = 12  # scalar size up to which batched numpy beats LAPACK one by one
 # cost model of one batch on the host, in seconds: a fixed cost for its dozen numpy calls, a cost
 # per stored scalar of its padded fronts (assembly, layout change, copies) and per multiply-add
 _BATCH_SECONDS = 300e-6
@@ -521,12 +651,30 @@ def pcg(pattern, diag, off, rhs, *, tolerance=1e-10, max_iterations=None):
 
 def dense_solve(pattern, diag, off, rhs):
     """$H^{-1}$ `rhs` through the dense matrix and its Cholesky factor, in JAX (for graphs of a
-    few poses, where a host round trip costs more than the factorization); NaN when $H$ is not
-    positive definite."""
+    few poses, where the host's multifrontal factorization costs more than the dense one); NaN
+    when $H$ is not positive definite. The matrix is one gather from the blocks (indices built
+    in numpy at trace time)."""
     n, d = pattern.num_blocks, pattern.block_size
-    factor = jnp.linalg.cholesky(dense_matrix(pattern, diag, off))
+    values = jnp.concatenate([diag.reshape(-1), off.reshape(-1), jnp.zeros(1, diag.dtype)])
+    matrix = values[_dense_index(pattern)]
+    factor = jnp.linalg.cholesky(matrix)
     x = jax.scipy.linalg.cho_solve((factor, True), rhs.reshape(n * d))
     return x.reshape(n, d)
+
+
+def _dense_index(pattern):
+    """For each entry of the dense `(n d, n d)` matrix, its index in `[diag, off, 0]` (flat)."""
+    n, d, p = pattern.num_blocks, pattern.block_size, pattern.num_pairs
+    index = np.full((n * d, n * d), n * d * d + p * d * d, dtype=np.int32)
+    r = np.arange(d)
+    a = np.arange(n)[:, None, None]
+    index[a * d + r[:, None], a * d + r[None, :]] = (a * d + r[:, None]) * d + r[None, :]
+    k = np.arange(p)[:, None, None]
+    rows, cols = pattern.rows[:, None, None], pattern.cols[:, None, None]
+    source = n * d * d + (k * d + r[:, None]) * d + r[None, :]
+    index[rows * d + r[:, None], cols * d + r[None, :]] = source
+    index[cols * d + r[None, :], rows * d + r[:, None]] = source
+    return index
 
 
 def dense_matrix(pattern, diag, off):
