@@ -14,11 +14,21 @@ second table shows the time per iteration as the graph grows (prefixes of a set:
 poses and the edges among them).
 
     python benchmarks/pgo.py --data ../shared/data [--rounds 7] [--sets intel,sphere2500]
+
+One thread each means one core: the process pins itself to the last CPU it may use before JAX or
+GTSAM start their thread pools (set `LIEAX_BENCH_PIN=0` to leave it unpinned). Unpinned, both
+libraries keep worker threads that compete for the second core in the same process (GTSAM's TBB
+workers spin after each parallel region); measured unpinned on this 2-core machine the
+sub-20 ms sets swung from 1.1x to 1.8x lieax / GTSAM between runs, pinned they repeat within
+about 10%.
 """
 
 import argparse
 import os
 import sys
+
+if os.environ.get("LIEAX_BENCH_PIN", "1") != "0" and hasattr(os, "sched_setaffinity"):
+    os.sched_setaffinity(0, {max(os.sched_getaffinity(0))})
 
 _THREADS = "1"
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
@@ -190,7 +200,11 @@ def main(argv=None):
     except ImportError:
         sys.exit("benchmarks/pgo.py needs GTSAM: pip install 'lieax[bench]'")
     folder = os.path.join(args.data, "g2o")
-    print(machine_description() + f"; threads: one (BLAS {os.environ['OPENBLAS_NUM_THREADS']})")
+    cores = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else "all"
+    print(
+        machine_description()
+        + f"; threads: one (BLAS {os.environ['OPENBLAS_NUM_THREADS']}), process on CPUs {cores}"
+    )
     print()
     rows = []
     for name in args.sets.split(","):
