@@ -144,7 +144,7 @@ def _se3_vee(m):
     return np.concatenate([m[:3, 3], unskew3(m[:3, :3])])
 
 
-def _sim3_hat(xi):
+def sim3_hat(xi):
     """`[[ω]× + σI, v; 0, 0]` for the tangent `(v, ω, σ)`."""
     m = np.zeros((4, 4))
     m[:3, :3] = skew3(xi[3:6]) + xi[6] * np.eye(3)
@@ -152,7 +152,7 @@ def _sim3_hat(xi):
     return m
 
 
-def _sim3_vee(m):
+def sim3_vee(m):
     """`(v, ω, σ)`: ω from the skew part of the linear block, σ a third of its trace."""
     return np.concatenate([m[:3, 3], unskew3(m[:3, :3]), [np.trace(m[:3, :3]) / 3.0]])
 
@@ -175,8 +175,8 @@ GROUPS = [
         Sim3,
         (3, 4, 5),
         (0, 1, 2),
-        hat=_sim3_hat,
-        vee=_sim3_vee,
+        hat=sim3_hat,
+        vee=sim3_vee,
         rotation_parameters=4,
         scale_index=(6,),
     ),

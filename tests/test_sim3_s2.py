@@ -15,6 +15,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.linalg
+from registry import sim3_hat as hat
+from registry import sim3_vee as vee
+from registry import skew3 as skew
 from scipy.spatial.transform import Rotation
 
 jax.config.update("jax_enable_x64", True)
@@ -37,24 +40,7 @@ FD_ATOL, FD_RTOL = 1e-6, 1e-6
 VALUE_ATOL = 1e-10
 
 
-# ---- NumPy reference for Sim3 -------------------------------------------------------------------
-
-
-def skew(w):
-    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-
-
-def hat(xi):
-    m = np.zeros((4, 4))
-    m[:3, :3] = skew(xi[3:6]) + xi[6] * np.eye(3)
-    m[:3, 3] = xi[:3]
-    return m
-
-
-def vee(m):
-    lin = m[:3, :3]
-    omega = 0.5 * np.array([lin[2, 1] - lin[1, 2], lin[0, 2] - lin[2, 0], lin[1, 0] - lin[0, 1]])
-    return np.concatenate([m[:3, 3], omega, [np.trace(lin) / 3.0]])
+# ---- NumPy reference for Sim3 (hat, vee, skew: tests/registry.py) ----------------------------------
 
 
 _NODES, _WEIGHTS = np.polynomial.legendre.leggauss(40)

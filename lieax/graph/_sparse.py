@@ -191,11 +191,10 @@ class CholeskyPlan:
     plain `(U d, U d)` matrix. A batch's fronts are one sparse 0/1 matrix times that array,
     reshaped to `(B, S d, S d)` without any transpose; only the lower block triangle is
     assembled (positions in a front follow the elimination order, so an update's lower blocks
-    land in its parent's lower blocks, and nothing reads the upper ones). A batch of one front
-    is factored by LAPACK (`potrf`, `trtrs`, and a `syrk`-shaped product for the Schur
-    complement); a batch of several gets the inverses of its pivot factors (`potrf` and `trtri`
-    per front, or batched numpy for the smallest), so that its triangular solves, here and in the
-    substitutions, are batched products. The Schur complements are written in place into the
+    land in its parent's lower blocks, and nothing reads the upper ones). Every batch gets the
+    inverses of its pivot blocks' Cholesky factors (batched `numpy.linalg.cholesky`, then
+    `_lower_inverse`), so that its triangular solves, here and in the substitutions, are batched
+    products. The Schur complements are written in place into the
     work array for the parents, and the work array is kept between factorizations.
 
     **Attributes:** `stats` (fronts, batches, tree height, multiply-adds of one factorization with
@@ -364,15 +363,12 @@ class CholeskyPlan:
     # ---- numeric phase (numpy) -------------------------------------------------------------------
     def factor(self, diag, off):
         """The numeric factorization of $H$ from `diag` `(n, d, d)` and `off` `(p, d, d)`
-        (numpy arrays), per batch `(L11, L11⁻¹, L21)`: a batch of one front keeps its factor
-        `L11` `(P d, P d)` (triangular solves: one LAPACK call each, no inverse to form), a larger
-        batch the inverses `L11⁻¹` `(B, P d, P d)` (batched products); `L21` is `(B, U d, P d)`.
+        (numpy arrays), per batch `(L11⁻¹, L21)`, the inverses of the pivot blocks' Cholesky
+        factors `(B, P d, P d)` (so that both substitutions are batched products) and
+        `L21` `(B, U d, P d)`.
         Raises `numpy.linalg.LinAlgError` when $H$ is not positive definite."""
-        from scipy.linalg import lapack
-
         n, d, p = self.pattern.num_blocks, self.pattern.block_size, self.pattern.num_pairs
         diag, off = np.asarray(diag), np.asarray(off)
-        potrf, trtrs = lapack.get_lapack_funcs(("potrf", "trtrs"), (diag,))
         work = self._work(diag.dtype)
         work[: n * d] = diag.reshape(n * d, d)
         work[n * d : (n + p) * d] = off.reshape(p * d, d)
@@ -383,62 +379,37 @@ class CholeskyPlan:
             pd, ud = P * d, U * d
             front = (batch.assembly @ work).reshape(B, pd + ud, pd + ud)
             schur = work[batch.work_offset : batch.work_offset + B * ud * U].reshape(B, ud, ud)
-            if B == 1:
-                l11, info = potrf(front[0, :pd, :pd], lower=1, clean=1)
-                if info != 0:
-                    raise np.linalg.LinAlgError("matrix is not positive definite")
-                if U == 0:
-                    factors.append((l11, None, None))
-                    continue
-                # L21ᵀ = L11⁻¹ F12, then the Schur complement F22 - L21 L21ᵀ (a syrk)
-                l21t, info = trtrs(l11, front[0, pd:, :pd].T, lower=1)
-                np.subtract(front[0, pd:, pd:], l21t.T @ l21t, out=schur[0])
-                factors.append((l11, None, l21t.T[None]))
-                continue
             f11 = front[:, :pd, :pd]
             if batch.padded:
                 f11[:, np.arange(pd), np.arange(pd)] += batch.padding
             l11_inv = _inverse_cholesky(f11)
             if U == 0:
-                factors.append((None, l11_inv, None))
+                factors.append((l11_inv, None))
                 continue
             l21 = front[:, pd:, :pd] @ np.swapaxes(l11_inv, 1, 2)
             # the Schur complement, written in place into the work array for the parents
             np.matmul(l21, np.swapaxes(l21, 1, 2), out=schur)
             np.subtract(front[:, pd:, pd:], schur, out=schur)
-            factors.append((None, l11_inv, l21))
+            factors.append((l11_inv, l21))
         return factors
 
     def solve_factored(self, factors, rhs):
         """$H^{-1}$ `rhs` for `rhs` `(n, d)` (numpy), by forward and back substitution."""
-        from scipy.linalg import lapack
-
         n, d = self.pattern.num_blocks, self.pattern.block_size
-        (trtrs,) = lapack.get_lapack_funcs(("trtrs",), (rhs,))
         x = np.zeros((n + 1, d), dtype=rhs.dtype)
         x[:n] = rhs
-        for batch, (l11, l11_inv, l21) in zip(self.batches, factors):
+        for batch, (l11_inv, l21) in zip(self.batches, factors):
             B, P, U = batch.shape
-            if l11 is not None:
-                y = trtrs(l11, x[batch.pivot_index[0]].reshape(P * d), lower=1)[0]
-                x[batch.pivot_index[0]] = y.reshape(P, d)
-                if U:  # one front: its update rows are distinct
-                    x[batch.update_index[0]] -= (l21[0] @ y).reshape(U, d)
-                continue
             y = l11_inv @ x[batch.pivot_index].reshape(B, P * d, 1)
             x[batch.pivot_index] = y.reshape(B, P, d)
             if U:
                 np.add.at(x, batch.update_index, -(l21 @ y).reshape(B, U, d))
-        for batch, (l11, l11_inv, l21) in zip(reversed(self.batches), reversed(factors)):
+        for batch, (l11_inv, l21) in zip(reversed(self.batches), reversed(factors)):
             B, P, U = batch.shape
             y = x[batch.pivot_index].reshape(B, P * d, 1)
             if U:
                 y = y - np.swapaxes(l21, 1, 2) @ x[batch.update_index].reshape(B, U * d, 1)
-            if l11 is not None:
-                y = trtrs(l11, y[0, :, 0], lower=1, trans=1)[0]
-                x[batch.pivot_index[0]] = y.reshape(P, d)
-            else:
-                x[batch.pivot_index] = (np.swapaxes(l11_inv, 1, 2) @ y).reshape(B, P, d)
+            x[batch.pivot_index] = (np.swapaxes(l11_inv, 1, 2) @ y).reshape(B, P, d)
         x[n] = 0.0
         return x[:n]
 
@@ -535,27 +506,36 @@ _HOST_CALL = _host_call_primitive()
 
 
 def _inverse_cholesky(matrix):
-    """$L^{-1}$ for the lower Cholesky factors $L$ of a batch of SPD matrices: batched LAPACK
-    (`potrf`, then `getrf`/`getri` through `numpy.linalg.inv`) for small blocks, `potrf` and
-    `trtri` one matrix at a time for large ones."""
-    size = matrix.shape[-1]
-    if size <= _BATCHED_INVERSE_LIMIT:
-        return np.linalg.inv(np.linalg.cholesky(matrix))
-    from scipy.linalg import lapack
+    """$L^{-1}$ for the lower Cholesky factors $L$ of a batch of SPD matrices: `potrf` through
+    `numpy.linalg.cholesky`, then `_lower_inverse`."""
+    return _lower_inverse(np.linalg.cholesky(matrix))
 
-    potrf, trtri = lapack.get_lapack_funcs(("potrf", "trtri"), (matrix,))
-    result = np.empty_like(matrix)
-    for b in range(matrix.shape[0]):
-        lower, info = potrf(matrix[b], lower=1, clean=1)
-        if info != 0:
-            raise np.linalg.LinAlgError("matrix is not positive definite")
-        result[b], info = trtri(lower, lower=1)
-        if info != 0:
-            raise np.linalg.LinAlgError("singular factor")
+
+# All host linear algebra goes through NumPy's LAPACK and BLAS, none through SciPy's: SciPy's
+# wheels bundle a second OpenBLAS, and two OpenBLAS thread pools busy-waiting in one process are
+# the slowest configuration on a small machine (sphere2500 took 7.8x as long with both pools at
+# two threads as with either at one, 2 cores). NumPy has no triangular inverse or solve, so they
+# are blocked recursions on matrix products (Higham, "Accuracy and Stability of Numerical
+# Algorithms", Sec. 14.2), with LU (`numpy.linalg`) only on blocks of at most _TRIANGULAR_BASE.
+_TRIANGULAR_BASE = 64
+
+
+def _lower_inverse(lower):
+    """$L^{-1}$ for a (batch of) lower-triangular $L$:
+    $[A, 0; C, D]^{-1} = [A^{-1}, 0; -D^{-1} C A^{-1}, D^{-1}]$."""
+    n = lower.shape[-1]
+    if n <= _TRIANGULAR_BASE:
+        return np.linalg.inv(lower)
+    h = n // 2
+    a_inv = _lower_inverse(lower[..., :h, :h])
+    d_inv = _lower_inverse(lower[..., h:, h:])
+    result = np.zeros_like(lower)
+    result[..., :h, :h] = a_inv
+    result[..., h:, h:] = d_inv
+    result[..., h:, :h] = -(d_inv @ (lower[..., h:, :h] @ a_inv))
     return result
 
 
-_BATCHED_INVERSE_LIMIT = 12  # scalar size up to which batched numpy beats LAPACK one by one
 # cost model of one batch on the host, in seconds: a fixed cost for its dozen numpy calls, a cost
 # per stored scalar of its padded fronts (assembly, layout change, copies) and per multiply-add
 _BATCH_SECONDS = 300e-6
