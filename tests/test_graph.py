@@ -242,6 +242,39 @@ def test_block_cholesky_matches_dense(n, extra, d):
         np.testing.assert_allclose(dense_x, expected, rtol=1e-9, atol=1e-12)
 
 
+@pytest.mark.parametrize("order", [5, 30, 63, 64, 150])
+def test_triangular_inverse_and_solves(order):
+    """The host's triangular kernels, below and above the order (64) where they switch from
+    LAPACK's unblocked routines to the blocked recursion."""
+    rng = np.random.default_rng(order)
+    a = rng.normal(size=(2, order, order))
+    lower = np.linalg.cholesky(a @ np.swapaxes(a, 1, 2) + order * np.eye(order))
+    rhs = rng.normal(size=(2, order, 3))
+    np.testing.assert_allclose(
+        _sparse._lower_inverse(lower) @ lower, np.broadcast_to(np.eye(order), lower.shape),
+        atol=1e-12,
+    )  # fmt: skip
+    np.testing.assert_allclose(lower @ _sparse._lower_solve(lower, rhs), rhs, atol=1e-12)
+    transposed = _sparse._lower_solve(lower, rhs, transpose=True)
+    np.testing.assert_allclose(np.swapaxes(lower, 1, 2) @ transposed, rhs, atol=1e-12)
+
+
+def test_block_cholesky_of_a_forest():
+    """Two components: two roots in one batch, each solved by its own factor."""
+    d, rng = 6, np.random.default_rng(7)
+    i, j = np.array([0, 1, 3, 4, 5]), np.array([1, 2, 4, 5, 6])
+    pattern, _, _ = _sparse.BlockPattern.from_edges(7, d, i, j)
+    off = 0.1 * rng.normal(size=(pattern.num_pairs, d, d))
+    diag = np.broadcast_to(4.0 * np.eye(d), (7, d, d)).copy()
+    rhs = rng.normal(size=(7, d))
+    dense = np.asarray(_sparse.dense_matrix(pattern, jnp.asarray(diag), jnp.asarray(off)))
+    plan = _sparse.CholeskyPlan.analyze(pattern)
+    assert any(batch.shape[0] == 2 and batch.shape[2] == 0 for batch in plan.batches)
+    np.testing.assert_allclose(
+        plan.solve(diag, off, rhs), np.linalg.solve(dense, rhs.ravel()).reshape(7, d), rtol=1e-10
+    )
+
+
 # ---- optimization --------------------------------------------------------------------------------
 
 

@@ -90,8 +90,8 @@ def optimize(
       Cholesky (`lieax.graph.CholeskyPlan`, numpy and LAPACK, called from the jitted loop);
       smaller ones factor the dense matrix inside JAX, which skips the host call and the
       per-front overheads. The crossover is measured (one CPU thread, whole `optimize` calls
-      on prefixes of smallGrid3D and intel): dense / multifrontal time 0.4 at 54-60 unknowns,
-      0.6-0.7 at 120-240, 1.0 at 270, 1.1 at 360, 2.0 at 540, 2.8 at 750 (smallGrid3D: the
+      on prefixes of smallGrid3D and intel): dense / multifrontal time 0.3-0.4 at 60-120
+      unknowns, 0.5-0.7 at 180-240, 0.9 at 300, 1.0-1.3 at 360, 2.1 at 540, 2.3 at 600 (the
       dense factorization's $O((nd)^3)$ work overtakes the fronts' fixed costs early).
       `"cg"`: block-Jacobi preconditioned conjugate gradients, all in JAX, for accelerators
       (no host round trip; inexact steps, slower to converge on poorly conditioned graphs).

@@ -191,11 +191,12 @@ class CholeskyPlan:
     plain `(U d, U d)` matrix. A batch's fronts are one sparse 0/1 matrix times that array,
     reshaped to `(B, S d, S d)` without any transpose; only the lower block triangle is
     assembled (positions in a front follow the elimination order, so an update's lower blocks
-    land in its parent's lower blocks, and nothing reads the upper ones). Every batch gets the
-    inverses of its pivot blocks' Cholesky factors (batched `numpy.linalg.cholesky`, then
-    `_lower_inverse`), so that its triangular solves, here and in the substitutions, are batched
-    products. The Schur complements are written in place into the
-    work array for the parents, and the work array is kept between factorizations.
+    land in its parent's lower blocks, and nothing reads the upper ones). Every batch but the
+    roots gets the inverses of its pivot blocks' Cholesky factors (batched
+    `numpy.linalg.cholesky`, then `_lower_inverse`), so that its triangular solves, here and in
+    the substitutions, are batched products; the roots keep their factors for `_lower_solve`.
+    The Schur complements are written in place into the work array for the parents, and the
+    work array is kept between factorizations.
 
     **Attributes:** `stats` (fronts, batches, tree height, multiply-adds of one factorization with
     and without padding, stored blocks of $L$).
@@ -363,9 +364,11 @@ class CholeskyPlan:
     # ---- numeric phase (numpy) -------------------------------------------------------------------
     def factor(self, diag, off):
         """The numeric factorization of $H$ from `diag` `(n, d, d)` and `off` `(p, d, d)`
-        (numpy arrays), per batch `(L11⁻¹, L21)`, the inverses of the pivot blocks' Cholesky
-        factors `(B, P d, P d)` (so that both substitutions are batched products) and
-        `L21` `(B, U d, P d)`.
+        (numpy arrays), per batch `(M, L21)`: `L21` `(B, U d, P d)`, and `M` `(B, P d, P d)` the
+        inverses $L_{11}^{-1}$ of the pivot blocks' Cholesky factors, so that both substitutions
+        are batched products; for a batch of roots (no update rows, `L21` None) `M` is $L_{11}$
+        itself, as two triangular solves there cost a fraction of the inverse (the root front
+        is the largest: 180 × 180 on smallGrid3D).
         Raises `numpy.linalg.LinAlgError` when $H$ is not positive definite."""
         n, d, p = self.pattern.num_blocks, self.pattern.block_size, self.pattern.num_pairs
         diag, off = np.asarray(diag), np.asarray(off)
@@ -382,10 +385,10 @@ class CholeskyPlan:
             f11 = front[:, :pd, :pd]
             if batch.padded:
                 f11[:, np.arange(pd), np.arange(pd)] += batch.padding
-            l11_inv = _inverse_cholesky(f11)
             if U == 0:
-                factors.append((l11_inv, None))
+                factors.append((np.linalg.cholesky(f11), None))
                 continue
+            l11_inv = _lower_inverse(np.linalg.cholesky(f11))
             l21 = front[:, pd:, :pd] @ np.swapaxes(l11_inv, 1, 2)
             # the Schur complement, written in place into the work array for the parents
             np.matmul(l21, np.swapaxes(l21, 1, 2), out=schur)
@@ -398,18 +401,22 @@ class CholeskyPlan:
         n, d = self.pattern.num_blocks, self.pattern.block_size
         x = np.zeros((n + 1, d), dtype=rhs.dtype)
         x[:n] = rhs
-        for batch, (l11_inv, l21) in zip(self.batches, factors):
+        for batch, (m, l21) in zip(self.batches, factors):
             B, P, U = batch.shape
-            y = l11_inv @ x[batch.pivot_index].reshape(B, P * d, 1)
+            b = x[batch.pivot_index].reshape(B, P * d, 1)
+            y = _lower_solve(m, b) if l21 is None else m @ b
             x[batch.pivot_index] = y.reshape(B, P, d)
             if U:
                 np.add.at(x, batch.update_index, -(l21 @ y).reshape(B, U, d))
-        for batch, (l11_inv, l21) in zip(reversed(self.batches), reversed(factors)):
+        for batch, (m, l21) in zip(reversed(self.batches), reversed(factors)):
             B, P, U = batch.shape
             y = x[batch.pivot_index].reshape(B, P * d, 1)
-            if U:
-                y = y - np.swapaxes(l21, 1, 2) @ x[batch.update_index].reshape(B, U * d, 1)
-            x[batch.pivot_index] = (np.swapaxes(l11_inv, 1, 2) @ y).reshape(B, P, d)
+            if l21 is None:
+                y = _lower_solve(m, y, transpose=True)
+            else:
+                y -= np.swapaxes(l21, 1, 2) @ x[batch.update_index].reshape(B, U * d, 1)
+                y = np.swapaxes(m, 1, 2) @ y
+            x[batch.pivot_index] = y.reshape(B, P, d)
         x[n] = 0.0
         return x[:n]
 
@@ -505,35 +512,84 @@ def _host_call_primitive():
 _HOST_CALL = _host_call_primitive()
 
 
-def _inverse_cholesky(matrix):
-    """$L^{-1}$ for the lower Cholesky factors $L$ of a batch of SPD matrices: `potrf` through
-    `numpy.linalg.cholesky`, then `_lower_inverse`."""
-    return _lower_inverse(np.linalg.cholesky(matrix))
-
-
-# All host linear algebra goes through NumPy's LAPACK and BLAS, none through SciPy's: SciPy's
-# wheels bundle a second OpenBLAS, and two OpenBLAS thread pools busy-waiting in one process are
-# the slowest configuration on a small machine (sphere2500 took 7.8x as long with both pools at
-# two threads as with either at one, 2 cores). NumPy has no triangular inverse or solve, so they
-# are blocked recursions on matrix products (Higham, "Accuracy and Stability of Numerical
-# Algorithms", Sec. 14.2), with LU (`numpy.linalg`) only on blocks of at most _TRIANGULAR_BASE.
-_TRIANGULAR_BASE = 64
+# Host linear algebra must not wake two OpenBLAS thread pools: SciPy's wheels bundle a second
+# OpenBLAS beside NumPy's, and two pools busy-waiting in one process are the slowest configuration
+# on a small machine (sphere2500 took 7.8x as long with both pools at two threads as with either
+# at one, 2 cores). So every operation that OpenBLAS may run on several threads (products of
+# 64³ multiply-adds and more, factorizations of order 64 and more) is NumPy's, and SciPy's LAPACK
+# is called only on triangles of order below 64, which OpenBLAS always inverts on the calling
+# thread (`trtri` falls back to its unblocked `trti2` there; measured: process CPU time equals
+# wall time up to order 64, twice it from 96 with two threads allowed). NumPy has no triangular
+# inverse, and `numpy.linalg.inv` (LU) is 2.5-3.5x slower than `trtri` from order 12 up, so
+# larger triangles are a blocked recursion on NumPy products (Higham, "Accuracy and Stability of
+# Numerical Algorithms", Sec. 14.2) down to blocks below 64, and the tiniest (order ≤ 8, where
+# the per-call cost dominates) are one batched `numpy.linalg.inv`.
+_SINGLE_THREAD_LIMIT = 64
+_BATCHED_LIMIT = 8
 
 
 def _lower_inverse(lower):
-    """$L^{-1}$ for a (batch of) lower-triangular $L$:
-    $[A, 0; C, D]^{-1} = [A^{-1}, 0; -D^{-1} C A^{-1}, D^{-1}]$."""
+    """$L^{-1}$ for a batch `(B, n, n)` of lower-triangular $L$:
+    $[A, 0; C, D]^{-1} = [A^{-1}, 0; -D^{-1} C A^{-1}, D^{-1}]$ for $n \\ge 64$, LAPACK's
+    `trtri` one matrix at a time below, one batched `numpy.linalg.inv` up to order 8."""
     n = lower.shape[-1]
-    if n <= _TRIANGULAR_BASE:
+    if n <= _BATCHED_LIMIT:
         return np.linalg.inv(lower)
+    if n < _SINGLE_THREAD_LIMIT:
+        return _trtri_each(lower)
     h = n // 2
-    a_inv = _lower_inverse(lower[..., :h, :h])
-    d_inv = _lower_inverse(lower[..., h:, h:])
+    a_inv = _lower_inverse(lower[:, :h, :h])
+    d_inv = _lower_inverse(lower[:, h:, h:])
     result = np.zeros_like(lower)
-    result[..., :h, :h] = a_inv
-    result[..., h:, h:] = d_inv
-    result[..., h:, :h] = -(d_inv @ (lower[..., h:, :h] @ a_inv))
+    result[:, :h, :h] = a_inv
+    result[:, h:, h:] = d_inv
+    result[:, h:, :h] = -(d_inv @ (lower[:, h:, :h] @ a_inv))
     return result
+
+
+def _trtri_each(lower):
+    """`trtri` on each matrix of the batch. A C-ordered lower triangle is the Fortran-ordered
+    upper triangle of its transpose, so LAPACK reads it in place and the transpose of its result
+    is the inverse."""
+    from scipy.linalg import lapack
+
+    (trtri,) = lapack.get_lapack_funcs(("trtri",), (lower,))
+    result = np.empty_like(lower)
+    for b in range(lower.shape[0]):
+        inverse, info = trtri(lower[b].T, lower=0)
+        if info != 0:
+            raise np.linalg.LinAlgError("singular triangular factor")
+        result[b] = inverse.T
+    return result
+
+
+def _lower_solve(lower, rhs, *, transpose=False):
+    """$L^{-1}$ `rhs` (or $L^{-\\top}$ `rhs`) for a batch `(B, n, n)` of lower-triangular $L$
+    and `rhs` `(B, n, k)`: by blocks for $n \\ge 64$, with $L = [A, 0; C, D]$,
+    $L^{-1} [b_1; b_2] = [A^{-1} b_1;\\ D^{-1}(b_2 - C A^{-1} b_1)]$ and
+    $L^{-\\top} [b_1; b_2] = [A^{-\\top}(b_1 - C^\\top D^{-\\top} b_2);\\ D^{-\\top} b_2]$; LAPACK's
+    `trtrs` one matrix at a time below (as `_trtri_each`, in place on the transpose)."""
+    n = lower.shape[-1]
+    if n < _SINGLE_THREAD_LIMIT:
+        from scipy.linalg import lapack
+
+        (trtrs,) = lapack.get_lapack_funcs(("trtrs",), (lower,))
+        result = np.empty_like(rhs)
+        for b in range(lower.shape[0]):
+            # L y = r is Uᵀ y = r for the upper triangle U = Lᵀ that LAPACK sees
+            result[b], info = trtrs(lower[b].T, rhs[b], lower=0, trans=0 if transpose else 1)
+            if info != 0:
+                raise np.linalg.LinAlgError("singular triangular factor")
+        return result
+    h = n // 2
+    a, c, d = lower[:, :h, :h], lower[:, h:, :h], lower[:, h:, h:]
+    if transpose:
+        y2 = _lower_solve(d, rhs[:, h:], transpose=True)
+        y1 = _lower_solve(a, rhs[:, :h] - np.swapaxes(c, 1, 2) @ y2, transpose=True)
+    else:
+        y1 = _lower_solve(a, rhs[:, :h])
+        y2 = _lower_solve(d, rhs[:, h:] - c @ y1)
+    return np.concatenate([y1, y2], axis=1)
 
 
 # cost model of one batch on the host, in seconds: a fixed cost for its dozen numpy calls, a cost
