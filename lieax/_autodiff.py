@@ -73,7 +73,10 @@ def value_and_jacobian(f, argnums=0, *, has_aux=False, mode="auto"):
                 seeds = [_transpose_local_from_tangent(y, c) for y, c in zip(out_leaves, pieces)]
                 pulled = transposed(seeds)
                 return jnp.concatenate(
-                    [jnp.ravel(_transpose_tangent_from_local(x, a)) for x, a in zip(in_leaves, pulled)]
+                    [
+                        jnp.ravel(_transpose_tangent_from_local(x, a))
+                        for x, a in zip(in_leaves, pulled)
+                    ]
                 )
 
             flat = jax.vmap(pull)(jnp.eye(out_size, dtype=dtype))
@@ -173,9 +176,7 @@ def _transpose_local_from_tangent(leaf, local_cotangent):
 def _transpose_tangent_from_local(leaf, cotangent):
     """Transpose of the seeding map at an input leaf: leaf cotangent to local cotangent."""
     zeros = jnp.zeros(leaf_tangent_shape(leaf), dtype=cotangent.dtype)
-    (local,) = jax.linear_transpose(lambda d: leaf_tangent_from_local(leaf, d), zeros)(
-        cotangent
-    )
+    (local,) = jax.linear_transpose(lambda d: leaf_tangent_from_local(leaf, d), zeros)(cotangent)
     return local
 
 
@@ -198,7 +199,9 @@ def _input_structure(rows, out_shape, in_shapes, flattened, single):
         jnp.reshape(rows[:, a:b], (*out_shape, *in_shape))
         for (a, b), in_shape in zip(_offsets(in_shapes), in_shapes)
     )
-    per_argument = [treedef.unflatten([next(blocks) for _ in leaves]) for leaves, treedef in flattened]
+    per_argument = [
+        treedef.unflatten([next(blocks) for _ in leaves]) for leaves, treedef in flattened
+    ]
     return per_argument[0] if single else tuple(per_argument)
 
 

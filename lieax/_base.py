@@ -38,7 +38,9 @@ class AbstractManifold:
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
         if not cls.__name__.startswith("Abstract"):
-            jax.tree_util.register_pytree_node(cls, _flatten, lambda _, leaves: cls._wrap(leaves[0]))
+            jax.tree_util.register_pytree_node(
+                cls, _flatten, lambda _, leaves: cls._wrap(leaves[0])
+            )
 
     def __init__(self, parameters):
         """Wraps parameters as given (after checking shape and dtype); see `normalize()`."""

@@ -5,7 +5,10 @@ import numpy as np
 
 
 def as_float_array(x, what: str) -> jnp.ndarray:
-    """`x` as a JAX array with a floating dtype; `TypeError` naming `what` otherwise."""
+    """`x` as a JAX array with a floating dtype; `TypeError` naming `what` otherwise. A Python
+    number (`0`, `1`) states no dtype and becomes the default float (float64 under x64)."""
+    if isinstance(x, (int, float)) and not isinstance(x, bool):
+        x = jnp.asarray(x, dtype=jnp.result_type(float))
     x = jnp.asarray(x)
     if not jnp.issubdtype(x.dtype, jnp.floating):
         raise TypeError(f"{what} must have a floating dtype (float32 or float64), got {x.dtype}.")

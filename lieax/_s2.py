@@ -33,8 +33,6 @@ operation is a few rational functions and square roots of $p$ (no trigonometry),
 differentiates them directly; rotations go through SO3's kernels and their closed-form rules.
 """
 
-from typing import ClassVar
-
 import jax
 import jax.numpy as jnp
 import numpy as np

@@ -229,7 +229,9 @@ def _inverse_jvp(primals, tangents):
     rotation, t = _rotation_and_translation(params)
     xi = to_local(params, params_dot)
     rotated_omega = matvec(rotation, xi[..., 3:])
-    xi_out = -jnp.concatenate([matvec(rotation, xi[..., :3]) + cross(t, rotated_omega), rotated_omega], -1)
+    xi_out = -jnp.concatenate(
+        [matvec(rotation, xi[..., :3]) + cross(t, rotated_omega), rotated_omega], -1
+    )
     return params_inverse, from_local(params_inverse, xi_out)
 
 
@@ -293,7 +295,9 @@ def as_matrix(params):
     """$T = [R(q), t; 0, 1]$."""
     q, t = _split(params)
     top = jnp.concatenate([so3.quat_to_matrix(q), t[..., None]], axis=-1)
-    bottom = jnp.broadcast_to(jnp.array([0.0, 0.0, 0.0, 1.0], dtype=params.dtype), top[..., :1, :].shape)
+    bottom = jnp.broadcast_to(
+        jnp.array([0.0, 0.0, 0.0, 1.0], dtype=params.dtype), top[..., :1, :].shape
+    )
     return jnp.concatenate([top, bottom], axis=-2)
 
 
@@ -338,7 +342,9 @@ def sample_uniform(key, batch_shape, dtype):
     """Uniform rotation (Haar) and translation uniform in $[-1, 1]^3$."""
     key_rotation, key_translation = jax.random.split(key)
     q = so3.sample_uniform(key_rotation, batch_shape, dtype)
-    t = jax.random.uniform(key_translation, (*batch_shape, 3), dtype=q.dtype, minval=-1.0, maxval=1.0)
+    t = jax.random.uniform(
+        key_translation, (*batch_shape, 3), dtype=q.dtype, minval=-1.0, maxval=1.0
+    )
     return jnp.concatenate([q, t], axis=-1)
 
 

@@ -126,6 +126,18 @@ def test_integer_dtypes(spec):
         G.identity().interpolate(G.identity(), np.arange(2))
 
 
+def test_python_numbers_are_floats(spec):
+    """A Python number states no dtype: `interpolate(y, 1)` is `interpolate(y, 1.0)`."""
+    G = spec.cls
+    x = G.exp(0.3 * jnp.ones(G.tangent_dim))
+    np.testing.assert_allclose(
+        x.interpolate(G.identity(), 1).parameters(), G.identity().parameters(), atol=1e-6
+    )
+    np.testing.assert_allclose(
+        x.interpolate(G.identity(), 0).parameters(), x.parameters(), atol=1e-6
+    )
+
+
 def test_mixing_groups(spec):
     G = spec.cls
     other = next(s.cls for s in GROUPS if s.cls is not G)
@@ -151,6 +163,7 @@ def test_so3_conversions_check_shapes():
         SO3.from_rotvec(jnp.zeros(4))
     with raises(TypeError, "floating"):
         SO3.from_rpy(np.zeros(2, np.int32), np.zeros(2), np.zeros(2))
+    np.testing.assert_array_equal(SO3.from_rpy(0, 0, 0).parameters(), SO3.identity().parameters())
 
 
 # ---- lieax.jacobian / grad on unsupported pytrees --------------------------------------------------

@@ -262,9 +262,7 @@ def check_anchored(graph, fixed):
 class _Problem:
     """The static structure of one graph (pattern, plan, gauge) and its compiled loop."""
 
-    def __init__(
-        self, graph, solver, exact, history_size, verbose, cg_max_iterations, retraction
-    ):
+    def __init__(self, graph, solver, exact, history_size, verbose, cg_max_iterations, retraction):
         n, d = graph.num_poses, graph.poses.tangent_dim
         fixed = gauge_fixed(graph)
         check_anchored(graph, fixed)
