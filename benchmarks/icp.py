@@ -19,6 +19,11 @@ Tables:
 4. Matching exactness: the share of source points whose match is their exact nearest neighbour
    (within the distance) for the graph descent alone and after the exact check, against SciPy's
    cKDTree.
+5. Every kind of scan (`benchmarks/neighbors.py`'s clouds: the bunny at 2 mm and in full, 1 cm;
+   outdoor LiDAR on a 0.5 m grid, 1 m; a Kinect frame on a 1 cm grid against a shifted-grid,
+   cropped, moved copy, 5 cm): Open3D against lieax with each `search` backend, float64, Open3D's
+   target normals given to both, Open3D's criteria 1e-6 / 30 and 1e-10 / 60; then the per-phase
+   profile (index build, matching, normal equations, exact check) at the converged pose.
 
 Run `LIEAX_DATA_DIR=../shared/data python benchmarks/icp.py` (needs the `bench` extra: open3d,
 scipy; Open3D needs the system library libusb-1.0-0). `--quick` runs a small smoke version.
@@ -40,7 +45,7 @@ import open3d as o3d
 from scipy.spatial import cKDTree
 
 from lieax import SE3, icp
-from lieax.icp import _neighbors, _registration
+from lieax.icp import _host_kdtree, _neighbors, _registration, _search
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
@@ -377,6 +382,124 @@ def _exact_share(found, nearest, distance, within):
     return np.mean(same[within])
 
 
+# ---- 5. every kind of scan ----------------------------------------------------------------------
+
+SCAN_NORMALS = {"bunny 2 mm": 0.006, "bunny full": 0.006, "LiDAR": 1.5, "Kinect": 0.03}
+SCAN_SEARCHES = "graph,grid,kdtree"
+
+
+def scans(data_dir, rounds, criteria, searches):
+    """One registration per scan (`neighbors.load_clouds`), Open3D against lieax with each search
+    backend (float64, Open3D's target normals given to both), for each `(tolerance, cap)`."""
+    import neighbors
+
+    rows, notes, profiles = [], [], []
+    for label, (source, target, radius, truth) in neighbors.load_clouds(data_dir).items():
+        cloud = open3d_cloud(target)
+        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(SCAN_NORMALS[label], 30))
+        normals = np.asarray(cloud.normals).copy()
+        clouds = (source, target, normals, radius, truth)
+        for tolerance, cap in criteria:
+            row, row_notes = scan_row(label, clouds, tolerance, cap, rounds, searches)
+            rows.append(row)
+            notes += row_notes
+        for name in ("graph", "kdtree"):
+            profiles.append([label, name, *scan_profile(name, clouds, rounds)])
+    headers = ["cloud", "points (source/target)", "criteria", "Open3D"] + [
+        f"lieax {name} (ratio)" for name in searches
+    ]
+    profile_headers = ["cloud", "search", "index build", "match / it.", "normal equations / it.",
+                       "exact check"]  # fmt: skip
+    return markdown_table(headers, rows), notes, markdown_table(profile_headers, profiles)
+
+
+def scan_row(label, clouds, tolerance, cap, rounds, searches):
+    source, target, normals, radius, truth = clouds
+    source_cloud, target_cloud = open3d_cloud(source), open3d_cloud(target, normals)
+    estimation = o3d.pipelines.registration.TransformationEstimationPointToPlane()
+    settings = o3d.pipelines.registration.ICPConvergenceCriteria(tolerance, tolerance, cap)
+    s, t, n = (jnp.asarray(x) for x in (source, target, normals))
+
+    def o3d_run():
+        return o3d.pipelines.registration.registration_icp(
+            source_cloud, target_cloud, radius, np.eye(4), estimation, settings
+        )
+
+    def lieax_run(search):
+        return icp.point_to_plane(
+            s, t, target_normals=n, max_correspondence_distance=radius, search=search,
+            relative_fitness=tolerance, relative_rmse=tolerance, max_iterations=cap,
+        )  # fmt: skip
+
+    def fresh_run(search):  # the host tree rebuilt in every call, as Open3D's
+        _host_kdtree._TREES.clear()
+        _host_kdtree._IDS.clear()
+        return lieax_run(search)
+
+    variants = {"open3d": timed(o3d_run)}
+    variants.update({name: functools.partial(fresh_run, name) for name in searches})
+    timings = time_interleaved(variants, rounds, warmup=1, min_sample_s=0)
+    full = o3d_run()
+    o3d_pose = np.asarray(full.transformation)
+    row = [label, f"{len(source)}/{len(target)}", f"{tolerance:g} / {cap}",
+           format_seconds(timings["open3d"].median)]  # fmt: skip
+    notes = []
+    for name in searches:
+        result = variants[name]()
+        pose = np.asarray(result.transform.as_matrix(), np.float64)
+        ratio = format_ratio(timings[name].median, timings["open3d"].median)
+        row.append(f"{format_seconds(timings[name].median)} ({ratio})")
+        truth_gap = "" if truth is None else f"; vs truth {rotation_deg(pose, truth):.4f}°"
+        notes.append(
+            f"{label}, {tolerance:g}/{cap}, {name}: compile {timings[name].compile_s:.1f} s, "
+            f"{int(result.iterations)} iterations, {result.status_name}, fitness "
+            f"{float(result.fitness):.4f} (Open3D {full.fitness:.4f}); vs Open3D "
+            f"{rotation_deg(pose, o3d_pose):.4f}° / {translation_gap(pose, o3d_pose):.1e} m"
+            f"{truth_gap}"
+        )
+    return row, notes
+
+
+def scan_profile(name, clouds, rounds):
+    """Per-phase seconds at the converged pose, float64, for one backend: index build, one
+    matching step (warm-started from the converged matches), one Gauss-Newton step (normal
+    equations and solve), the exact check (graph only)."""
+    import neighbors
+
+    source, target, normals, radius, truth = clouds
+    queries = jnp.asarray(neighbors.aligned(source, target, radius, truth))
+    s, t = jnp.asarray(source), jnp.asarray(target)
+    build, match = neighbors.builder(name, radius), neighbors.matcher(name, radius)
+    index = build(t)
+    slot, d2 = match(index, queries, _search.nearest(index, queries, radius=radius).slot)
+    inliers = d2 <= radius**2
+    matched_normals = jnp.asarray(normals)[index.order]
+    step = jax.jit(
+        lambda p, sl, w: _registration._plane_step(
+            p, s, index.points[sl], matched_normals[sl], w, lambda x: jnp.ones_like(x)
+        )
+    )
+    params = jnp.asarray([1.0, 0, 0, 0, 0, 0, 0])
+    variants = {
+        "build": lambda: neighbors.fresh_build(build, t),
+        "match": lambda: match(index, queries, slot),
+        "step": lambda: step(params, slot, inliers),
+    }
+    if name == "graph":
+        certified = _neighbors.certify(index, slot, d2, radius)
+        exact = jax.jit(
+            lambda i, q, sl, e, c: _neighbors.refine_uncertified(
+                i, q, sl, e, c, radius, scan=False
+            )
+        )
+        variants["exact"] = lambda: exact(index, queries, slot, d2, certified)
+    timings = time_interleaved(variants, rounds, warmup=1)
+    return [
+        format_seconds(timings[k].median) if k in timings else "—"
+        for k in ("build", "match", "step", "exact")
+    ]
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data-dir", default=os.environ.get("LIEAX_DATA_DIR"))
@@ -384,9 +507,11 @@ def main():
     parser.add_argument("--batch", type=int, default=64)
     parser.add_argument("--sizes", default="10000,40000,160000")
     parser.add_argument("--quick", action="store_true", help="2 rounds, a batch of 8, 10k only")
+    parser.add_argument("--searches", default=SCAN_SEARCHES, help="backends in the scans table")
     parser.add_argument(
-        "--skip", default="", help="comma-separated sections to skip: single,batch,growth,exactness"
-    )
+        "--skip", default="",
+        help="comma-separated sections to skip: single,batch,growth,exactness,scans",
+    )  # fmt: skip
     args = parser.parse_args()
     if args.data_dir is None:
         sys.exit("Set LIEAX_DATA_DIR (or --data-dir) to the shared data folder.")
@@ -413,6 +538,13 @@ def main():
         )
     if "exactness" not in skip:
         print("## Matching exactness (float32)\n\n" + exactness(args.data_dir) + "\n")
+    if "scans" not in skip:
+        criteria = [(1e-6, 30)] if args.quick else [(1e-6, 30), (1e-10, 60)]
+        searches = args.searches.split(",")
+        table, notes, profile = scans(args.data_dir, max(2, args.rounds // 2), criteria, searches)
+        print("## Every kind of scan (float64; lieax time and ratio to Open3D)\n\n" + table + "\n")
+        print("\n".join(f"- {note}" for note in notes) + "\n")
+        print("### Per-phase profile at the converged pose (float64)\n\n" + profile + "\n")
 
 
 if __name__ == "__main__":

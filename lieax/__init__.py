@@ -29,7 +29,7 @@ from ._se3 import SE3
 from ._sim3 import Sim3
 from ._so2 import SO2
 from ._so3 import SO3
-from . import graph, icp, lstsq, optax, sharding  # noqa: E402  (after the groups they build on)
+from . import ba, factorgraph, graph, icp, lstsq, optax, sharding  # noqa: E402  (after the groups they build on)
 
 __version__ = "0.1.0"
 
@@ -43,7 +43,9 @@ __all__ = [
     "SO3",
     "Sim3",
     "align",
+    "ba",
     "conventions",
+    "factorgraph",
     "flatten_tangents",
     "grad",
     "graph",

@@ -25,7 +25,8 @@ A query follows three steps, all fixed-shape and batchable:
 
 `nearest(index, queries, radius=r)` runs all three and is exact within $r$ (up to ties);
 `track` alone is the cheap step used inside the ICP iterations. Exactness and costs are measured
-in `benchmarks/icp.py`.
+in `benchmarks/icp.py` and `benchmarks/neighbors.py`; this is the `search="graph"` backend of
+`lieax.icp._search` (beside a voxel grid, a host k-d tree and brute force).
 
 Why this shape: on the CPU, XLA's float and key-value sorts, `top_k`, and reductions fused with
 their producer are slow (tens of ns per element), and a per-query tree walk under `vmap` runs as

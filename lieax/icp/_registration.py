@@ -17,10 +17,21 @@ between two states (each update switching the matches that lead back) stops as c
   the cloud, weighted by the robust loss (iteratively reweighted least squares).
 - Point-to-point: the closed-form weighted Kabsch / Umeyama step (Arun et al. 1987), as Open3D.
 
-Matching inside the iterations is a warm-started descent on the target's neighbour graph (see
-`lieax.icp._neighbors`); when the stopping test passes, the matches are recomputed exactly (within
-`max_correspondence_distance`), and the loop resumes if that changed the fitness or RMSE (unless
-two exact checks in a row agree), so the result is the one exact nearest neighbours give.
+Matching uses `search` (`lieax.icp._search`; default `"auto"`: the host k-d tree on CPUs,
+warm-started and exact every iteration). With `search="graph"` it is a warm-started descent on the
+target's neighbour graph (see `lieax.icp._neighbors`); when the stopping test passes, the matches
+are recomputed exactly (within `max_correspondence_distance`), and the loop resumes if that
+changed the fitness or RMSE (unless two exact checks in a row agree), so the result is the one
+exact nearest neighbours give.
+
+Shapes: by default (`buckets=True`) the clouds are padded (masked rows) to capacity buckets,
+the next size of the form $c \\cdot 2^k$, $c \\in \\{5, 6, 7, 8\\}$ (`lieax.icp._batch.bucket_size`:
+at most 25% padded rows, four shapes per doubling), and the results sliced back: a stream of
+clouds of varying sizes (LiDAR odometry) compiles the loop and the normals once per bucket, not
+once per size, with the results of the unpadded call.
+
+Derivatives: the loop runs on constants; `transform` and `inlier_rmse` get the implicit
+derivative of the converged pose (`lieax.icp._implicit`).
 """
 
 import enum
@@ -35,10 +46,12 @@ from jax.scipy.linalg import cho_solve
 from .._autodiff import jacobian
 from .._se3 import SE3
 from .._so3 import quat_to_matrix
-from ..lstsq import Cauchy, GemanMcClure, Huber, Tukey
-from . import _neighbors
+from . import _neighbors, _search
+from ._batch import pad_to_bucket
 from ._checks import check_cloud, check_mask, check_same_length
-from ._normals import estimate_normals
+from ._implicit import estimated_normals, with_implicit_derivatives
+from ._robust import loss_weights as _weights
+from ._robust import split_loss as _split_loss
 
 MIN_CORRESPONDENCES = 6
 _IDENTITY = (1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
@@ -67,7 +80,8 @@ class Status(enum.IntEnum):
 
 
 class ICPError(RuntimeError):
-    """Raised outside `jit`/`vmap` (with `throw=True`) when a run ends `NONFINITE` or `DEGENERATE`."""
+    """Raised outside `jit`/`vmap` (with `throw=True`) when a run ends `NONFINITE` or `DEGENERATE`,
+    and when a run that did not converge is differentiated (its derivative is undefined)."""
 
 
 class ICPResult(NamedTuple):
@@ -137,6 +151,8 @@ def point_to_plane(
     normals_k=30,
     verbose=False,
     throw=True,
+    search="auto",
+    buckets=True,
 ) -> ICPResult:
     """Point-to-plane ICP: minimize $\\sum_i \\rho\\big((n_i^\\top (T s_i - d_i))^2\\big)$ over
     $T$ = `T_target_source`, re-matching $d_i$ (nearest target point of $T s_i$) every iteration.
@@ -158,13 +174,26 @@ def point_to_plane(
       loop (`jax.debug.print`; under `vmap` one line per problem).
     - `throw`: raise `ICPError` for a `NONFINITE` or `DEGENERATE` result when called outside
       `jit`/`vmap` (inside, read `status`).
+    - `search`: the correspondence search, `"auto"`, `"graph"`, `"grid"`, `"kdtree"` or
+      `"brute"` (see `lieax.icp._search`), or an index prebuilt on `target` (and `target_mask`)
+      by `build_index`, to reuse across calls (a `"grid"` one with a cell of at least
+      `max_correspondence_distance`).
+    - `buckets`: pad `source` and `target` (masked) to capacity buckets, so that clouds of new
+      sizes reuse a compiled loop (see `bucket_size`: four sizes per doubling, at most 25%
+      padded rows); `False` compiles for the exact shapes. The results are those of the
+      unpadded call (`correspondences` has `n` entries and indexes the unpadded target).
 
-    **Returns:** an `ICPResult`.
+    **Returns:** an `ICPResult`; `transform` and `inlier_rmse` are differentiable (forward and
+    reverse mode) with respect to `source`, `target`, `target_normals` (given, or estimated from
+    the target) and the loss's scale at a converged run, by the implicit function theorem (see
+    `lieax.icp._implicit`: the matches are held fixed, the derivative with respect to `init` is
+    zero; differentiating a run that did not converge raises `ICPError` outside `jit`/`vmap`,
+    and gives NaN tangents inside or with `throw=False`).
     """
     return _register(
         "plane", source, target, max_correspondence_distance, target_normals, init,
         max_iterations, relative_fitness, relative_rmse, loss, source_mask, target_mask,
-        exact, normals_k, verbose, throw,
+        exact, normals_k, verbose, throw, search=search, buckets=buckets,
     )  # fmt: skip
 
 
@@ -183,6 +212,8 @@ def point_to_point(
     exact=True,
     verbose=False,
     throw=True,
+    search="auto",
+    buckets=True,
 ) -> ICPResult:
     """Point-to-point ICP: minimize $\\sum_i \\rho(\\|T s_i - d_i\\|^2)$ over $T$ = `T_target_source`
     with the closed-form (weighted Kabsch) step each iteration, re-matching $d_i$.
@@ -192,7 +223,7 @@ def point_to_point(
     return _register(
         "point", source, target, max_correspondence_distance, None, init, max_iterations,
         relative_fitness, relative_rmse, loss, source_mask, target_mask, exact, 0, verbose,
-        throw,
+        throw, search=search, buckets=buckets,
     )  # fmt: skip
 
 
@@ -202,6 +233,7 @@ def point_to_point(
 def _register(
     kind, source, target, max_distance, target_normals, init, max_iterations, relative_fitness,
     relative_rmse, loss, source_mask, target_mask, exact, normals_k, verbose, throw,
+    search="graph", source_covariances=None, target_covariances=None, buckets=True,
 ):  # fmt: skip
     source = check_cloud(source, "source")
     target = check_cloud(target, "target")
@@ -211,11 +243,21 @@ def _register(
         )
     source_mask = check_mask(source_mask, source, "source_mask")
     target_mask = check_mask(target_mask, target, "target_mask")
-    if kind == "plane":
-        if target_normals is None:
-            target_normals = estimate_normals(target, k=normals_k, mask=target_mask)
+    if kind == "plane" and target_normals is not None:
         target_normals = check_cloud(target_normals, "target_normals")
         check_same_length(target_normals, target, "target_normals", "target")
+    n = source.shape[0]
+    if buckets:
+        source, source_mask, source_covariances = pad_to_bucket(
+            source, source_mask, source_covariances
+        )
+        if isinstance(search, str):  # (an index prebuilt on the target fixes its rows)
+            target, target_mask, target_normals, target_covariances = pad_to_bucket(
+                target, target_mask, target_normals, target_covariances
+            )
+    if kind == "plane":
+        if target_normals is None:
+            target_normals = estimated_normals(target, target_mask, normals_k)
     else:
         target_normals = None
     if init is not None and (not isinstance(init, SE3) or init.batch_shape != ()):
@@ -226,12 +268,27 @@ def _register(
     if isinstance(max_distance, (int, float)) and not max_distance > 0:
         raise ValueError(f"max_correspondence_distance must be positive, got {max_distance}.")
 
-    options = (kind, max_iterations, bool(exact), _DESCENT_STEPS, bool(verbose))
+    search, prebuilt = _search.check_icp_search(search, target, max_distance)
+    options = (kind, max_iterations, bool(exact), _DESCENT_STEPS, bool(verbose), search)
     dynamic_loss, static_loss = _split_loss(loss)
+    # The loop sees constants; the derivatives come from the implicit function theorem.
+    data = (source, target, target_normals, (source_covariances, target_covariances))
+    constant = jax.tree.map(_constant, (data, init_params, max_distance, dynamic_loss))
+    (source_c, target_c, normals_c, covariances_c), init_c, max_distance_c, loss_c = constant
     result = _solve(
-        source, source_mask, target, target_mask, target_normals, init_params, max_distance,
-        relative_fitness, relative_rmse, dynamic_loss, options=options, static_loss=static_loss,
+        source_c, source_mask, target_c, target_mask, normals_c, init_c, max_distance_c,
+        _constant(relative_fitness), _constant(relative_rmse), loss_c, options=options,
+        static_loss=static_loss, index=prebuilt, source_covariances=covariances_c[0],
+        target_covariances=covariances_c[1],
     )  # fmt: skip
+    if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((data, dynamic_loss))):
+        loss_kind, loss_scale = (None, 0.0) if dynamic_loss is None else dynamic_loss
+        result = with_implicit_derivatives(
+            kind, static_loss, bool(throw), result,
+            (source, target, target_normals, jnp.asarray(loss_scale, source.dtype), data[3]),
+            (source_mask, loss_kind),
+        )  # fmt: skip
+    result = result._replace(correspondences=_first_rows(result.correspondences, n))
     if throw and not isinstance(result.status, jax.core.Tracer):
         status = Status(int(result.status))
         if status == Status.NONFINITE:
@@ -248,38 +305,18 @@ def _register(
     return result
 
 
-_KNOWN_LOSSES = (None, Huber, Cauchy, Tukey, GemanMcClure)
+def _first_rows(array, n):
+    """`array[:n]`, by NumPy for a concrete array (a slice per new size would compile)."""
+    if n == array.shape[0]:
+        return array
+    if isinstance(array, jax.core.Tracer):
+        return array[:n]
+    return jnp.asarray(np.asarray(array)[:n])
 
 
-def _split_loss(loss):
-    """`(dynamic, static)`: no loss and the `lieax.lstsq` losses become a traced `(kind, scale)`
-    pair, so that they share one compiled loop; any other object with a `weight(s)` method is
-    passed as a static argument (it must be hashable)."""
-    if loss is None:
-        return (0, 1.0), None
-    if type(loss) in _KNOWN_LOSSES:
-        return (_KNOWN_LOSSES.index(type(loss)), loss.scale), None
-    if not callable(getattr(loss, "weight", None)):
-        raise TypeError(
-            f"loss must have a weight(s) method (see lieax.lstsq losses), got {loss!r}."
-        )
-    return None, loss
-
-
-def _weights(loss, static_loss, squared):
-    """IRLS weights $\\rho'(s)$ of squared residuals."""
-    if static_loss is not None:
-        return static_loss.weight(squared)
-    kind, scale = loss
-    scale = jnp.asarray(scale).astype(squared.dtype)
-    branches = [lambda s, c: jnp.ones_like(s)] + [
-        functools.partial(_loss_weight, cls) for cls in _KNOWN_LOSSES[1:]
-    ]
-    return jax.lax.switch(kind, branches, squared, scale)
-
-
-def _loss_weight(cls, squared, scale):
-    return cls(scale).weight(squared)
+def _constant(x):
+    """`x` without derivatives (traced values only: concrete ones have none to stop)."""
+    return jax.lax.stop_gradient(x) if isinstance(x, jax.core.Tracer) else x
 
 
 # ---- the jitted loop ----------------------------------------------------------------------------
@@ -288,9 +325,10 @@ def _loss_weight(cls, squared, scale):
 @functools.partial(jax.jit, static_argnames=("options", "static_loss"))
 def _solve(
     source, source_mask, target, target_mask, target_normals, init, max_distance,
-    relative_fitness, relative_rmse, loss, *, options, static_loss,
+    relative_fitness, relative_rmse, loss, *, options, static_loss, index=None,
+    source_covariances=None, target_covariances=None,
 ):  # fmt: skip
-    kind, max_iterations, exact, steps, verbose = options
+    kind, max_iterations, exact, steps, verbose, search = options
     dtype = source.dtype
     n = source.shape[0]
     if target_normals is None:
@@ -309,6 +347,12 @@ def _solve(
         & jnp.all(jnp.isfinite(target) | ~target_mask[:, None])
         & jnp.all(jnp.isfinite(target_normals) | ~target_mask[:, None])
     )
+    if kind == "gicp":  # (n, 3, 3) and (m, 3, 3) covariances, checked by lieax.icp.gicp
+        finite = (
+            finite
+            & jnp.all(jnp.isfinite(source_covariances) | ~source_mask[:, None, None])
+            & jnp.all(jnp.isfinite(target_covariances) | ~target_mask[:, None, None])
+        )
     init_finite = jnp.all(jnp.isfinite(init))
     finite = finite & init_finite
     source_mask = source_mask & jnp.all(jnp.isfinite(source), axis=1)
@@ -321,9 +365,16 @@ def _solve(
     # the target's tables (its slots are in k-d tree order), which keeps the gathers in cache.
     order = _neighbors.spatial_order(source, source_mask)
     source, source_mask = source[order], source_mask[order]
-    index = _neighbors.build_index(target, target_mask)
+    if index is None:
+        index = _search.build_index(target, target_mask, search=search, max_distance=max_distance)
     target_points = index.points
     normals = jnp.where(index.valid[:, None], target_normals[index.order], 0.0)
+    if kind == "gicp":
+        eye = jnp.eye(3, dtype=dtype)
+        source_covariances = source_covariances.astype(dtype)[order]
+        target_covariances = jnp.where(
+            index.valid[:, None, None], target_covariances.astype(dtype)[index.order], eye
+        )
     n_valid = jnp.maximum(jnp.sum(source_mask), 1)
     r2 = max_distance * max_distance
 
@@ -341,6 +392,13 @@ def _solve(
         matched = target_points[slot]
         if kind == "plane":
             return _plane_step(params, source, matched, normals[slot], inliers, weights)
+        if kind == "gicp":
+            from ._gicp import gicp_step  # (a module that imports this one)
+
+            return gicp_step(
+                params, source, matched, source_covariances, target_covariances[slot], inliers,
+                weights,
+            )  # fmt: skip
         return _point_step(params, source, matched, inliers, weights)
 
     def inner_step(state):
@@ -352,9 +410,14 @@ def _solve(
         candidate = update(state.params, state.slot, inliers)
         ok = enough & jnp.all(jnp.isfinite(candidate))
         params = jnp.where(ok & ~first, candidate, state.params)
-        slot, d2, _ = _neighbors.track(
-            index, moved(params), state.slot, max_steps=steps, mask=source_mask
-        )
+        if search == "graph":
+            slot, d2, _ = _neighbors.track(
+                index, moved(params), state.slot, max_steps=steps, mask=source_mask
+            )
+        else:  # exact in every iteration
+            slot, d2 = _search.match(
+                index, moved(params), max_distance, source_mask, previous=state.slot
+            )
         d2 = jnp.where(source_mask, d2, jnp.inf)
         _, fitness, rmse = statistics(d2)
         iterations = state.iterations + (ok | first).astype(jnp.int32)
@@ -399,7 +462,7 @@ def _solve(
         they also equal those of the previous check: the pose has settled, and what differs is a
         few matches that the warm-started descent keeps missing."""
         state = jax.lax.while_loop(running, inner_step, state)
-        if not exact:
+        if not exact or search != "graph":
             return state
         queries = moved(state.params)
         certified = _neighbors.certify(index, state.slot, state.d2, max_distance) | ~source_mask

@@ -17,9 +17,11 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from .._base import AbstractManifold
 from .._manifold import (
     check_retraction,
     leaf_array,
+    leaf_tangent_shape,
     manifold_leaves,
     rplus,
     tangent_dim,
@@ -72,10 +74,21 @@ def least_squares(
       prefix of the residual with a loss or `None` per leaf. Applied by reweighting.
     - `max_iterations`: the most iterations (rejected steps count).
     - `function_tolerance`: converged when a kept step changes the cost by less than this
-      fraction of it (0 turns the test off).
-    - `gradient_tolerance`: converged when $\\|J^\\top W r\\|_\\infty$ is at most this.
-    - `parameter_tolerance`: converged when a step's norm is at most `tol * (|x| + tol)`, with
-      $|x|$ the norm of the state's parameters.
+      fraction of it, or a rejected step was predicted to decrease it by less (0 turns the test
+      off).
+    - `gradient_tolerance`: converged when
+      $\\max_j |g_j| / (c_j \\|r\\|) \\le \\text{tol}$, the largest cosine between the (weighted)
+      residual and a column of the Jacobian, $g = J^\\top W r$, $c_j$ the column's norm and
+      $\\|r\\| = \\sqrt{2\\,\\text{cost}}$ (MINPACK's `gtol`; a zero residual passes): independent
+      of the units of the unknowns and of the residual.
+    - `parameter_tolerance`: converged when a step $\\delta$ has
+      $\\|D\\delta\\| \\le \\text{tol}\\,(\\|D|x|\\| + \\text{tol}\\,\\|d\\|/\\sqrt{n})$, with
+      $D = \\mathrm{diag}(d)$ the solver's scaling of the variables (`solver.scale`: for
+      `LevenbergMarquardt()` the largest column norms of the Jacobian so far; the identity for
+      `GaussNewton()`), $|x|$ the state's magnitude per tangent coordinate (an array's absolute
+      values; a group element's parameter norm spread over its coordinates) and $n$ the tangent
+      dimension: relative to the state as MINPACK's `xtol`, so that it holds for unknowns of any
+      size (with $D = I$: $\\|\\delta\\| \\le \\text{tol}\\,(\\|x\\| + \\text{tol})$).
       The three tolerances default to $10^{-10}$ in float64 and $10^{-6}$ in float32.
     - `differentiation`: `"implicit"` (default): derivatives of `value` and `cost` with respect
       to `args` (and the loss's scale) by the implicit function theorem at the solution, with no
@@ -88,8 +101,9 @@ def least_squares(
       no rule for move by `exp`. The Jacobians are the same (every retraction's derivative at
       $\\delta = 0$ is the identity), and so is the optimum (a zero of the gradient); the
       iterates differ at second order in the step. Compiled once per retraction.
-    - `verbose`: print an iteration table (cost, cost change, gradient and step norms, gain ratio,
-      damping) from inside the compiled loop. Under `vmap` every problem prints its rows, the
+    - `verbose`: print an iteration table (cost, cost change, the gradient and step norms that
+      the stopping rules compare with their tolerances, gain ratio, damping) from inside the
+      compiled loop. Under `vmap` every problem prints its rows, the
       problems' rows interleaved.
     - `throw`: raise `SolveError` when the solve ends `DIVERGED` or `NONFINITE` (this waits for
       the result). Only possible when the status is concrete: under `jit` or `vmap` nothing is
@@ -177,16 +191,28 @@ def _tree_where(condition, new, old):
     return jax.tree_util.tree_map(lambda a, b: jnp.where(condition, a, b), new, old)
 
 
-def _parameter_norm(x):
-    leaves, _ = manifold_leaves(x, "x")
-    return jnp.sqrt(sum(jnp.sum(leaf_array(leaf) ** 2) for leaf in leaves))
+def _parameter_magnitudes(x):
+    """$|x_j|$ per flattened tangent coordinate, for the step test: an array's entries' absolute
+    values; a group element's parameter norm over $\\sqrt{\\text{dof}}$ on each of its coordinates
+    (so that the squares sum to the squared norm of its parameters)."""
+    leaves, _ = manifold_leaves(lax.stop_gradient(x), "x")
+    parts = []
+    for leaf in leaves:
+        if isinstance(leaf, AbstractManifold):
+            norm = jnp.sqrt(jnp.sum(leaf_array(leaf) ** 2, axis=-1, keepdims=True))
+            norm = jnp.broadcast_to(norm / np.sqrt(leaf.tangent_dim), leaf_tangent_shape(leaf))
+            parts.append(jnp.ravel(norm))
+        else:
+            parts.append(jnp.ravel(jnp.abs(leaf)))
+    return jnp.concatenate(parts) if parts else jnp.zeros((0,))
 
 
 def _gain_ratio(values, trial_finite):
-    """$\\varrho = (c - c_t) / (-g^\\top\\delta - \\tfrac12 \\delta^\\top H \\delta)$ and the actual
-    decrease $c - c_t$ ($c_t$ the cost at the trial point); $-\\infty$ for a non-finite trial
-    point. Below the rounding error of the cost the ratio is noise: it is taken as 1 (trust the
-    model) unless the cost measurably rose, which lets the last Newton-like steps through."""
+    """$\\varrho = (c - c_t) / (-g^\\top\\delta - \\tfrac12 \\delta^\\top H \\delta)$, the actual
+    decrease $c - c_t$ ($c_t$ the cost at the trial point) and the predicted one (the
+    denominator); $\\varrho = -\\infty$ for a non-finite trial point. Below the rounding error
+    of the cost the ratio is noise: it is taken as 1 (trust the model) unless the cost
+    measurably rose, which lets the last Newton-like steps through."""
     cost, cost_trial, step, hessian, gradient = values
     actual = cost - cost_trial
     predicted = -(gradient @ step + 0.5 * step @ (hessian @ step))
@@ -194,7 +220,7 @@ def _gain_ratio(values, trial_finite):
     ratio = jnp.where(trial_finite & (predicted > 0), ratio, -jnp.inf)
     resolution = 16 * jnp.finfo(cost.dtype).eps * jnp.abs(cost)
     unmeasurable = trial_finite & (jnp.abs(predicted) <= resolution) & (actual >= -resolution)
-    return jnp.where(unmeasurable, 1.0, ratio), actual
+    return jnp.where(unmeasurable, 1.0, ratio), actual, predicted
 
 
 @jax.jit(static_argnums=(0, 1, 2, 3, 4))
@@ -231,12 +257,12 @@ def _solve(
 
         # keep or reject the trial point (x0 is always kept); decisions are not differentiated,
         # they only select between differentiable values
-        gain_ratio, actual = _gain_ratio(
+        gain_ratio, actual, predicted = _gain_ratio(
             sg((state.cost, cost_trial, state.step, state.hessian, state.gradient)), trial_finite
         )
         accept, solver_state = solver.update(sg(state.solver_state), gain_ratio, trial_finite)
         accept = accept | first
-        solver_state = _tree_where(first, solver.init(dtype), solver_state)
+        solver_state = _tree_where(first, solver.init(n, dtype), solver_state)
         x, cost, hessian, gradient = _tree_where(
             accept,
             (state.x_trial, cost_trial, hessian_trial, gradient_trial),
@@ -244,19 +270,34 @@ def _solve(
         )
         iteration = jnp.where(first, state.iteration, state.iteration + 1)
 
-        # stop? (at x0 only on a non-finite residual or a zero gradient)
-        gradient_norm = jnp.max(jnp.abs(sg(gradient)), initial=0.0)
-        step_norm = jnp.sqrt(sg(state.step @ state.step))
+        step, next_solver_state = solver.step(solver_state, hessian, gradient)
+        step = step.astype(dtype)
+
+        # stop? (at x0 only on a non-finite residual or a zero gradient); the gradient as a
+        # cosine, the step in the solver's scaled variables (see `AbstractSolver.scale`)
+        column_norms = jnp.sqrt(jnp.maximum(sg(jnp.diagonal(hessian)), 0.0))
+        column_norms = jnp.where(column_norms > 0, column_norms, 1.0)
+        residual_norm = jnp.sqrt(2.0 * sg(cost))
+        gradient_norm = jnp.max(jnp.abs(sg(gradient)) / column_norms, initial=0.0)
+        gradient_norm = jnp.where(residual_norm > 0, gradient_norm / residual_norm, 0.0)
+        step_scale = sg(solver.scale(state.solver_state))  # the scaling state.step was made with
+        step_norm = jnp.sqrt(jnp.sum((step_scale * sg(state.step)) ** 2))
+        x_norm = jnp.sqrt(jnp.sum((step_scale * _parameter_magnitudes(state.x)) ** 2))
+        scale_norm = jnp.sqrt(jnp.sum(step_scale**2) / max(n, 1))
         small_step = ~first & (
-            step_norm <= parameter_tolerance * (sg(_parameter_norm(state.x)) + parameter_tolerance)
+            step_norm <= parameter_tolerance * (x_norm + parameter_tolerance * scale_norm)
         )
         small_change = ~first & (jnp.abs(actual) < function_tolerance * sg(state.cost))
-        converged = (small_step & trial_finite) | (
-            accept & (small_change | (gradient_norm <= gradient_tolerance))
+        # a rejected step that promised less than the tolerance: no measurable progress is left
+        # (the cost's rounding noise, not the model, decided the rejection)
+        small_promise = ~first & ~accept & (predicted < function_tolerance * sg(state.cost))
+        converged = (
+            (small_step & trial_finite)
+            | (small_promise & trial_finite)
+            | (accept & (small_change | (gradient_norm <= gradient_tolerance)))
         )
         nonfinite = ~trial_finite & (first | small_step | (not solver.rejects_steps))
         diverged = ~first & solver.diverged(solver_state, sg(cost), sg(state.cost_history[0]))
-        step = solver.step(solver_state, hessian, gradient).astype(dtype)
         status = jnp.select(
             [
                 nonfinite | ~_all_finite(sg(step)),
@@ -286,7 +327,7 @@ def _solve(
             cost=cost,
             hessian=hessian,
             gradient=gradient,
-            solver_state=solver_state,
+            solver_state=next_solver_state,
             x_trial=rplus(x, unflatten_tangents(x, step), retraction),
             step=step,
             first=jnp.zeros((), bool),
@@ -300,7 +341,7 @@ def _solve(
         cost=jnp.zeros((), dtype),
         hessian=jnp.zeros((n, n), dtype),
         gradient=jnp.zeros((n,), dtype),
-        solver_state=solver.init(dtype),
+        solver_state=solver.init(n, dtype),
         x_trial=x0,
         step=jnp.zeros((n,), dtype),
         first=jnp.ones((), bool),

@@ -25,15 +25,22 @@ def normal_equations(jac, residual, weights=None):
 
 
 def cholesky_with_fallback(matrix):
-    """The lower Cholesky factor of `matrix`, or of `matrix` $+ \\epsilon I$ when the plain
-    factorization fails or is numerically singular.
+    """A lower Cholesky factor $L$ ($L L^\\top = A$) of `matrix`, or of `matrix`
+    $+ \\epsilon\\,\\mathrm{diag}(A)$ when the plain factorization fails or is numerically
+    singular.
 
-    Singular means a pivot $\\ell_{ii}^2 \\le 10\\,n\\,\\varepsilon \\max_j |A_{jj}|$ (a state with
-    a gauge freedom, a variable no residual touches). The fallback adds
-    $\\epsilon = \\sqrt{\\varepsilon} \\max_j |A_{jj}|$ to the diagonal: for a positive
-    semi-definite $A = J^\\top W J$ and a right side in its range ($J^\\top W r$), the step then
-    has no component along the null space and is shortened by $\\lambda / (\\lambda + \\epsilon)$
-    along each eigenvector elsewhere. An indefinite or non-finite matrix gives NaN.
+    The factorization is of the Jacobi-scaled $\\tilde A = S^{-1} A S^{-1}$,
+    $S = \\mathrm{diag}(\\sqrt{A_{jj}})$ (1 for a zero diagonal), and $L = S \\tilde L$: the
+    tests below do not depend on the units of the unknowns, so a well-posed problem whose
+    variables differ in size by many orders of magnitude is not taken for a singular one.
+    Singular means a pivot
+    $\\tilde\\ell_{jj}^2 \\le 10\\,n\\,\\varepsilon \\max_i \\tilde A_{ii}$ (a state with a gauge
+    freedom, a variable no residual touches). The fallback adds
+    $\\epsilon = \\sqrt{\\varepsilon} \\max_i \\tilde A_{ii}$ to the diagonal of $\\tilde A$: for a
+    positive semi-definite $A = J^\\top W J$ and a right side in its range ($J^\\top W r$), the
+    solution then has no component along the null space of $\\tilde A$ (it is the one of least
+    $\\|S x\\|$) and is shortened by $\\lambda / (\\lambda + \\epsilon)$ along each eigenvector of
+    $\\tilde A$ elsewhere. An indefinite or non-finite matrix gives NaN.
 
     Both factorizations are computed and one is selected (no `lax.cond`): for the small
     matrices this is for, a second factorization costs less than a branch in the compiled loop,
@@ -43,13 +50,16 @@ def cholesky_with_fallback(matrix):
     if n == 0:
         return matrix
     eps = jnp.finfo(matrix.dtype).eps
-    scale = jnp.max(jnp.abs(jnp.diagonal(matrix)))
-    factor = jnp.linalg.cholesky(matrix)
+    diagonal = jnp.diagonal(matrix)
+    scale = jnp.sqrt(jnp.where(diagonal > 0, diagonal, 1.0))
+    scaled = matrix / (scale[:, None] * scale[None, :])
+    largest = jnp.max(jnp.abs(jnp.diagonal(scaled)))
+    factor = jnp.linalg.cholesky(scaled)
     pivots = jnp.diagonal(factor)
-    ok = jnp.all(jnp.isfinite(factor)) & (jnp.min(pivots) ** 2 > 10 * n * eps * scale)
-    shift = jnp.sqrt(eps) * jnp.maximum(scale, jnp.finfo(matrix.dtype).tiny)
-    regularized = jnp.linalg.cholesky(matrix + shift * jnp.eye(n, dtype=matrix.dtype))
-    return jnp.where(ok, factor, regularized)
+    ok = jnp.all(jnp.isfinite(factor)) & (jnp.min(pivots) ** 2 > 10 * n * eps * largest)
+    shift = jnp.sqrt(eps) * jnp.maximum(largest, jnp.finfo(matrix.dtype).tiny)
+    regularized = jnp.linalg.cholesky(scaled + shift * jnp.eye(n, dtype=matrix.dtype))
+    return scale[:, None] * jnp.where(ok, factor, regularized)
 
 
 def solve_factored(factor, rhs):

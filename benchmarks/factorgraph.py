@@ -1,0 +1,253 @@
+"""The general factor-graph solver (`lieax.factorgraph`) on pose graphs, against
+`lieax.graph.optimize` (the specialised pose-graph solver it should one day carry) and GTSAM 4.3's
+`LevenbergMarquardtOptimizer`, and its first-call cost as factor kinds are added.
+
+Needs the `bench` extra (GTSAM 4.3) and the g2o sets of `shared/data/g2o` (`--data` or
+`LIEAX_DATA_DIR`). Same setup as `benchmarks/pgo.py` (one pinned core, one thread each, GTSAM's
+default parameters, a tight prior on the first pose in GTSAM, the first pose fixed in lieax):
+warm medians over interleaved rounds in one process, iterations, final costs, and the first
+call (structure analysis, tracing and XLA compilation) separately. `factorgraph` uses the
+closed-form between blocks (`from_pose_graph`'s default), `factorgraph (autodiff)` lets
+`lieax.jacobian` differentiate the residual through the groups' `custom_jvp` rules.
+
+The second table is the first call on a generated 2D problem of about 10k poses as factor kinds
+are added (odometry; loop closures; GPS positions; a pose prior): analysis, trace and compile.
+
+    python benchmarks/factorgraph.py --data ../shared/data [--rounds 5] [--sets intel,sphere2500]
+"""
+
+import argparse
+import os
+import sys
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pgo
+from _timing import (
+    format_ratio,
+    format_seconds,
+    machine_description,
+    markdown_table,
+    time_interleaved,
+)
+
+from lieax import SE2
+from lieax import graph as lg
+from lieax.factorgraph import Factor, FactorGraph, Var, from_pose_graph
+
+jax.config.update("jax_enable_x64", True)
+
+
+def benchmark_set(name, path, is3d, rounds):
+    graph = lg.read_g2o(path)
+    start = time.perf_counter()
+    fg, _ = from_pose_graph(graph)
+    ours = fg.solve()
+    ours.cost.block_until_ready()
+    first_call = time.perf_counter() - start
+    fg_auto, _ = from_pose_graph(graph, closed_form=False)
+    auto = fg_auto.solve()
+    reference = lg.optimize(graph)
+    gt_graph, gt_initial = pgo.gtsam_problem(path, is3d)
+    gt_cost, gt_iterations = pgo.run_gtsam(gt_graph, gt_initial)
+    variants = {
+        "factorgraph": lambda: fg.solve().cost,
+        "autodiff": lambda: fg_auto.solve().cost,
+        "graph": lambda: jnp.asarray(lg.optimize(graph).cost),
+        "gtsam": lambda: jnp.asarray(pgo.run_gtsam(gt_graph, gt_initial)[0]),
+    }
+    t = time_interleaved(variants, rounds, warmup=1, min_sample_s=0.02)
+    return [
+        name,
+        f"{graph.num_poses} / {graph.num_edges}",
+        format_seconds(t["factorgraph"].median),
+        format_seconds(t["autodiff"].median),
+        format_seconds(t["graph"].median),
+        format_seconds(t["gtsam"].median),
+        (
+            f"{int(ours.iterations)} / {int(auto.iterations)} / {reference.iterations} / "
+            f"{gt_iterations}"
+        ),
+        f"{float(ours.cost):.10g}",
+        f"{(float(ours.cost) - reference.cost) / reference.cost:.1e}",
+        f"{(float(ours.cost) - gt_cost) / gt_cost:.1e}",
+        format_ratio(t["factorgraph"].median, t["graph"].median),
+        format_ratio(t["factorgraph"].median, t["gtsam"].median),
+        format_seconds(first_call),
+    ]
+
+
+def generated_problem(n, kinds, seed=0):
+    """A 2D pose graph of `n` poses with the first `kinds` of: odometry, loop closures, GPS
+    positions every 10th pose, a prior on the first pose (the first pose is fixed when there are
+    neither GPS nor prior factors)."""
+    rng = np.random.default_rng(seed)
+    xi = rng.normal(size=(n, 3)) * 0.2
+    xi[:, 0] += np.arange(n) * 0.5
+    truth = SE2.exp(jnp.asarray(xi))
+    start = truth.rplus(jnp.asarray(rng.normal(size=(n, 3)) * 0.05))
+    poses = Var(start, fixed=[0] if kinds < 3 else None, name="poses")
+
+    def between(a, b, z):
+        return z.between(a.between(b)).log()
+
+    def gps(x, p):
+        return x.translation() - p
+
+    def prior(x, z):
+        return z.between(x).log()
+
+    i = np.arange(n - 1)
+    factors = [Factor(between, (poses[i], poses[i + 1]), truth[i].between(truth[i + 1]),
+                      name="odometry")]  # fmt: skip
+    if kinds >= 2:
+        a = rng.integers(0, n - 20, size=n // 10)
+        b = a + rng.integers(5, 20, size=a.shape)
+        factors.append(Factor(between, (poses[a], poses[b]), truth[a].between(truth[b]),
+                              name="loops"))  # fmt: skip
+    if kinds >= 3:
+        k = np.arange(0, n, 10)
+        factors.append(Factor(gps, (poses[k],), truth.translation()[k], name="gps"))
+    if kinds >= 4:
+        factors.append(Factor(prior, (poses[np.zeros(1, int)],), truth[:1], name="prior"))
+    return factors, poses
+
+
+def first_calls(n, max_kinds):
+    rows = []
+    for kinds in range(1, max_kinds + 1):
+        factors, poses = generated_problem(n, kinds)
+        start = time.perf_counter()
+        graph = FactorGraph(factors, [poses])
+        analysed = time.perf_counter()
+        result = graph.solve(max_iterations=20)
+        result.cost.block_until_ready()
+        first = time.perf_counter()
+        graph.solve(max_iterations=20).cost.block_until_ready()
+        warm = time.perf_counter() - first
+        rows.append(
+            [
+                kinds,
+                sum(f.count for f in factors),
+                format_seconds(analysed - start),
+                format_seconds(first - analysed - warm),
+                format_seconds(warm),
+                int(result.iterations),
+            ]
+        )
+    return rows
+
+
+def bundle_adjustment(cameras, points, observations, rounds):
+    """A synthetic BAL problem (`lieax.ba.synthetic_bal`) with each linear solver, warm medians
+    in one process: Schur complement on the points with the reduced camera system solved
+    densely, by the multifrontal Cholesky or by PCG, and no elimination (the padded Cholesky)."""
+    from lieax import ba
+
+    problem = ba.synthetic_bal(cameras, points, observations, seed=0).problem
+    cams = Var(problem.camera_variables(jnp.float64), fixed=[0], name="cameras")
+    pts = Var(jnp.asarray(problem.points), fixed=[0], name="points")
+    factor = Factor(
+        ba.camera_residual,
+        (cams[problem.camera_indices], pts[problem.point_indices]),
+        jnp.asarray(problem.observations),
+        jacobian_fn=ba.camera_jacobians,
+    )
+    graph = FactorGraph([factor], check_gauge=False)
+    variants = {
+        "Schur + dense": {"eliminate": pts, "solver": "dense"},
+        "Schur + cholesky": {"eliminate": pts, "solver": "cholesky"},
+        "Schur + cg": {"eliminate": pts, "solver": "cg"},
+        "cholesky (no Schur)": {"solver": "cholesky"},
+    }
+    results, first = {}, {}
+    for name, options in variants.items():
+        start = time.perf_counter()
+        results[name] = graph.solve(**options)
+        results[name].cost.block_until_ready()
+        first[name] = time.perf_counter() - start
+    timings = time_interleaved(
+        {name: (lambda o=o: graph.solve(**o).cost) for name, o in variants.items()},
+        rounds, warmup=1, min_sample_s=0.02,
+    )  # fmt: skip
+    return [
+        [
+            name,
+            format_seconds(timings[name].median),
+            int(results[name].iterations),
+            f"{float(results[name].cost):.10g}",
+            format_seconds(first[name]),
+        ]
+        for name in variants
+    ], float(graph.cost())
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", default=os.environ.get("LIEAX_DATA_DIR", "../shared/data"))
+    parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument("--sets", default=",".join(pgo.SETS))
+    parser.add_argument("--poses", type=int, default=10000)
+    parser.add_argument("--kinds", type=int, default=4)
+    parser.add_argument("--ba", default="20,400,2400", help="cameras,points,observations ('')")
+    args = parser.parse_args(argv)
+    try:
+        import gtsam  # noqa: F401
+    except ImportError:
+        sys.exit("benchmarks/factorgraph.py needs GTSAM: pip install 'lieax[bench]'")
+    print(machine_description())
+    print()
+    rows = []
+    for name in [s for s in args.sets.split(",") if s]:
+        file, is3d = pgo.SETS[name]
+        rows.append(benchmark_set(name, os.path.join(args.data, "g2o", file), is3d, args.rounds))
+        print(f"  {name}: done", file=sys.stderr)
+    if rows:
+        headers = [
+            "set",
+            "poses / edges",
+            "factorgraph",
+            "factorgraph (autodiff)",
+            "lieax.graph",
+            "GTSAM",
+            "iterations fg / auto / graph / GTSAM",
+            "cost",
+            "vs graph",
+            "vs GTSAM",
+            "fg / graph",
+            "fg / GTSAM",
+            "fg first call",
+        ]
+        print(markdown_table(headers, rows))
+        print()
+    if args.kinds:
+        print(f"First call on a generated 2D problem of {args.poses} poses (20 iterations max):")
+        print()
+        headers = [
+            "factor kinds",
+            "factors",
+            "analysis",
+            "trace + compile",
+            "warm solve",
+            "iterations",
+        ]
+        print(markdown_table(headers, first_calls(args.poses, args.kinds)))
+        print()
+    if args.ba:
+        cameras, points, observations = (int(x) for x in args.ba.split(","))
+        rows, initial = bundle_adjustment(cameras, points, observations, args.rounds)
+        print(
+            f"Bundle adjustment, synthetic ({cameras} cameras, {points} points, "
+            f"{observations} observations, initial cost {initial:.6g}):"
+        )
+        print()
+        headers = ["linear solver", "warm solve", "iterations", "final cost", "first call"]
+        print(markdown_table(headers, rows))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,256 @@
+"""Nearest-neighbour backends side by side on every kind of scan (`lieax.icp._search`).
+
+Clouds (the ICP benchmark's, `benchmarks/icp.py` imports them from here):
+- bunny 2 mm and bunny full: the Stanford bunny pair (object scans), 1 cm radius;
+- LiDAR: outdoor Velodyne scans 1 -> 0 (`lidar_scans_0_1_2/scans.npz`), on a voxel grid, 1 m radius;
+- Kinect: `office_kinect/office1.pcd` on a 1 cm voxel grid (the target) against a copy resampled
+  on a grid shifted by half a voxel, cropped, and moved by a known motion (the source), 5 cm.
+
+Per cloud and backend, at the pose ICP converges to: the index build (jitted, on the target; the
+host tree's registry emptied first), one matching step of every source point inside a jitted call
+from scratch (the graph: seed, descent and exact check) and warm-started from the exact matches
+(the graph's descent, as in ICP's iterations; the host tree skipping the matches its spacing test
+keeps), and exactness: the share of the source points with a target point within the radius that
+got their nearest one (or one at the same distance) in the warm-started step, against SciPy's
+cKDTree, and for the graph also after its exact check. The two host libraries are also timed bare
+(numpy in, numpy out) to choose between them.
+
+Run `LIEAX_DATA_DIR=../shared/data python benchmarks/neighbors.py` (needs the `bench` extra:
+open3d, pykdtree). `--quick`: fewer rounds, no brute force on large targets.
+"""
+
+import argparse
+import os
+import sys
+import time
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp
+import numpy as np
+from scipy.spatial import cKDTree
+
+from lieax import read_point_cloud
+from lieax.icp import _host_kdtree, _neighbors, _search
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+from _timing import format_seconds, machine_description, markdown_table, time_interleaved
+
+LIDAR_VOXEL = 0.5
+KINECT_VOXEL = 0.01
+BACKENDS = ("graph", "grid", "kdtree", "kdtree pykdtree", "brute")
+
+
+# ---- clouds --------------------------------------------------------------------------------------
+
+
+def voxel_centroids(points, size, offset=0.0):
+    """The centroid of the points in each cell of a grid of `size`, shifted by `offset`."""
+    cells = np.floor((points - offset) / size).astype(np.int64)
+    _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
+    sums = np.zeros((counts.size, 3))
+    np.add.at(sums, inverse.reshape(-1), points)
+    return sums / counts[:, None]
+
+
+def motion(degrees, translation, seed):
+    """A 4x4 rigid motion: `degrees` about a random axis, `translation` in a random direction."""
+    rng = np.random.default_rng(seed)
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    angle = np.deg2rad(degrees)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    rotation = np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+    direction = rng.normal(size=3)
+    out = np.eye(4)
+    out[:3, :3], out[:3, 3] = rotation, translation * direction / np.linalg.norm(direction)
+    return out
+
+
+def load_clouds(data_dir):
+    """`{label: (source, target, radius, T_target_source or None)}` (float64 numpy)."""
+    clouds = {}
+    for name, label in (("bunny_v0.002.npz", "bunny 2 mm"), ("bunny_full.npz", "bunny full")):
+        data = np.load(os.path.join(data_dir, "clouds", "bunny_045_to_000", name))
+        clouds[label] = (data["source"], data["target"], 0.01, data["T_target_source"])
+    scans = np.load(os.path.join(data_dir, "clouds", "lidar_scans_0_1_2", "scans.npz"))
+    clouds["LiDAR"] = (
+        voxel_centroids(scans["scan1"], LIDAR_VOXEL),
+        voxel_centroids(scans["scan0"], LIDAR_VOXEL),
+        1.0,
+        None,
+    )
+    office = read_point_cloud(os.path.join(data_dir, "clouds", "office_kinect", "office1.pcd"))
+    points = np.asarray(office.points)
+    points = points[np.all(np.isfinite(points), axis=1)]
+    target = voxel_centroids(points, KINECT_VOXEL)
+    resampled = voxel_centroids(points, KINECT_VOXEL, offset=KINECT_VOXEL / 2)
+    x_cut = np.quantile(resampled[:, 0], 0.2)  # crop a fifth of the view
+    resampled = resampled[resampled[:, 0] > x_cut]
+    T_target_source = motion(3.0, 0.05, seed=5)
+    rotation, translation = T_target_source[:3, :3], T_target_source[:3, 3]
+    source = (resampled - translation) @ rotation  # source frame: T_target_source maps it back
+    clouds["Kinect"] = (source, target, 0.05, T_target_source)
+    return clouds
+
+
+def aligned(source, target, radius, truth):
+    """The source at the pose ICP converges to: the known motion, or (LiDAR) SciPy-matched
+    point-to-point ICP from the identity."""
+    if truth is not None:
+        return source @ truth[:3, :3].T + truth[:3, 3]
+    tree, moved = cKDTree(target), source
+    for _ in range(30):
+        distance, nearest = tree.query(moved, distance_upper_bound=radius)
+        ok = np.isfinite(distance)
+        a, b = moved[ok], target[nearest[ok]]
+        ca, cb = a.mean(0), b.mean(0)
+        u, _, vt = np.linalg.svd((b - cb).T @ (a - ca))
+        rotation = u @ np.diag([1, 1, np.sign(np.linalg.det(u @ vt))]) @ vt
+        moved = (moved - ca) @ rotation.T + cb
+    return moved
+
+
+# ---- one cloud ----------------------------------------------------------------------------------
+
+
+def builder(backend, radius):
+    name, _, library = backend.partition(" ")
+    options = {"library": {"": "scipy"}.get(library, library)} if name == "kdtree" else {}
+    return jax.jit(lambda t: _search.build_index(t, search=name, max_distance=radius, **options))
+
+
+def matcher(backend, radius, warm=True):
+    """`match(index, queries, slot)`, one ICP matching step: the graph's descent from `slot`;
+    the host tree warm-started from `slot` (with `warm`); the others' exact search."""
+    if backend == "graph" and warm:
+        return jax.jit(lambda index, q, slot: _neighbors.track(index, q, slot, max_steps=2)[:2])
+    if backend == "graph":  # seed, descent, exact check
+        return jax.jit(lambda index, q, slot: _search.nearest(index, q, radius=radius)[1:3])
+    previous = backend.startswith("kdtree") and warm
+    return jax.jit(
+        lambda index, q, slot: _search.match(index, q, radius, previous=slot if previous else None)
+    )
+
+
+def fresh_build(build, t):
+    """`build(t)` with the host registry emptied (it would find the tree built before), then
+    restored (indexes in use keep their trees)."""
+    trees, ids = dict(_host_kdtree._TREES), dict(_host_kdtree._IDS)
+    _host_kdtree._TREES.clear()
+    _host_kdtree._IDS.clear()
+    index = jax.block_until_ready(build(t))
+    _host_kdtree._TREES.update(trees)
+    _host_kdtree._IDS.update(ids)
+    return index
+
+
+def exact_share(found_distance, reference_distance, radius):
+    within = reference_distance <= radius
+    same = np.isclose(found_distance, reference_distance, rtol=1e-6, atol=1e-7)
+    return np.mean(same[within]), np.mean(within)
+
+
+def measure(label, source, target, radius, truth, rounds, dtype, skip_brute_above):
+    queries_np = aligned(source, target, radius, truth)
+    reference, _ = cKDTree(target).query(queries_np)
+    t, q = jnp.asarray(target, dtype), jnp.asarray(queries_np, dtype)
+    rows = []
+    for backend in BACKENDS:
+        if backend == "brute" and len(target) > skip_brute_above:
+            rows.append([label, backend, "—", "—", "—", "skipped (`--quick`)"])
+            continue
+        row, within = measure_backend(backend, t, q, reference, radius, rounds)
+        rows.append([label, *row])
+    return rows, within
+
+
+def measure_backend(backend, t, q, reference, radius, rounds):
+    build, cold = builder(backend, radius), matcher(backend, radius, warm=False)
+    warm = matcher(backend, radius)
+    index = build(t)
+    # The converged matches: where the graph and the warm host tree start from.
+    slot = _search.nearest(index, q, radius=radius).slot
+    variants = {"build": lambda: fresh_build(build, t), "cold": lambda: cold(index, q, slot)}
+    if backend.startswith("kdtree") or backend == "graph":
+        variants["warm"] = lambda: warm(index, q, slot)
+    timings = time_interleaved(variants, rounds, warmup=1)
+    _, found_d2 = warm(index, q, slot)
+    share, within = exact_share(np.sqrt(np.asarray(found_d2, np.float64)), reference, radius)
+    note = f"{share:.2%}"
+    if backend == "graph":
+        checked = _search.nearest(index, q, radius=radius)
+        after, _ = exact_share(np.asarray(checked.distance), reference, radius)
+        note += f" (after the exact check {after:.3%})"
+    times = [
+        format_seconds(timings[k].median) if k in timings else "—"
+        for k in ("build", "cold", "warm")
+    ]
+    return [backend, *times, note], within
+
+
+def host_libraries(label, source, target, radius, truth, repeats=7):
+    """Bare build and query times of cKDTree (1 and 2 workers) and pykdtree, numpy arrays."""
+    from pykdtree.kdtree import KDTree
+
+    def median(fn, *args, **kwargs):
+        times = []
+        for _ in range(repeats):
+            start = time.perf_counter()
+            fn(*args, **kwargs)
+            times.append(time.perf_counter() - start)
+        return format_seconds(np.median(times))
+
+    queries = aligned(source, target, radius, truth)
+    row = [label]
+    for dtype in (np.float64, np.float32):
+        t, q = target.astype(dtype), queries.astype(dtype)
+        scipy_tree, pyk_tree = cKDTree(t, balanced_tree=False), KDTree(t)
+        row += [
+            median(cKDTree, t, balanced_tree=False),
+            median(scipy_tree.query, q, 1, distance_upper_bound=radius),
+            median(scipy_tree.query, q, 1, distance_upper_bound=radius, workers=2),
+            median(KDTree, t),
+            median(pyk_tree.query, q, 1, distance_upper_bound=radius),
+        ]
+    return row
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data-dir", default=os.environ.get("LIEAX_DATA_DIR"))
+    parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument("--dtype", default="float32", choices=["float32", "float64"])
+    parser.add_argument("--quick", action="store_true")
+    args = parser.parse_args()
+    if args.data_dir is None:
+        sys.exit("Set LIEAX_DATA_DIR (or --data-dir) to the shared data folder.")
+    rounds, skip_brute_above = (2, 10_000) if args.quick else (args.rounds, 10**9)
+    clouds = load_clouds(args.data_dir)
+    print(f"# Nearest-neighbour backends\n\n{machine_description()}, {os.cpu_count()} CPUs, "
+          f"{args.dtype}; {time.strftime('%Y-%m-%d %H:%M')}\n")  # fmt: skip
+    rows, sizes = [], []
+    for label, (source, target, radius, truth) in clouds.items():
+        cloud_rows, within = measure(
+            label, source, target, radius, truth, rounds, jnp.dtype(args.dtype), skip_brute_above
+        )
+        rows += cloud_rows
+        sizes.append([label, f"{len(source)}/{len(target)}", f"{radius:g} m", f"{within:.1%}"])
+    print(markdown_table(["cloud", "points (source/target)", "radius", "within radius"], sizes))
+    print()
+    headers = ["cloud", "backend", "index build", "match", "warm-started match", "exact"]
+    print(markdown_table(headers, rows))
+    print("\n## Host k-d trees, bare (numpy in and out)\n")
+    headers = ["cloud"] + [
+        f"{what} {dtype}"
+        for dtype in ("f64", "f32")
+        for what in ("cKDTree build", "query", "query 2 workers", "pykdtree build", "query")
+    ]
+    print(markdown_table(headers, [host_libraries(label, *c) for label, c in clouds.items()]))
+
+
+if __name__ == "__main__":
+    main()

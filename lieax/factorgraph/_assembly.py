@@ -1,0 +1,131 @@
+"""The cost and the block normal equations of a factor graph at given values (traced).
+
+For factor kind $f$ with whitened residuals $r_i = R_i f_i$, blocks $A_{is} = R_i J_{is}$ and
+IRLS weights $w_i = \\rho'(\\|r_i\\|^2)$, the cost is $\\tfrac12\\sum_i \\rho(\\|r_i\\|^2)$ and
+$$H_{a_s a_s} \\mathrel{+}= w_i A_{is}^\\top A_{is}, \\qquad
+H_{a_s a_t} \\mathrel{+}= w_i A_{is}^\\top A_{it}, \\qquad
+g_{a_s} \\mathrel{+}= w_i A_{is}^\\top r_i,$$
+each a segment sum over the instances into the fixed slots of the `Layout` (the blocks of
+$J^\\top W J$ and $J^\\top W r$, Dellaert and Kaess, "Factor graphs for robot perception", 2017,
+Sec. 2.3). Fixed instances get an identity diagonal block, zero gradient and zero couplings, so
+their step is zero. `evaluate` computes $r_i$, $A_{is}$ and $w_i$ (the cost with them) and
+`assemble` the sums, so that the solver's cost evaluation of a trial point is, when the step is
+taken, the first half of its linearization; `cost` alone (no Jacobians) serves `FactorGraph.cost`
+and the implicit derivatives.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._factors import linearize_one, residual_one
+from ._variables import instance
+
+
+def _arguments(plan, values):
+    return [instance(values[k], jnp.asarray(i)) for k, i in zip(plan.kinds, plan.indices)]
+
+
+def _whiten(root, r):
+    if root is None:
+        return r
+    if root.ndim == 2:
+        return r @ root.T
+    return jnp.einsum("mab,mb->ma", root, r)
+
+
+def _robust(loss, s):
+    if loss is None:
+        return s, None
+    return loss(s), loss.weight(s)
+
+
+def cost(factors, plans, values, data):
+    """$\\tfrac12 \\sum \\rho(\\|R r\\|^2)$ over every factor kind."""
+    total = 0.0
+    for factor, plan, (d, root, loss) in zip(factors, plans, data):
+        xs = _arguments(plan, values)
+        r = jax.vmap(lambda *a, f=factor: residual_one(f, a[:-1], a[-1]))(*xs, d)
+        r = _whiten(root, r)
+        total = total + 0.5 * jnp.sum(_robust(loss, jnp.sum(r**2, axis=-1))[0])
+    return total
+
+
+def evaluate(factors, plans, values, data):
+    """`(cost, parts)` at `values`: per factor kind `(r, blocks, w)`, the whitened residuals
+    `(m, k)`, whitened Jacobian blocks `(m, k, d_s)` and IRLS weights (`None` without a loss).
+    One trace of each factor kind serves both the cost of a trial step and, when the step is
+    taken, its normal equations (`assemble`)."""
+    total = 0.0
+    parts = []
+    for factor, plan, (d, root, loss) in zip(factors, plans, data):
+        xs = _arguments(plan, values)
+        r, blocks = jax.vmap(lambda *a, f=factor: linearize_one(f, a[:-1], a[-1]))(*xs, d)
+        if root is not None:
+            r = _whiten(root, r)
+            blocks = tuple(
+                (root @ b) if root.ndim == 2 else jnp.einsum("mab,mbc->mac", root, b)
+                for b in blocks
+            )
+        rho, w = _robust(loss, jnp.sum(r**2, axis=-1))
+        total = total + 0.5 * jnp.sum(rho)
+        parts.append((r, blocks, w))
+    return total, tuple(parts)
+
+
+def linearize(layout, factors, plans, values, data):
+    """`(cost, diag, off, grad)` at `values` (see the module docstring)."""
+    total, parts = evaluate(factors, plans, values, data)
+    return (total, *assemble(layout, plans, parts))
+
+
+def assemble(layout, plans, parts):
+    """`(diag, off, grad)` from `evaluate`'s parts (see the module docstring)."""
+    dtype = parts[0][0].dtype
+    keys = list(layout.pairs)
+    diag = [jnp.zeros((n, d, d), dtype) for n, d in zip(layout.counts, layout.dims)]
+    grad = [jnp.zeros((n, d), dtype) for n, d in zip(layout.counts, layout.dims)]
+    off = [
+        jnp.zeros((len(layout.pairs[k][0]), layout.dims[k[0]], layout.dims[k[1]]), dtype)
+        for k in keys
+    ]
+    # every factor kind's [H_aa | g_a] blocks of one variable kind, and its H_ab blocks of one
+    # pair of kinds, go into one segment sum each (fewer, larger scatters)
+    per_kind = [([], []) for _ in layout.dims]
+    per_pair = [([], []) for _ in keys]
+    for plan, (r, blocks, w) in zip(plans, parts):
+        weighted = blocks if w is None else tuple(w[:, None, None] * b for b in blocks)
+        for s, (k, index) in enumerate(zip(plan.kinds, plan.indices)):
+            wt = jnp.swapaxes(weighted[s], 1, 2)
+            both = jnp.concatenate([wt @ blocks[s], jnp.einsum("mab,mb->ma", wt, r)[..., None]], -1)
+            per_kind[k][0].append(both)
+            per_kind[k][1].append(index)
+        for s, t, key, slots, flipped in plan.couplings:
+            block = jnp.swapaxes(weighted[s], 1, 2) @ blocks[t]
+            if isinstance(flipped, np.ndarray):
+                block = jnp.where(flipped[:, None, None], jnp.swapaxes(block, 1, 2), block)
+            elif flipped:
+                block = jnp.swapaxes(block, 1, 2)
+            j = keys.index(key)
+            per_pair[j][0].append(block)
+            per_pair[j][1].append(slots)
+    for k, (pieces, indices) in enumerate(per_kind):
+        if pieces:
+            both = jax.ops.segment_sum(
+                jnp.concatenate(pieces), np.concatenate(indices), layout.counts[k]
+            )
+            diag[k], grad[k] = both[..., :-1], both[..., -1]
+    for j, (pieces, slots) in enumerate(per_pair):
+        off[j] = jax.ops.segment_sum(
+            jnp.concatenate(pieces), np.concatenate(slots), off[j].shape[0]
+        )
+    for k, free in enumerate(layout.free):
+        if not free.all():
+            eye = jnp.eye(layout.dims[k], dtype=dtype)
+            diag[k] = jnp.where(free[:, None, None], diag[k], eye)
+            grad[k] = jnp.where(free[:, None], grad[k], 0.0)
+    for j, key in enumerate(keys):
+        pair_free = layout.pair_free[key]
+        if not pair_free.all():
+            off[j] = jnp.where(pair_free[:, None, None], off[j], 0.0)
+    return tuple(diag), tuple(off), tuple(grad)

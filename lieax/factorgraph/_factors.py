@@ -1,0 +1,131 @@
+"""Factor kinds: one residual function written for one instance, vmapped over many instances.
+
+A `Factor` is $r_i = R\\,f(x_{a_i}, x_{b_i}, \\dots, d_i) \\in \\mathbb{R}^k$ for instances
+$i = 1 \\dots m$: the same `residual` function, index arrays per argument into variable kinds,
+batched `data` $d_i$, a square-root information $R$ (shared `(k, k)` or per instance
+`(m, k, k)`, $\\Omega = R^\\top R$) and an optional robust loss $\\rho$ from `lieax.lstsq`. Its
+cost is $\\tfrac12 \\sum_i \\rho(\\|r_i\\|^2)$ and it enters the normal equations reweighted by
+$w_i = \\rho'(\\|r_i\\|^2)$ (IRLS, as GTSAM's robust noise models and Ceres' `LossFunction`
+without its second-order correction; Triggs et al. 2000, Sec. 3.3).
+
+Jacobian blocks $\\partial f / \\partial x_a$ (shape `(k, tangent_dim_a)`, right-local tangents)
+come from `lieax.value_and_jacobian`, i.e. the groups' closed-form `custom_jvp` rules, unless a
+`jacobian_fn(*xs, data) -> (residual, (J_a, J_b, ...))` is given.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._autodiff import value_and_jacobian
+from ._variables import VarRef
+
+
+class Factor:
+    """One factor kind (see the module docstring).
+
+    **Arguments:**
+    - `residual`: `residual(x_a, x_b, ..., data) -> (k,)` for ONE instance (`data` is passed
+      only when given); each `x` is one instance of its variable kind (a group, an array or a
+      pytree of them).
+    - `args`: one `var[index]` per argument of `residual`, `index` an integer array `(m,)`.
+    - `data`: a pytree of arrays with leading axis `m` (or `None`).
+    - `sqrt_information`: $R$, `(k, k)` shared or `(m, k, k)`; or `information` $\\Omega$
+      (its Cholesky factor is taken). Default identity.
+    - `loss`: a robust loss (`lieax.lstsq.Huber`, `Cauchy`, ...) or `None`.
+    - `jacobian_fn`: optional `jacobian_fn(*xs, data) -> (residual, (J_a, ...))`, blocks
+      `(k, tangent_dim)` in right-local coordinates, for one instance.
+    - `name`: used in error messages (default `"factor<k>"`).
+    """
+
+    def __init__(
+        self,
+        residual,
+        args,
+        data=None,
+        *,
+        sqrt_information=None,
+        information=None,
+        loss=None,
+        jacobian_fn=None,
+        name=None,
+    ):
+        self.residual = residual
+        self.name = name
+        args = tuple(args)
+        if not args or not all(isinstance(a, VarRef) for a in args):
+            raise TypeError(f"Factor {name!r}: args must be a non-empty tuple of var[index].")
+        self.vars = tuple(a.var for a in args)
+        self.indices = tuple(_index_array(a.index, name, k) for k, a in enumerate(args))
+        counts = {len(i) for i in self.indices}
+        if len(counts) != 1:
+            raise ValueError(
+                f"Factor {name!r}: the index arrays of its arguments have different lengths "
+                f"{[len(i) for i in self.indices]}."
+            )
+        self.count = counts.pop()
+        self.data = data
+        if sqrt_information is not None and information is not None:
+            raise ValueError(f"Factor {name!r}: give sqrt_information or information, not both.")
+        if information is not None:
+            sqrt_information = _sqrt_information(information, name)
+        self.sqrt_information = sqrt_information
+        self.loss = loss
+        self.jacobian_fn = jacobian_fn
+
+    @classmethod
+    def make(cls, residual, args, data=None, **options):
+        """`Factor(residual, args, data, **options)` (jaxls' spelling)."""
+        return cls(residual, args, data, **options)
+
+    def __repr__(self):
+        names = ", ".join(str(v.name) for v in self.vars)
+        return f"Factor({self.name!r}, count={self.count}, vars=({names}))"
+
+
+def _index_array(index, name, position):
+    index = np.asarray(index)
+    if index.ndim == 0:
+        index = index.reshape(1)
+    if index.ndim != 1 or not np.issubdtype(index.dtype, np.integer):
+        raise ValueError(
+            f"Factor {name!r}: argument {position}'s index must be a 1-D integer array, got "
+            f"dtype {index.dtype} shape {index.shape}."
+        )
+    return index.astype(np.int64)
+
+
+def _sqrt_information(information, name):
+    """$R$ upper triangular with $R^\\top R = \\Omega$ (`ValueError` unless positive definite)."""
+    information = np.asarray(information, dtype=np.float64)
+    batch = information.reshape(-1, *information.shape[-2:])
+    try:
+        if not np.all(np.isfinite(batch)) or not np.allclose(batch, np.swapaxes(batch, 1, 2)):
+            raise np.linalg.LinAlgError
+        lower = np.linalg.cholesky(batch)
+    except np.linalg.LinAlgError:
+        raise ValueError(
+            f"Factor {name!r}: information is not symmetric positive definite."
+        ) from None
+    return np.swapaxes(lower, 1, 2).reshape(information.shape)
+
+
+def linearize_one(factor, xs, data):
+    """`(residual (k,), blocks)` for one instance: `blocks` a tuple of `(k, tangent_dim)`."""
+    extra = () if factor.data is None else (data,)
+    if factor.jacobian_fn is not None:
+        value, blocks = factor.jacobian_fn(*xs, *extra)
+        return value, tuple(blocks)
+    argnums = tuple(range(len(xs)))
+    value, jac = value_and_jacobian(factor.residual, argnums)(*xs, *extra)
+    k = value.shape[0]
+    blocks = tuple(
+        jnp.concatenate([jnp.reshape(b, (k, -1)) for b in jax.tree_util.tree_leaves(j)], axis=1)
+        for j in jac
+    )
+    return value, blocks
+
+
+def residual_one(factor, xs, data):
+    extra = () if factor.data is None else (data,)
+    return factor.residual(*xs, *extra)

@@ -1,0 +1,396 @@
+"""`FactorGraph`: variables and factors, their structure analysed once, and `solve`.
+
+The structure (index arrays, kinds, fixed instances, the Schur plan and the Cholesky plans) is
+analysed on the host once and cached by a digest of the index arrays, as `lieax.graph.optimize`
+caches its problems; values and factor data are arguments of the compiled loop, so a new start
+or new measurements of the same structure reuse it, under `vmap` too.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._manifold import manifold_leaves
+from ..lstsq import SolveError, Status
+from ._factors import Factor, linearize_one
+from ._implicit import solve_implicit
+from ._solve import make_loop
+from ._structure import analyze, digest, schur_layout
+from ._variables import Var, instance
+
+# padded unknowns up to which `solver="auto"` factors the dense matrix in JAX (the crossover
+# `lieax.graph.optimize` measured for its pose graphs)
+_DENSE_LIMIT = 300
+_SOLVERS = ("auto", "dense", "cholesky", "cg")
+_CACHE = {}
+_CACHE_SIZE = 16
+
+
+class FactorGraph:
+    """Factors over variable kinds, analysed once (a jaxls `LeastSquaresProblem`, a GTSAM
+    `NonlinearFactorGraph` with its `Values`).
+
+    **Arguments:**
+    - `factors`: a sequence of `Factor`s (one per factor kind).
+    - `variables`: the `Var`s, in the order of the solution's values (default: in the order the
+      factors first name them).
+    - `check_gauge`: `ValueError` when a connected component has no fixed variable and no unary
+      factor (see `_structure.check_anchored`).
+
+    Construction validates everything that can be checked without compiling: index ranges,
+    residual and information shapes (`jax.eval_shape` of one instance), positive-definite
+    information, finite data, Jacobian shapes of a `jacobian_fn`.
+    """
+
+    def __init__(self, factors, variables=None, *, check_gauge=True):
+        factors = tuple(factors)
+        if not factors or not all(isinstance(f, Factor) for f in factors):
+            raise TypeError("factors must be a non-empty sequence of lieax.factorgraph.Factor.")
+        if variables is None:
+            variables = []
+            for f in factors:
+                for v in f.vars:
+                    if all(v is not w for w in variables):
+                        variables.append(v)
+        variables = tuple(variables)
+        if not all(isinstance(v, Var) for v in variables):
+            raise TypeError("variables must be lieax.factorgraph.Var objects.")
+        for k, v in enumerate(variables):
+            if v.name is None:
+                v.name = f"var{k}"
+        for k, f in enumerate(factors):
+            if f.name is None:
+                f.name = f"factor{k}"
+            for v in f.vars:
+                if all(v is not w for w in variables):
+                    raise ValueError(f"factor kind {f.name!r} uses a Var not in variables.")
+        self.factors = factors
+        self.variables = variables
+        self.residual_dims = tuple(_check_factor(f) for f in factors)
+        key = (
+            tuple(
+                (jax.tree_util.tree_structure(v.value), v.leaf_dims, v.count, digest(v.fixed))
+                for v in variables
+            ),
+            tuple(
+                (
+                    tuple(next(k for k, w in enumerate(variables) if w is v) for v in f.vars),
+                    digest(*f.indices),
+                )
+                for f in factors
+            ),
+            check_gauge,
+        )
+        cached = _CACHE.get(key)
+        if cached is None:
+            cached = analyze(variables, factors, check_gauge) + ({}, {})
+            if len(_CACHE) >= _CACHE_SIZE:
+                _CACHE.pop(next(iter(_CACHE)))
+            _CACHE[key] = cached
+        self.layout, self.plans, self._schur, self._loops = cached
+        self._linearize = self._implicit = self._default_data = None
+
+    def __repr__(self):
+        return (
+            f"FactorGraph({len(self.variables)} variable kinds, {len(self.factors)} factor "
+            f"kinds, {self.layout.num_unknowns} unknowns)"
+        )
+
+    def index(self, var):
+        """The position of `var` in `variables` (and in a solution's `values`)."""
+        for k, v in enumerate(self.variables):
+            if v is var:
+                return k
+        raise ValueError(f"{var!r} is not a variable of this graph.")
+
+    @property
+    def initial_values(self):
+        return tuple(v.value for v in self.variables)
+
+    @property
+    def data(self):
+        """Per factor kind `(data, sqrt_information, loss)`, as `solve(data=...)` takes it."""
+        if self._default_data is None:
+            self._default_data = tuple(
+                (
+                    f.data,
+                    None if f.sqrt_information is None else jnp.asarray(f.sqrt_information),
+                    f.loss,
+                )
+                for f in self.factors
+            )
+        return self._default_data
+
+    def cost(self, values=None, data=None):
+        """$\\tfrac12 \\sum \\rho(\\|R r\\|^2)$ at `values` (default the initial values)."""
+        from ._assembly import cost
+
+        values = self.initial_values if values is None else tuple(values)
+        return cost(self.factors, self.plans, values, self._data(data))
+
+    def linearize(self, values=None, data=None):
+        """`(cost, diag, off, grad)`: the block normal equations at `values` (fixed instances
+        masked), per kind and per pair of kinds of `layout` (jitted, compiled once per graph)."""
+        from ._assembly import linearize
+
+        if self._linearize is None:
+            self._linearize = jax.jit(
+                lambda v, d: linearize(self.layout, self.factors, self.plans, v, d)
+            )
+        values = self.initial_values if values is None else tuple(values)
+        return self._linearize(values, self._data(data))
+
+    def _data(self, data):
+        if data is None:
+            return self.data
+        data = tuple(data)
+        if len(data) != len(self.factors):
+            raise ValueError(f"data must have one entry per factor kind ({len(self.factors)}).")
+        return tuple(d if d is not None else default for d, default in zip(data, self.data))
+
+    def solve(
+        self,
+        values=None,
+        data=None,
+        *,
+        solver="auto",
+        eliminate=None,
+        max_iterations=100,
+        algorithm="levenberg_marquardt",
+        damping="identity",
+        lambda_update="gtsam",
+        lambda_initial=1e-5,
+        lambda_factor=10.0,
+        lambda_max=1e5,
+        relative_tolerance=1e-5,
+        absolute_tolerance=1e-5,
+        min_model_fidelity=1e-3,
+        diagonal_min=1e-6,
+        diagonal_max=1e32,
+        cg_tolerance=1e-8,
+        cg_max_iterations=None,
+        verbose=False,
+        throw=True,
+    ):
+        """Minimize $\\tfrac12 \\sum \\rho(\\|R r\\|^2)$ (see `_solve` for the semantics).
+
+        **Arguments:**
+        - `values`: starting values, a tuple in the order of `variables` (default the `Var`s').
+        - `data`: per factor kind `(data, sqrt_information, loss)` or `None` to keep the
+          factor's own (see `FactorGraph.data`); may be traced, batched under `vmap` and
+          differentiated (implicit derivatives, `_implicit`).
+        - `solver`: `"dense"`, `"cholesky"` (host multifrontal), `"cg"` (block-Jacobi PCG) or
+          `"auto"` (dense up to 300 padded unknowns, else cholesky); with `eliminate`, the
+          solver of the reduced system.
+        - `eliminate`: a `Var` to eliminate by the Schur complement (its instances must not
+          share factors: points in bundle adjustment).
+        - `algorithm`: `"levenberg_marquardt"` or `"gauss_newton"`.
+        - `damping`: `"identity"` ($\\lambda I$, GTSAM) or `"marquardt"` ($\\lambda$ diag $H$,
+          clipped to `[diagonal_min, diagonal_max]`, Ceres).
+        - `lambda_update`: `"gtsam"` or `"nielsen"`.
+        - the rest: as `lieax.graph.optimize`, GTSAM's defaults.
+        - `verbose`: print iteration, cost, gain ratio and damping at every attempt.
+        - `throw`: raise `SolveError` when the solve ends `DIVERGED` or `NONFINITE` (only outside
+          `jit`/`vmap`; inside, read `status`).
+
+        **Returns:** a `SolveResult`.
+        """
+        if solver not in _SOLVERS:
+            raise ValueError(f"solver must be one of {_SOLVERS}, got {solver!r}.")
+        if algorithm not in ("levenberg_marquardt", "gauss_newton"):
+            raise ValueError(f"unknown algorithm {algorithm!r}.")
+        if damping not in ("identity", "marquardt"):
+            raise ValueError(f"damping must be 'identity' or 'marquardt', got {damping!r}.")
+        if lambda_update not in ("gtsam", "nielsen"):
+            raise ValueError(f"lambda_update must be 'gtsam' or 'nielsen', got {lambda_update!r}.")
+        if max_iterations < 0:
+            raise ValueError(f"max_iterations must be non-negative, got {max_iterations}.")
+        if values is None:
+            values = self.initial_values  # checked by the `Var`s
+        else:
+            values = tuple(values)
+            self._check_values(values)
+        data = self._data(data)
+        schur = None
+        layout = self.layout
+        if eliminate is not None:
+            e = self.index(eliminate)
+            schur = self._schur.get(e)
+            if schur is None:
+                schur = self._schur[e] = schur_layout(
+                    self.layout, e, [v.name for v in self.variables]
+                )
+            layout = schur.layout
+        if solver == "auto":
+            solver = "dense" if layout.padded_unknowns <= _DENSE_LIMIT else "cholesky"
+        options = {
+            "method": solver,
+            "schur": schur,
+            "damping": damping,
+            "lambda_update": lambda_update,
+            "algorithm": algorithm,
+            "history_size": max(16, 1 << int(max_iterations).bit_length()),
+            "verbose": bool(verbose),
+            "cg_max_iterations": cg_max_iterations,
+        }
+        key = (
+            tuple((f.residual, f.jacobian_fn, f.data is None) for f in self.factors),
+            None if schur is None else schur.eliminated,
+            *(
+                options[k]
+                for k in (
+                    "method",
+                    "damping",
+                    "lambda_update",
+                    "algorithm",
+                    "history_size",
+                    "verbose",
+                    "cg_max_iterations",
+                )
+            ),
+        )
+        loops = self._loops.get(key)
+        if loops is None:
+            loops = self._loops[key] = _compiled(self, options)
+        loop, plain = loops
+        leaves = [getattr(x, "_params", x) for x in jax.tree_util.tree_leaves(values)]
+        dtype = np.result_type(*(x.dtype for x in leaves))
+        params = np.asarray(
+            [
+                lambda_initial,
+                lambda_factor,
+                lambda_max,
+                relative_tolerance,
+                absolute_tolerance,
+                min_model_fidelity,
+                cg_tolerance,
+                max_iterations,
+                diagonal_min,
+                diagonal_max,
+            ],
+            dtype=dtype,
+        )
+        if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves((values, data))):
+            # under a transformation: the solve with its implicit derivatives
+            result = _result(*solve_implicit(self, loop, values, data, params))
+        else:
+            result = plain(values, data, params)  # one dispatch
+        if throw and not isinstance(result.status, jax.core.Tracer):
+            status = Status(int(result.status))
+            if status in (Status.DIVERGED, Status.NONFINITE):
+                raise SolveError(
+                    f"the factor graph solve ended {status.name} after {int(result.iterations)} "
+                    f"iterations (cost {float(result.cost):.6g}); pass throw=False to get the "
+                    "result back."
+                )
+        return result
+
+    def _check_values(self, values):
+        if len(values) != len(self.variables):
+            raise ValueError(
+                f"values must have one entry per variable kind ({len(self.variables)})."
+            )
+        for v, value in zip(self.variables, values):
+            leaves, treedef = manifold_leaves(value, f"values[{v.name!r}]")
+            if treedef != v.treedef or [type(x) for x in leaves] != [
+                type(x) for x in manifold_leaves(v.value)[0]
+            ]:
+                raise ValueError(f"values for {v.name!r} must have the structure of its Var.")
+            shapes = [jnp.shape(getattr(x, "_params", x)) for x in leaves]
+            expected = [jnp.shape(getattr(x, "_params", x)) for x in manifold_leaves(v.value)[0]]
+            if shapes != expected:
+                raise ValueError(
+                    f"values for {v.name!r} have shapes {shapes}, expected {expected}."
+                )
+
+
+def _result(solution, summary):
+    from ._result import SolveResult
+
+    return SolveResult(
+        values=solution,
+        cost=summary[0],
+        iterations=summary[2].astype(jnp.int32),
+        linear_solves=summary[3].astype(jnp.int32),
+        status=summary[4].astype(jnp.int32),
+        cost_history=summary[5:],
+        lambda_=summary[1],
+    )
+
+
+def _compiled(graph, options):
+    """`(loop, plain)`: the jitted loop, and the jitted loop with the result unpacked (the path
+    of untransformed calls)."""
+    loop = make_loop(graph, options)
+    return loop, jax.jit(lambda v, d, p: _result(*loop(v, d, p)))
+
+
+def _check_factor(f):
+    """The residual dimension `k` of factor kind `f`, its shapes checked by `jax.eval_shape`
+    (nothing is compiled); `ValueError`s name the factor kind."""
+    m = f.count
+    data_leaves = jax.tree_util.tree_leaves(f.data)
+    for leaf in data_leaves:
+        shape = jnp.shape(leaf)
+        if not shape or shape[0] != m:
+            raise ValueError(
+                f"factor kind {f.name!r}: every data leaf must have leading axis {m} (one per "
+                f"instance), got shape {shape}."
+            )
+        if isinstance(leaf, jax.core.Tracer):
+            continue
+        array = np.asarray(leaf)
+        if np.issubdtype(array.dtype, np.inexact):
+            bad = ~np.all(np.isfinite(array.reshape(m, -1)), axis=1)
+            if np.any(bad):
+                raise ValueError(
+                    f"factor kind {f.name!r}: data of instance {int(np.argmax(bad))} is not finite."
+                )
+    xs = [jax.eval_shape(lambda v: instance(v, 0), var.value) for var in f.vars]
+    one = (
+        None
+        if f.data is None
+        else jax.tree_util.tree_map(
+            lambda a: jax.ShapeDtypeStruct(jnp.shape(a)[1:], jnp.result_type(a)), f.data
+        )
+    )
+    try:
+        out, blocks = jax.eval_shape(lambda xs, d: linearize_one(f, xs, d), xs, one)
+    except (TypeError, ValueError) as error:
+        raise ValueError(
+            f"factor kind {f.name!r}: its residual cannot be evaluated on one instance of its "
+            f"arguments ({error})."
+        ) from error
+    if len(out.shape) != 1:
+        raise ValueError(
+            f"factor kind {f.name!r}: the residual must be a vector (k,), got shape {out.shape}."
+        )
+    k = out.shape[0]
+    for s, (block, var) in enumerate(zip(blocks, f.vars)):
+        if block.shape != (k, var.tangent_dim):
+            raise ValueError(
+                f"factor kind {f.name!r}: the Jacobian block of argument {s} has shape "
+                f"{block.shape}, expected ({k}, {var.tangent_dim})."
+            )
+    root = f.sqrt_information
+    if root is not None:
+        shape = jnp.shape(root)
+        if shape not in ((k, k), (m, k, k)):
+            raise ValueError(
+                f"factor kind {f.name!r}: sqrt_information must have shape ({k}, {k}) or "
+                f"({m}, {k}, {k}) for residuals of size {k}, got {shape}."
+            )
+        if not isinstance(root, jax.core.Tracer):
+            batch = np.asarray(root, dtype=np.float64).reshape(-1, k, k)
+            finite = np.all(np.isfinite(batch), axis=(1, 2))
+            singular = (
+                np.linalg.svd(np.where(finite[:, None, None], batch, 0.0), compute_uv=False)[:, -1]
+                <= 0
+            )
+            bad = ~finite | singular
+            if np.any(bad):
+                raise ValueError(
+                    f"factor kind {f.name!r}: sqrt_information {int(np.argmax(bad))} is not "
+                    "finite and non-singular (its information R^T R is not positive definite)."
+                )
+    return k

@@ -1,0 +1,126 @@
+"""Linear solvers for the block normal equations $H\\,\\delta = b$ of a `Layout`.
+
+A system is `(diag, off, rhs)`: per variable kind `diag[k]` `(n_k, d_k, d_k)` and `rhs[k]`
+`(n_k, d_k)`, per pair of kinds (in the order of `layout.pairs`) `off[j]` `(p, d_a, d_b)`.
+
+- `"dense"`: the dense matrix and its Cholesky factor inside JAX (small problems).
+- `"cholesky"`: `lieax.graph`'s multifrontal block Cholesky on the host (`CholeskyPlan`,
+  through `host_call`), on the blocks padded to one size (see `_structure`).
+- `"cg"`: conjugate gradients preconditioned by the inverse diagonal blocks, in JAX (the
+  accelerator path; inexact steps).
+- Schur complement (`schur_solve`): with $H = [H_{rr}, H_{re}; H_{er}, H_{ee}]$ and $H_{ee}$
+  block diagonal, $S = H_{rr} - H_{re} H_{ee}^{-1} H_{er}$,
+  $S\\,\\delta_r = b_r - H_{re} H_{ee}^{-1} b_e$ (solved by any of the three), then
+  $\\delta_e = H_{ee}^{-1}(b_e - H_{er}\\,\\delta_r)$ block by block (Triggs et al., "Bundle
+  adjustment — a modern synthesis", 2000, Sec. 6.1; Ceres' `DENSE_SCHUR` / `SPARSE_SCHUR` /
+  `ITERATIVE_SCHUR`, the last here without the implicit products).
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..graph._sparse import cholesky_solve, dense_solve, pcg
+
+
+def to_padded(layout, diag, off, rhs):
+    """The system on the uniform padded `layout.pattern`: `(diag (N, D, D), off (P, D, D),
+    rhs (N, D))`, padding identity on the diagonal, zero elsewhere."""
+    D = layout.block_size
+    if len(layout.dims) == 1 and layout.dims[0] == D:
+        return diag[0], (off[0] if off else jnp.zeros((0, D, D), diag[0].dtype)), rhs[0]
+    dtype = diag[0].dtype
+    diags, rhss = [], []
+    for d, block, r in zip(layout.dims, diag, rhs):
+        pad = D - d
+        if pad:
+            eye = jnp.asarray(np.diag(np.r_[np.zeros(d), np.ones(pad)]), dtype)
+            block = jnp.pad(block, ((0, 0), (0, pad), (0, pad))) + eye
+            r = jnp.pad(r, ((0, 0), (0, pad)))
+        diags.append(block)
+        rhss.append(r)
+    padded_off = jnp.zeros((layout.pattern.num_pairs, D, D), dtype)
+    for key, block in zip(layout.pairs, off):
+        da, db = block.shape[1:]
+        block = jnp.pad(block, ((0, 0), (0, D - da), (0, D - db)))
+        padded_off = padded_off.at[layout.slots[key]].set(block)
+    return jnp.concatenate(diags), padded_off, jnp.concatenate(rhss)
+
+
+def from_padded(layout, x):
+    """Per-kind solutions `(n_k, d_k)` from the padded `(N, D)`."""
+    return tuple(
+        x[layout.offsets[k] : layout.offsets[k + 1], : layout.dims[k]]
+        for k in range(len(layout.dims))
+    )
+
+
+def solve_system(layout, method, diag, off, rhs, *, cg_tolerance=1e-8, cg_max_iterations=None):
+    """$H^{-1}$ `rhs` per kind by `method` (NaN when $H$ is not positive definite, except
+    `"cg"`)."""
+    d, o, r = to_padded(layout, diag, off, rhs)
+    if method == "dense":
+        x = dense_solve(layout.pattern, d, o, r)
+    elif method == "cholesky":
+        x = cholesky_solve(layout.plan(), d, o, r)
+    else:
+        x, _ = pcg(
+            layout.pattern, d, o, r, tolerance=cg_tolerance, max_iterations=cg_max_iterations
+        )
+    return from_padded(layout, x)
+
+
+def _t(a):
+    return jnp.swapaxes(a, -1, -2)
+
+
+def schur_solve(layout, plan, method, diag, off, rhs, **options):
+    """$H^{-1}$ `rhs` by eliminating `plan.eliminated` (a `SchurPlan` of `layout`)."""
+    e = plan.eliminated
+    keys = list(layout.pairs)
+    n_e = layout.counts[e]
+    eye = jnp.eye(layout.dims[e], dtype=diag[e].dtype)
+    chol = jnp.linalg.cholesky(diag[e])
+    q = jax.scipy.linalg.cho_solve((chol, True), jnp.broadcast_to(eye, diag[e].shape))
+    b_e = rhs[e]
+    # B_u = H_{r p} (d_r, d_e) of each link u, and B_u Q_p
+    blocks, bq = {}, {}
+    for r, (key, _, _, point, transposed) in plan.links.items():
+        block = off[keys.index(key)]
+        blocks[r] = _t(block) if transposed else block
+        bq[r] = blocks[r] @ q[point]
+    red = plan.layout
+    red_keys = list(red.pairs)
+    new = {k: j for j, k in enumerate(plan.kept)}
+    s_diag = [diag[k] for k in plan.kept]
+    s_rhs = [rhs[k] for k in plan.kept]
+    for r, (_, _, inst, point, _) in plan.links.items():
+        j = new[r]
+        s_diag[j] = s_diag[j] - jax.ops.segment_sum(bq[r] @ _t(blocks[r]), inst, red.counts[j])
+        s_rhs[j] = s_rhs[j] - jax.ops.segment_sum(
+            jnp.einsum("kab,kb->ka", bq[r], b_e[point]), inst, red.counts[j]
+        )
+    s_off = [
+        jnp.zeros((len(red.pairs[key][0]), red.dims[key[0]], red.dims[key[1]]), diag[0].dtype)
+        for key in red_keys
+    ]
+    for key, (rkey, slots) in plan.original.items():
+        j = red_keys.index(rkey)
+        s_off[j] = s_off[j].at[slots].add(off[keys.index(key)])
+    for r1, r2, u, v, rkey, slots in plan.fill:
+        j = red_keys.index(rkey)
+        s_off[j] = s_off[j].at[slots].add(-(bq[r1][u] @ _t(blocks[r2][v])))
+    free = [jnp.asarray(red.pair_free[key]) for key in red_keys]
+    s_off = [jnp.where(f[:, None, None], o, 0.0) for f, o in zip(free, s_off)]
+    x_kept = solve_system(red, method, tuple(s_diag), tuple(s_off), tuple(s_rhs), **options)
+    back = b_e
+    for r, (_, _, inst, point, _) in plan.links.items():
+        back = back - jax.ops.segment_sum(
+            jnp.einsum("kba,kb->ka", blocks[r], x_kept[new[r]][inst]), point, n_e
+        )
+    x_e = jnp.einsum("kab,kb->ka", q, back)
+    x = [None] * len(layout.dims)
+    for k, xk in zip(plan.kept, x_kept):
+        x[k] = xk
+    x[e] = x_e
+    return tuple(x)

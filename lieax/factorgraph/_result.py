@@ -1,0 +1,41 @@
+"""What `FactorGraph.solve` returns."""
+
+from typing import NamedTuple
+
+import jax
+import numpy as np
+
+from ..lstsq import Status
+
+
+class SolveResult(NamedTuple):
+    """The result of `FactorGraph.solve`, a pytree (so it batches under `vmap`).
+
+    **Fields:**
+    - `values`: the solution, a tuple in the order of the graph's `variables`.
+    - `cost`: $\\tfrac12 \\sum \\rho(\\|R r\\|^2)$ at `values`.
+    - `iterations`: outer iterations (linearizations), as GTSAM counts them.
+    - `linear_solves`: linear solves, rejected steps included.
+    - `status`: an integer `lieax.lstsq.Status` code; `status_name` reads it.
+    - `cost_history`: the initial cost, then the cost after each iteration; NaN after the last.
+    - `lambda_`: the damping at the end.
+    """
+
+    values: tuple
+    cost: jax.Array
+    iterations: jax.Array
+    linear_solves: jax.Array
+    status: jax.Array
+    cost_history: jax.Array
+    lambda_: jax.Array
+
+    @property
+    def status_name(self):
+        """The `Status` name, or an array of names for a batch (outside `jit`)."""
+        codes = np.asarray(self.status)
+        names = np.vectorize(lambda code: Status(int(code)).name, otypes=[object])(codes)
+        return names.item() if names.ndim == 0 else names
+
+    @property
+    def converged(self) -> jax.Array:
+        return self.status == Status.CONVERGED

@@ -1,0 +1,251 @@
+"""Levenberg-Marquardt on a factor graph, inside one jitted `lax.while_loop`.
+
+Each attempt solves $(H + \\lambda D)\\,\\delta = -g$ with the block normal equations of
+`_assembly`, retracts every instance $x \\leftarrow x \\oplus \\delta$ (right perturbation,
+`lieax.rplus`) and compares the actual cost decrease with the decrease predicted by the
+undamped model, $-g^\\top\\delta - \\tfrac12 \\delta^\\top H \\delta
+= \\tfrac12(-g^\\top\\delta + \\lambda\\,\\delta^\\top D\\,\\delta)$ (the gain ratio, or model
+fidelity). $D = I$ (`damping="identity"`, GTSAM's default) or $D = \\mathrm{diag}(H)$ clipped to
+`[diagonal_min, diagonal_max]` (`damping="marquardt"`, Marquardt 1963, Ceres' default with the
+same clipping `[1e-6, 1e32]`): the step then does not depend on the units of the parameters.
+
+$\\lambda$ updates (`lambda_update`): `"gtsam"`, GTSAM 4.3's `LevenbergMarquardtOptimizer`
+(divide by `lambda_factor` on success, multiply on failure, give up at `lambda_max`; a step is
+taken when the fidelity exceeds `min_model_fidelity`); `"nielsen"`, Nielsen's rule as Ceres'
+`LevenbergMarquardtStrategy`: on success $\\lambda \\leftarrow \\lambda \\max(\\tfrac13,
+1 - (2\\rho - 1)^3)$, $\\nu \\leftarrow 2$, on failure $\\lambda \\leftarrow \\lambda\\nu$,
+$\\nu \\leftarrow 2\\nu$ (Madsen, Nielsen and Tingleff, "Methods for non-linear least squares
+problems", 2004, Sec. 3.2). `algorithm="gauss_newton"` takes every finite step with
+$\\lambda = 0$. An iteration ends with a taken step or, without one, when the cost change is below
+`relative_tolerance` × cost; the run stops when an iteration decreases the cost by at most
+`absolute_tolerance` or `relative_tolerance` × cost (`CONVERGED`), after `max_iterations`
+iterations (`MAX_ITERATIONS`), when $\\lambda$ reaches `lambda_max` without a decrease
+(`DIVERGED`) or when the linearization is not finite (`NONFINITE`).
+
+Each pass of the loop evaluates one trial point (`_assembly.evaluate`: whitened residuals,
+Jacobian blocks and weights of every factor kind, in one trace), decides, and when the step is
+taken completes the normal equations from that same evaluation (`assemble`, inside a `cond`), as
+`lieax.graph.optimize` does: a taken step costs one evaluation, a rejected one an evaluation and
+a solve. The first pass evaluates the start itself, so each factor kind is traced and compiled
+once (not once for the start and once in the loop).
+"""
+
+import jax
+import jax.numpy as jnp
+from jax import lax
+
+from .._base import AbstractGroup
+from .._manifold import manifold_leaves, rplus
+from ..lstsq import Status
+from ._assembly import assemble, evaluate
+from ._linear import schur_solve, solve_system
+from ._variables import flat_tangent_to_tree
+
+PARAMETERS = (
+    "lambda_initial",
+    "lambda_factor",
+    "lambda_max",
+    "relative_tolerance",
+    "absolute_tolerance",
+    "min_model_fidelity",
+    "cg_tolerance",
+    "max_iterations",
+    "diagonal_min",
+    "diagonal_max",
+)
+
+
+def _normalized(tree):
+    leaves, treedef = manifold_leaves(tree, "value")
+    return treedef.unflatten(
+        [
+            type(x)._wrap(type(x)._normalize(x._params)) if isinstance(x, AbstractGroup) else x
+            for x in leaves
+        ]
+    )
+
+
+def retract(variables, values, delta):
+    """Every kind's instances moved by its tangents `delta[k]` `(n_k, d_k)`."""
+    return tuple(
+        _normalized(rplus(v, flat_tangent_to_tree(var, dk)))
+        for var, v, dk in zip(variables, values, delta)
+    )
+
+
+def make_loop(graph, options):
+    """The jitted `run(values, data, params) -> (values, summary)` of `graph` under the static
+    `options` (a dict: method, schur plan, damping, lambda_update, algorithm, history_size,
+    verbose, cg_max_iterations); `summary` is `[cost, lambda, iterations, solves, status,
+    *history]`."""
+    layout, factors, plans, variables = graph.layout, graph.factors, graph.plans, graph.variables
+    method, schur = options["method"], options["schur"]
+    marquardt = options["damping"] == "marquardt"
+    nielsen = options["lambda_update"] == "nielsen"
+    gauss_newton = options["algorithm"] == "gauss_newton"
+
+    def solve(diag, off, rhs, params):
+        extra = {
+            "cg_tolerance": params["cg_tolerance"],
+            "cg_max_iterations": options["cg_max_iterations"],
+        }
+        if schur is None:
+            return solve_system(layout, method, diag, off, rhs, **extra)
+        return schur_solve(layout, schur, method, diag, off, rhs, **extra)
+
+    def attempt(values, system, lam, params):
+        """One damped solve from `values`: `(trial, predicted decrease, solved)`."""
+        diag, off, grad = system
+        dtype = lam.dtype
+        if marquardt:
+            scale = [
+                jnp.clip(
+                    jnp.diagonal(d, axis1=1, axis2=2),
+                    params["diagonal_min"],
+                    params["diagonal_max"],
+                )
+                for d in diag
+            ]
+        else:
+            scale = [jnp.ones(d.shape[:2], dtype) for d in diag]
+        damped = tuple(
+            d + lam * (s[:, :, None] * jnp.eye(d.shape[-1], dtype=dtype))
+            for d, s in zip(diag, scale)
+        )
+        delta = solve(damped, off, tuple(-g for g in grad), params)
+        solved = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in delta]))
+        delta = tuple(jnp.where(solved, x, 0.0) for x in delta)
+        g_delta = sum(jnp.vdot(g, x) for g, x in zip(grad, delta))
+        d_delta = sum(jnp.vdot(s * x, x) for s, x in zip(scale, delta))
+        predicted = -0.5 * g_delta + 0.5 * lam * d_delta
+        return retract(variables, values, delta), predicted, solved
+
+    def assembled(parts, dtype):
+        """The normal equations from `evaluate`'s parts, and whether they are finite."""
+        system = jax.tree_util.tree_map(lambda a: a.astype(dtype), assemble(layout, plans, parts))
+        diag, _, grad = system
+        return system, jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in (*diag, *grad)]))
+
+    def loop(values, data, params):
+        params = dict(zip(PARAMETERS, params))
+        max_iterations = params["max_iterations"].astype(jnp.int32)
+        dtype = params["lambda_initial"].dtype
+        zero = jnp.zeros((), jnp.int32)
+        lam0 = jnp.zeros((), dtype) if gauss_newton else params["lambda_initial"]
+        nu0 = jnp.asarray(2.0, dtype)
+        nan = jnp.asarray(jnp.nan, dtype)
+        # the first pass of `body` evaluates the start itself (`started` False), so that every
+        # factor kind is traced and compiled once
+        system = (
+            tuple(jnp.zeros((n, d, d), dtype) for n, d in zip(layout.counts, layout.dims)),
+            tuple(
+                jnp.zeros((len(layout.pairs[k][0]), layout.dims[k[0]], layout.dims[k[1]]), dtype)
+                for k in layout.pairs
+            ),
+            tuple(jnp.zeros((n, d), dtype) for n, d in zip(layout.counts, layout.dims)),
+        )
+        history = jnp.full((options["history_size"],), jnp.nan, dtype)
+        running = jnp.asarray(Status.RUNNING, jnp.int32)
+        false = jnp.zeros((), bool)
+        state = (values, values, nan, nan, false, system, lam0, nu0, zero, zero, running,
+                 history, false)  # fmt: skip
+
+        def body(state):
+            values, trial, cost, predicted, solved, system, lam, nu, iterations, solves = state[:10]
+            status, history, started = state[10:]
+            new_cost, parts = evaluate(factors, plans, trial, data)
+            change = cost - new_cost
+            valid = solved & (predicted >= 0) & jnp.isfinite(new_cost)
+            fidelity = change / jnp.where(predicted > 0, predicted, 1.0)
+            if gauss_newton:
+                success = solved & jnp.isfinite(new_cost)
+                stop_search = jnp.zeros((), bool)
+                gave_up = ~success
+                new_lam, new_nu = lam, nu
+            else:
+                success = (
+                    valid
+                    & (predicted > jnp.finfo(dtype).eps * cost)
+                    & (fidelity > params["min_model_fidelity"])
+                )
+                stop_search = (
+                    valid & ~success & (jnp.abs(change) < params["relative_tolerance"] * cost)
+                )
+                if nielsen:
+                    shrink = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * fidelity - 1.0) ** 3)
+                    new_lam = jnp.where(success, lam * shrink, lam * nu)
+                    new_nu = jnp.where(success, 2.0, 2.0 * nu)
+                else:
+                    factor = params["lambda_factor"]
+                    new_lam = jnp.where(success, lam / factor, lam * factor)
+                    new_nu = nu
+                gave_up = ~success & ~stop_search & (new_lam >= params["lambda_max"])
+            # the start is taken as it is
+            success = jnp.where(started, success, jnp.isfinite(new_cost))
+            gave_up = gave_up & started
+            done = started & (success | stop_search | gave_up)
+            iterations = iterations + done.astype(jnp.int32)
+            next_cost = jnp.where(success | ~started, new_cost, cost)
+            decrease = cost - next_cost
+            converged = (
+                done
+                & ~gave_up
+                & (
+                    (jnp.abs(decrease) <= params["absolute_tolerance"])
+                    | (jnp.abs(decrease) <= params["relative_tolerance"] * cost)
+                )
+            )
+            status = jnp.where(
+                ~jnp.isfinite(next_cost),
+                Status.NONFINITE,
+                jnp.where(
+                    gave_up & (decrease <= 0),
+                    Status.NONFINITE if gauss_newton else Status.DIVERGED,
+                    jnp.where(
+                        converged,
+                        Status.CONVERGED,
+                        jnp.where(
+                            (done | ~started) & (iterations >= max_iterations),
+                            Status.MAX_ITERATIONS,
+                            Status.RUNNING,
+                        ),
+                    ),
+                ),
+            ).astype(jnp.int32)
+            history = jnp.where(done | ~started, history.at[iterations].set(next_cost), history)
+            if options["verbose"]:
+                lax.cond(
+                    started,
+                    lambda: jax.debug.print(
+                        "iteration {it:3d}  cost {c:.10g} -> {nc:.10g}  gain ratio {f:.3f}  "
+                        "lambda {l:.1e}  accepted {ok}",
+                        it=iterations, c=cost, nc=new_cost, f=fidelity, l=lam, ok=success,
+                    ),
+                    lambda: None,
+                )  # fmt: skip
+            values = jax.tree_util.tree_map(lambda a, b: jnp.where(success, a, b), trial, values)
+            lam = jnp.where(~started | (done & ~success), lam, new_lam)
+            nu = jnp.where(started, new_nu, nu)
+            # a taken step's evaluation is the first half of its linearization
+            system, finite = lax.cond(
+                success & (status == Status.RUNNING),
+                lambda: assembled(parts, dtype),
+                lambda: (system, jnp.ones((), bool)),
+            )
+            status = jnp.where(finite, status, Status.NONFINITE).astype(jnp.int32)
+            go_on = status == Status.RUNNING
+            trial, predicted, solved = lax.cond(
+                go_on,
+                lambda: attempt(values, system, lam, params),
+                lambda: (values, jnp.zeros((), dtype), jnp.zeros((), bool)),
+            )
+            solves = solves + go_on.astype(jnp.int32)
+            return (values, trial, next_cost, predicted, solved, system, lam, nu, iterations,
+                    solves, status, history, jnp.ones((), bool))  # fmt: skip
+
+        state = lax.while_loop(lambda s: s[10] == Status.RUNNING, body, state)
+        values, _, cost, _, _, _, lam, _, iterations, solves, status, history, _ = state
+        scalars = jnp.stack([cost, lam, *(a.astype(dtype) for a in (iterations, solves, status))])
+        return values, jnp.concatenate([scalars, history])
+
+    return jax.jit(loop)

@@ -1,0 +1,126 @@
+"""Coarse-to-fine ICP on a voxel pyramid (Open3D's `registration.multi_scale_icp`).
+
+Each level downsamples both clouds on its voxel grid, estimates the normals (point-to-plane) or
+covariances (GICP) of the downsampled clouds, and registers them from the pose the previous level
+reached, with its own `max_correspondence_distance` and iteration cap. Coarse levels see the
+overall shape with a wide capture distance; fine levels refine on the full detail.
+"""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._checks import check_cloud, check_mask
+from ._downsample import voxel_downsample
+from ._gicp import gicp
+from ._registration import ICPError, Status, point_to_plane, point_to_point
+
+_METHODS = {"point_to_point": point_to_point, "point_to_plane": point_to_plane, "gicp": gicp}
+
+
+def multi_scale(
+    source,
+    target,
+    *,
+    voxel_sizes,
+    max_correspondence_distances,
+    max_iterations=30,
+    method="point_to_plane",
+    init=None,
+    loss=None,
+    source_mask=None,
+    target_mask=None,
+    return_levels=False,
+    throw=True,
+    **options,
+):
+    """Register `source` to `target` level by level, coarse to fine.
+
+    **Arguments:**
+    - `source`, `target`: clouds of shape `(n, 3)` and `(m, 3)`.
+    - `voxel_sizes`: one voxel side per level, coarse first (decreasing); `None` for a level on
+      the clouds as given.
+    - `max_correspondence_distances`: one per level (e.g. 1.5 to 3 voxel sides).
+    - `max_iterations`: an int for every level, or one per level.
+    - `method`: `"point_to_plane"`, `"gicp"` or `"point_to_point"`.
+    - `init`: initial `SE3` guess of `T_target_source` for the first level (default identity).
+    - `loss`, `source_mask`, `target_mask`: as for the method, at every level.
+    - `return_levels`: also return the result of every level.
+    - `throw`: raise `ICPError` when the finest level ends `NONFINITE` or `DEGENERATE` (outside
+      `jit`/`vmap`); a coarse level that fails hands its last pose on.
+    - `options`: further keyword arguments of the method (`relative_fitness`, `normals_k`,
+      `covariances_k`, `exact`, ...), the same at every level.
+
+    Called eagerly, each level's clouds are the occupied voxels' centroids, padded (masked) to a
+    power-of-two row count shared by both clouds (fewer compilations). Under `jit` or
+    `vmap` the shapes cannot depend on the data: every level keeps the input's row count, with the
+    voxels' centroids first and the rest masked out (correct, but coarse levels then cost as much
+    as fine ones).
+
+    **Returns:** the `ICPResult` of the finest level (its `correspondences` index that level's
+    downsampled clouds), or `(result, per_level_results)` with `return_levels=True`.
+    """
+    if method not in _METHODS:
+        raise ValueError(f"method must be one of {sorted(_METHODS)}, got {method!r}.")
+    register = _METHODS[method]
+    source = check_cloud(source, "source")
+    target = check_cloud(target, "target")
+    source_mask = check_mask(source_mask, source, "source_mask")
+    target_mask = check_mask(target_mask, target, "target_mask")
+    voxel_sizes = tuple(voxel_sizes)
+    distances = tuple(max_correspondence_distances)
+    levels = len(voxel_sizes)
+    if levels == 0:
+        raise ValueError("voxel_sizes must name at least one level.")
+    iterations = (max_iterations,) * levels if isinstance(max_iterations, int) else max_iterations
+    iterations = tuple(iterations)
+    if len(distances) != levels or len(iterations) != levels:
+        raise ValueError(
+            f"voxel_sizes ({levels} levels), max_correspondence_distances ({len(distances)}) and "
+            f"max_iterations ({len(iterations)}) must have one entry per level."
+        )
+    concrete = not any(
+        isinstance(x, jax.core.Tracer) for x in (source, target, source_mask, target_mask)
+    )
+    results = []
+    pose = init
+    for voxel, distance, cap in zip(voxel_sizes, distances, iterations):
+        s, sm, t, tm = _level(source, source_mask, target, target_mask, voxel, concrete)
+        result = register(
+            s, t, max_correspondence_distance=distance, init=pose, max_iterations=cap, loss=loss,
+            source_mask=sm, target_mask=tm, throw=False, **options,
+        )  # fmt: skip
+        results.append(result)
+        pose = result.transform
+    if throw and concrete:
+        status = Status(int(result.status))
+        if status in (Status.NONFINITE, Status.DEGENERATE):
+            raise ICPError(
+                f"multi-scale ICP ended {status.name} at its finest level (voxel size "
+                f"{voxel_sizes[-1]}, max_correspondence_distance {distances[-1]}): check the "
+                "inputs and the initial guess, or pass throw=False."
+            )
+    return (result, results) if return_levels else result
+
+
+def _level(source, source_mask, target, target_mask, voxel, concrete):
+    """The clouds of one level: voxel centroids, or the clouds themselves for `voxel=None`. With
+    concrete data both are padded (masked) to one power-of-two row count, so that repeated calls
+    and both clouds reuse compiled code; traced data keeps the input's row counts."""
+    if voxel is None:
+        return source, source_mask, target, target_mask
+    if not concrete:
+        s, sm = voxel_downsample(source, voxel, mask=source_mask, size=source.shape[0])
+        t, tm = voxel_downsample(target, voxel, mask=target_mask, size=target.shape[0])
+        return s, sm, t, tm
+    s = voxel_downsample(source, voxel, mask=source_mask)
+    t = voxel_downsample(target, voxel, mask=target_mask)
+    rows = 2 ** math.ceil(math.log2(max(s.shape[0], t.shape[0])))
+    return (*_padded(s, rows), *_padded(t, rows))
+
+
+def _padded(points, rows):
+    mask = np.arange(rows) < points.shape[0]
+    return jnp.pad(points, ((0, rows - points.shape[0]), (0, 0))), jnp.asarray(mask)

@@ -1,0 +1,45 @@
+"""Robust losses inside the ICP loops: IRLS weights $\\rho'(s)$ of squared residuals $s$.
+
+The `lieax.lstsq` losses (and no loss) travel as a traced `(kind, scale)` pair, so that every
+loss shares one compiled loop; any other object with a `weight(s)` method is a static argument.
+"""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+
+from ..lstsq import Cauchy, GemanMcClure, Huber, Tukey
+
+KNOWN_LOSSES = (None, Huber, Cauchy, Tukey, GemanMcClure)
+
+
+def split_loss(loss):
+    """`(dynamic, static)`: no loss and the `lieax.lstsq` losses become a traced `(kind, scale)`
+    pair, so that they share one compiled loop; any other object with a `weight(s)` method is
+    passed as a static argument (it must be hashable)."""
+    if loss is None:
+        return (0, 1.0), None
+    if type(loss) in KNOWN_LOSSES:
+        return (KNOWN_LOSSES.index(type(loss)), loss.scale), None
+    if not callable(getattr(loss, "weight", None)):
+        raise TypeError(
+            f"loss must have a weight(s) method (see lieax.lstsq losses), got {loss!r}."
+        )
+    return None, loss
+
+
+def loss_weights(loss, static_loss, squared):
+    """IRLS weights $\\rho'(s)$ of squared residuals (differentiable in `s` and the scale)."""
+    if static_loss is not None:
+        return static_loss.weight(squared)
+    kind, scale = loss
+    scale = jnp.asarray(scale).astype(squared.dtype)
+    branches = [lambda s, c: jnp.ones_like(s)] + [
+        functools.partial(_loss_weight, cls) for cls in KNOWN_LOSSES[1:]
+    ]
+    return jax.lax.switch(kind, branches, squared, scale)
+
+
+def _loss_weight(cls, squared, scale):
+    return cls(scale).weight(squared)

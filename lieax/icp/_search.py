@@ -1,0 +1,219 @@
+"""Nearest-neighbour search backends, one interface: `build_index(..., search=...)`, `nearest`.
+
+- `"graph"`: `NeighborIndex`, a k-d tree of equal leaves and a k-NN graph (`_neighbors`); a
+  warm-started graph descent per iteration, an exact check at the end. Fastest per iteration,
+  slowest to build.
+- `"grid"`: `GridIndex`, a voxel hash grid with cells of the radius (`_grid`); the 27 cells
+  around a query, each scanned in full. Cheap to build, inside JAX (accelerators).
+- `"kdtree"`: `KDTreeIndex`, pykdtree's or SciPy's k-d tree on the host (`_host_kdtree`), one
+  host call per query batch. Cheapest to build on a CPU.
+- `"brute"`: `BruteIndex`, every target point against every query, chunk by chunk.
+
+All but `"graph"` answer exactly (the nearest valid target point within the radius, up to ties,
+or none) in every call; `"graph"` is exact after its check (`exact=True`).
+
+`"auto"` picks `"kdtree"` on a CPU: in ICP (`benchmarks/icp.py`, "Every kind of scan") it is the
+fastest backend on the object scans, the LiDAR scans and the Kinect frame alike (its build costs a
+few ms where the graph's costs 0.1-3 s, and it needs no exact check), and `"grid"` is 2-9x slower
+on a CPU. Elsewhere it picks `"brute"` for targets of at most `BRUTE_MAX_TARGET` points and
+`"grid"` above (`"brute"` when no radius is given): a rule not yet measured on an accelerator.
+"""
+
+import math
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from . import _grid, _host_kdtree, _neighbors
+
+SEARCHES = ("auto", "graph", "grid", "kdtree", "brute")
+BRUTE_MAX_TARGET = 16384
+_BRUTE_BLOCK = 2**21  # query chunk x target elements per step of the brute-force search
+
+
+class BruteIndex(NamedTuple):
+    """A target cloud for brute-force search. **Fields:** `points` `(N, 3)` (invalid rows hold
+    `inf`), `order` `(N,)` int32 `arange(N)`, `valid` `(N,)` bool."""
+
+    points: jax.Array
+    order: jax.Array
+    valid: jax.Array
+
+
+def check_search(search) -> str:
+    if search not in SEARCHES:
+        raise ValueError(f"search must be one of {SEARCHES}, got {search!r}.")
+    return search
+
+
+def resolve(search, target_size, has_radius=True, platform=None) -> str:
+    """The backend `"auto"` stands for (see the module docstring); other names pass through."""
+    check_search(search)
+    if search != "auto":
+        return search
+    platform = jax.default_backend() if platform is None else platform
+    if platform == "cpu":
+        return "kdtree"
+    return "grid" if has_radius and target_size > BRUTE_MAX_TARGET else "brute"
+
+
+def build_index(points, mask=None, *, search="graph", max_distance=None, **options):
+    """Prepare a target cloud `points` (shape `(n, 3)`) for nearest-neighbour queries; runs under
+    `jit` and `vmap`.
+
+    **Arguments:**
+    - `points`, `mask`: the target cloud; rows where `mask` is False are ignored (padding).
+    - `search`: the backend (see the module docstring).
+    - `max_distance`: the largest query radius; needed by `"grid"` (its cell size).
+    - `options`: passed on to the backend's builder (`_neighbors.build_index` for `"graph"`:
+      `leaf_size`, `degree`, ...; `library` for `"kdtree"`; `capacity` for `"grid"`).
+
+    **Returns:** a `NeighborIndex`, `GridIndex`, `KDTreeIndex` or `BruteIndex`.
+    """
+    points = jnp.asarray(points)
+    if points.ndim != 2 or points.shape[-1] != 3:
+        raise ValueError(f"points must have shape (n, 3), got shape {tuple(points.shape)}.")
+    search = resolve(search, points.shape[0], max_distance is not None, platform_of(points))
+    if search == "graph":
+        return _neighbors.build_index(points, mask, **options)
+    if search == "grid":
+        if max_distance is None:
+            raise ValueError("search='grid' needs max_distance (the cell size of the grid).")
+        if isinstance(max_distance, (int, float)) and not max_distance > 0:
+            raise ValueError(f"max_distance must be positive, got {max_distance}.")
+        return _grid.build_grid(points, mask, cell_size=max_distance, **options)
+    if search == "kdtree":
+        return _host_kdtree.build_kdtree(points, mask, **options)
+    if options:
+        raise TypeError(f"search='brute' takes no options, got {sorted(options)}.")
+    n = points.shape[0]
+    valid = jnp.ones((n,), bool) if mask is None else jnp.asarray(mask, bool)
+    valid = valid & jnp.all(jnp.isfinite(points), axis=1)
+    points = jnp.where(valid[:, None], points, jnp.inf)
+    return BruteIndex(points, jnp.arange(n, dtype=jnp.int32), valid)
+
+
+def platform_of(points):
+    """The platform (`"cpu"`, `"gpu"`, ...) of `points` (the default one while tracing)."""
+    if isinstance(points, jax.core.Tracer) or not isinstance(points, jax.Array):
+        return jax.default_backend()
+    return next(iter(points.devices())).platform
+
+
+def search_name(index) -> str:
+    """The backend of an index."""
+    for name, kind in (
+        ("graph", _neighbors.NeighborIndex),
+        ("grid", _grid.GridIndex),
+        ("kdtree", _host_kdtree.KDTreeIndex),
+        ("brute", BruteIndex),
+    ):
+        if isinstance(index, kind):
+            return name
+    raise TypeError(f"not a neighbour index: {type(index).__name__} (see build_index).")
+
+
+def match(index, queries, radius, mask=None, previous=None):
+    """Exact matches from a `"grid"`, `"kdtree"` or `"brute"` index: the nearest valid target
+    point within `radius` (inclusive) of each query, or none. `previous`: slots of earlier
+    matches, a warm start for `"kdtree"` (see `lieax.icp._host_kdtree`).
+
+    The search sees the queries through `stop_gradient`; the squared distance is then recomputed
+    from the match, so its derivative with respect to the queries, $2(q - p)$, is exact in forward
+    and reverse mode (the match itself is piecewise constant).
+
+    **Returns:** `(slot, squared_distance)`, slot 0 and `inf` where there is none.
+    """
+    name = search_name(index)
+    fixed = jax.lax.stop_gradient(queries)
+    if name == "grid":
+        slot, d2 = _grid.nearest_in_grid(index, fixed, radius, mask=mask)
+    elif name == "kdtree":
+        slot, d2 = _host_kdtree.nearest_in_kdtree(
+            index, fixed, radius, mask=mask, previous=previous
+        )
+    elif name == "brute":
+        slot, d2 = _brute_force(index, fixed, radius, mask)
+    else:
+        raise TypeError("match needs an exact index; use nearest for search='graph'.")
+    found = d2 < jnp.inf
+    gap = jnp.where(found[:, None], queries - index.points[slot].astype(queries.dtype), 0.0)
+    return slot, jnp.where(found, jnp.sum(gap * gap, axis=-1), jnp.inf)
+
+
+def _brute_force(index: BruteIndex, queries, radius, mask):
+    """Every target point against every query, `lax.map` over chunks of queries sized so that a
+    chunk's distance matrix has about `_BRUTE_BLOCK` entries."""
+    m, n = queries.shape[0], index.points.shape[0]
+    active = jnp.ones((m,), bool) if mask is None else jnp.asarray(mask, bool)
+    active = active & jnp.all(jnp.isfinite(queries), axis=1)
+    chunk = max(1, min(m, _BRUTE_BLOCK // max(n, 1)))
+    chunks = math.ceil(m / chunk)
+    padding = jnp.zeros((chunks * chunk - m, 3), queries.dtype)
+    padded = jnp.concatenate([jnp.where(active[:, None], queries, 0.0), padding])
+    padded = padded.reshape(chunks, chunk, 3)
+    targets = index.points.astype(queries.dtype)
+
+    def one_chunk(q):
+        d2 = sum((q[:, None, axis] - targets[None, :, axis]) ** 2 for axis in range(3))
+        return _neighbors._min_and_argmin(jnp.where(jnp.isnan(d2), jnp.inf, d2))
+
+    d2, slot = jax.lax.map(one_chunk, padded)
+    d2, slot = d2.reshape(-1)[:m], slot.reshape(-1)[:m]
+    r2 = jnp.asarray(radius, queries.dtype) ** 2
+    found = active & (d2 <= r2)
+    return jnp.where(found, slot, 0), jnp.where(found, d2, jnp.inf)
+
+
+def nearest(
+    index, queries, *, radius=jnp.inf, initial=None, mask=None, exact=True
+) -> _neighbors.Neighbors:
+    """The nearest target point of every query, exact within `radius`.
+
+    **Arguments:**
+    - `index`: from `build_index` (any backend).
+    - `queries`: shape `(n, 3)`.
+    - `radius`: the search radius. `"grid"` searches within its cell size at most; `"grid"`,
+      `"kdtree"` and `"brute"` report no match (`index = -1`, `distance = inf`) beyond `radius`;
+      `"graph"` reports its best match there, not necessarily the nearest.
+    - `initial`: slots of earlier matches (a previous `Neighbors.slot`), a warm start for
+      `"graph"` and `"kdtree"`.
+    - `exact`: for `"graph"` (see `lieax.icp._neighbors.nearest`); the others are always exact.
+    - `mask`: queries to skip (their result is meaningless).
+
+    **Returns:** `Neighbors`.
+    """
+    queries = jnp.asarray(queries)
+    if queries.ndim != 2 or queries.shape[-1] != 3:
+        raise ValueError(f"queries must have shape (n, 3), got shape {tuple(queries.shape)}.")
+    if search_name(index) == "graph":
+        return _neighbors.nearest(
+            index, queries, radius=radius, initial=initial, mask=mask, exact=exact
+        )
+    active = jnp.ones(queries.shape[:1], bool) if mask is None else jnp.asarray(mask, bool)
+    slot, d2 = match(index, queries, radius, active, previous=initial)
+    found = d2 < jnp.inf
+    return _neighbors.Neighbors(jnp.where(found, index.order[slot], -1), slot, jnp.sqrt(d2), active)
+
+
+def check_icp_search(search, target, max_distance):
+    """ICP's `search=`: a backend name (`"auto"` resolved for `target`) or a prebuilt index of
+    `target`. **Returns:** `(name, index or None)`."""
+    if isinstance(search, str):
+        check_search(search)
+        return resolve(search, target.shape[0], True, platform_of(target)), None
+    name = search_name(search)
+    if search.points.shape[-2:] != target.shape and name != "graph":
+        raise ValueError(
+            f"the prebuilt index holds {search.points.shape[-2]} points, the target "
+            f"{target.shape[0]}: build it on this target."
+        )
+    if name == "grid":
+        cell, concrete = search.cell_size, not isinstance(search.cell_size, jax.core.Tracer)
+        if concrete and isinstance(max_distance, (int, float)) and float(cell) < max_distance:
+            raise ValueError(
+                f"the prebuilt grid's cell size {float(cell):g} is below "
+                f"max_correspondence_distance={max_distance:g}: matches would not be exact."
+            )
+    return name, search

@@ -1,0 +1,569 @@
+"""Tests of lieax.factorgraph: pose graphs with a GPS prior against `lieax.lstsq`, g2o graphs
+against `lieax.graph.optimize`, landmarks (two variable kinds, three factor kinds), a small
+bundle adjustment with every linear solver and the Schur complement, the assembled gradient
+against finite differences, bad input, marginal covariances (dense inverse, GTSAM), `vmap` over
+problems and implicit derivatives with respect to factor data.
+
+Real data from `$LIEAX_DATA_DIR/g2o` is optional (those cases skip without it). Problems are
+built once per module (fixtures) so that each structure compiles its loop once.
+"""
+
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from lieax import SE2, SE3, lstsq
+from lieax import graph as lg
+from lieax.factorgraph import Factor, FactorGraph, Var, from_pose_graph, marginal_covariances
+from lieax.factorgraph._linear import to_padded
+from lieax.factorgraph._solve import retract
+from lieax.graph._sparse import dense_matrix
+
+jax.config.update("jax_enable_x64", True)
+
+DATA = os.environ.get("LIEAX_DATA_DIR")
+G2O = None if DATA is None else os.path.join(DATA, "g2o")
+needs_data = pytest.mark.skipif(
+    G2O is None or not os.path.isdir(G2O), reason="LIEAX_DATA_DIR/g2o not available"
+)
+
+
+# ---- problems --------------------------------------------------------------------------------
+
+
+def between(a, b, z):
+    return z.between(a.between(b)).log()
+
+
+def gps(x, p):
+    return x.translation() - p
+
+
+def chain(n=8, seed=0):
+    """SE2 poses along a curve: truth, noisy odometry and GPS, a perturbed start."""
+    rng = np.random.default_rng(seed)
+    xi = rng.normal(size=(n, 3)) * 0.3
+    xi[:, 0] += np.arange(n)
+    truth = SE2.exp(jnp.asarray(xi))
+    i = np.r_[np.arange(n - 1), 0, 2]
+    j = np.r_[np.arange(1, n), n - 1, min(5, n - 1)]
+    measured = truth[i].between(truth[j]).rplus(jnp.asarray(rng.normal(size=(len(i), 3)) * 0.05))
+    position = truth.translation() + rng.normal(size=(n, 2)) * 0.1
+    start = truth.rplus(jnp.asarray(rng.normal(size=(n, 3)) * 0.1))
+    return truth, i, j, measured, position, start
+
+
+@pytest.fixture(scope="module")
+def gps_graph():
+    _, i, j, measured, position, start = chain()
+    poses = Var(start, name="poses")
+    odometry = Factor(
+        between,
+        (poses[i], poses[j]),
+        measured,
+        sqrt_information=np.diag([20.0, 20.0, 50.0]),
+        name="between",
+    )
+    fix = Factor(
+        gps,
+        (poses[np.arange(len(position))],),
+        jnp.asarray(position),
+        sqrt_information=10.0 * np.eye(2),
+        name="gps",
+    )
+    graph = FactorGraph([odometry, fix])
+    return graph, poses, (i, j, measured, position, start)
+
+
+def test_pose_graph_with_gps_matches_lstsq(gps_graph):
+    graph, _, (i, j, measured, position, start) = gps_graph
+    result = graph.solve(relative_tolerance=1e-12, absolute_tolerance=1e-14)
+    assert result.status_name == "CONVERGED"
+
+    def residuals(x, _):
+        r1 = jax.vmap(between)(x[i], x[j], measured) * jnp.array([20.0, 20.0, 50.0])
+        r2 = 10.0 * (x.translation() - position)
+        return r1, r2
+
+    reference = lstsq.least_squares(residuals, start, max_iterations=50, function_tolerance=1e-14)
+    np.testing.assert_allclose(result.cost, reference.cost, rtol=1e-9)
+    np.testing.assert_allclose(result.values[0].rminus(reference.value), 0.0, atol=1e-7)
+    # the cost history starts at the initial cost and decreases
+    history = np.asarray(result.cost_history)[: int(result.iterations) + 1]
+    np.testing.assert_allclose(history[0], graph.cost(), rtol=1e-12)
+    assert np.all(np.diff(history) <= 0)
+
+
+@pytest.mark.parametrize(
+    "options",
+    [
+        {"solver": "cholesky"},
+        {"solver": "cg"},
+        {"damping": "marquardt", "lambda_update": "nielsen"},
+        {"algorithm": "gauss_newton"},
+    ],
+)
+def test_solver_options_reach_the_same_cost(gps_graph, options):
+    graph, _, _ = gps_graph
+    reference = graph.solve(relative_tolerance=1e-12, absolute_tolerance=1e-14)
+    result = graph.solve(relative_tolerance=1e-12, absolute_tolerance=1e-14, **options)
+    assert result.status_name == "CONVERGED"
+    np.testing.assert_allclose(result.cost, reference.cost, rtol=1e-7)
+
+
+def noisy_pose_graph(n=12, seed=1):
+    rng = np.random.default_rng(seed)
+    xi = rng.normal(size=(n, 6)) * 0.3
+    xi[:, 0] += np.arange(n)
+    truth = SE3.exp(jnp.asarray(xi))
+    i = np.r_[np.arange(n - 1), 0, 3, 5]
+    j = np.r_[np.arange(1, n), n - 1, 9, 11]
+    measured = truth[i].between(truth[j]).rplus(jnp.asarray(rng.normal(size=(len(i), 6)) * 0.05))
+    start = truth.rplus(jnp.asarray(rng.normal(size=(n, 6)) * 0.1))
+    information = np.diag(rng.uniform(0.5, 2.0, size=6)) / 0.05**2
+    return lg.PoseGraph.create(
+        start, np.stack([i, j], 1), measured, np.broadcast_to(information, (len(i), 6, 6))
+    )
+
+
+def test_g2o_graph_matches_graph_optimize(tmp_path):
+    path = tmp_path / "small.g2o"
+    lg.write_g2o(path, noisy_pose_graph())
+    graph = lg.read_g2o(path)
+    expected = lg.optimize(graph)
+    result = from_pose_graph(graph)[0].solve()
+    np.testing.assert_allclose(result.cost, expected.cost, rtol=1e-8)
+    assert int(result.iterations) == expected.iterations
+
+
+@needs_data
+@pytest.mark.parametrize(
+    "name", ["tinyGrid3D", pytest.param("smallGrid3D", marks=pytest.mark.slow)]
+)
+def test_real_g2o_matches_graph_optimize(name):
+    graph = lg.read_g2o(os.path.join(G2O, f"{name}.g2o"))
+    expected = lg.optimize(graph)
+    result = from_pose_graph(graph)[0].solve()
+    np.testing.assert_allclose(result.cost, expected.cost, rtol=1e-8)
+    assert int(result.iterations) == expected.iterations
+
+
+# ---- landmarks: two variable kinds, three factor kinds ---------------------------------------
+
+
+def observe(pose, point, z):
+    """The landmark in the pose's frame, minus its measurement."""
+    return pose.inverse() @ point - z
+
+
+def prior(pose, z):
+    return z.between(pose).log()
+
+
+@pytest.fixture(scope="module")
+def landmarks():
+    rng = np.random.default_rng(3)
+    truth, i, j, _, _, _ = chain(n=6, seed=3)
+    odometry = truth[i].between(truth[j])
+    points = jnp.asarray(rng.uniform(-1, 7, size=(5, 2)))
+    pose_index = np.repeat(np.arange(6), 3)
+    point_index = rng.integers(0, 5, size=18)
+    seen = jax.vmap(lambda x, p: x.inverse() @ p)(truth[pose_index], points[point_index])
+    poses = Var(truth.rplus(jnp.asarray(rng.normal(size=(6, 3)) * 0.1)), name="poses")
+    marks = Var(points + rng.normal(size=(5, 2)) * 0.2, name="points")
+    factors = [
+        Factor(between, (poses[i], poses[j]), odometry, name="between"),
+        Factor(prior, (poses[0],), truth[:1], information=1e4 * np.eye(3), name="prior"),
+        Factor(
+            observe,
+            (poses[pose_index], marks[point_index]),
+            seen,
+            loss=lstsq.Huber(1.0),
+            name="landmark",
+        ),
+    ]
+    return FactorGraph(factors), poses, marks, truth, points
+
+
+def test_landmarks_two_kinds_three_factors(landmarks):
+    graph, _, marks, truth, points = landmarks
+    assert np.unique(np.concatenate(graph.plans[2].indices[1:])).size == 5  # all points seen
+    results = [
+        graph.solve(relative_tolerance=1e-14, absolute_tolerance=1e-20, **options)
+        for options in ({}, {"eliminate": marks})
+    ]
+    for result in results:
+        assert result.status_name == "CONVERGED"
+        assert float(result.cost) < 1e-14  # the measurements are exact
+        np.testing.assert_allclose(result.values[0].rminus(truth), 0.0, atol=1e-7)
+        np.testing.assert_allclose(result.values[1], points, atol=1e-7)
+
+
+def tangent_gradient(graph, values, eps=1e-6):
+    """Central finite differences of the cost in the tangent coordinates of every instance."""
+    layout = graph.layout
+    cost = jax.jit(lambda deltas: graph.cost(retract(graph.variables, values, deltas)))
+    out = []
+    for k, (count, dim) in enumerate(zip(layout.counts, layout.dims)):
+        g = np.zeros((count, dim))
+        for a in range(count):
+            for c in range(dim):
+                deltas = [jnp.zeros((n, d)) for n, d in zip(layout.counts, layout.dims)]
+                deltas[k] = deltas[k].at[a, c].set(eps)
+                plus = cost(deltas)
+                deltas[k] = deltas[k].at[a, c].set(-eps)
+                minus = cost(deltas)
+                g[a, c] = (plus - minus) / (2 * eps)
+        out.append(g)
+    return out
+
+
+def test_assembled_gradient_matches_finite_differences(landmarks):
+    graph, *_ = landmarks
+    values = graph.initial_values
+    _, diag, off, grad = graph.linearize(values)
+    for g, expected in zip(grad, tangent_gradient(graph, values)):
+        np.testing.assert_allclose(g, expected, rtol=1e-6, atol=1e-6)
+    # H is symmetric positive definite and equals JᵀWJ built densely (its diagonal blocks
+    # are sums of the factors' blocks; checked through the gradient's finite differences)
+    dense = np.asarray(
+        dense_matrix(graph.layout.pattern, *to_padded(graph.layout, diag, off, grad)[:2])
+    )
+    np.testing.assert_allclose(dense, dense.T, atol=1e-9)
+    assert np.linalg.eigvalsh(dense).min() > 0
+
+
+# ---- bundle adjustment ------------------------------------------------------------------------
+
+
+def snavely(camera, point, observation):
+    """Snavely's camera: $P = R X + t$, $p = -P_{xy}/P_z$, $f(1 + k_1|p|^2 + k_2|p|^4)\\,p$."""
+    pose, (f, k1, k2) = camera
+    p_camera = pose @ point
+    p = -p_camera[:2] / p_camera[2]
+    n2 = jnp.sum(p**2)
+    return f * (1.0 + k1 * n2 + k2 * n2**2) * p - observation
+
+
+@pytest.fixture(scope="module")
+def bundle():
+    rng = np.random.default_rng(7)
+    cams, pts = 4, 12
+    points = rng.uniform(-1, 1, size=(pts, 3))
+    xi = np.zeros((cams, 6))
+    xi[:, 0] = np.linspace(-1, 1, cams)
+    xi[:, 2] = -5.0  # points in front, negative z in the camera (Snavely's convention)
+    xi[:, 3:] = rng.normal(size=(cams, 3)) * 0.05
+    poses = SE3.exp(jnp.asarray(xi))
+    intrinsics = jnp.tile(jnp.array([500.0, 1e-3, 1e-5]), (cams, 1))
+    ci, pi = np.meshgrid(np.arange(cams), np.arange(pts), indexing="ij")
+    ci, pi = ci.ravel(), pi.ravel()
+    obs = jax.vmap(snavely)(
+        (poses[ci], intrinsics[ci]), jnp.asarray(points[pi]), jnp.zeros((len(ci), 2))
+    )
+    obs = obs + rng.normal(size=obs.shape) * 0.5
+    start_cameras = (
+        poses.rplus(jnp.asarray(rng.normal(size=(cams, 6)) * 1e-3)),
+        intrinsics * (1 + rng.normal(size=(cams, 3)) * 1e-3),
+    )
+    cameras = Var(start_cameras, fixed=[0, 1], name="cameras")
+    landmarks = Var(jnp.asarray(points + rng.normal(size=points.shape) * 0.01), name="points")
+    factor = Factor(
+        snavely, (cameras[ci], landmarks[pi]), obs, loss=lstsq.Cauchy(2.0), name="reprojection"
+    )
+    return FactorGraph([factor]), cameras, landmarks
+
+
+@pytest.mark.parametrize(
+    "options",
+    [
+        {"eliminate": "points", "solver": "dense"},
+        {"eliminate": "points", "solver": "cholesky"},
+        {"eliminate": "points", "solver": "cg"},
+        {"solver": "cholesky"},
+    ],
+)
+def test_bundle_adjustment_solvers_agree(bundle, options):
+    graph, _, landmarks = bundle
+    options = dict(options)
+    if "eliminate" in options:
+        options["eliminate"] = landmarks
+    reference = graph.solve(solver="dense", relative_tolerance=1e-12, absolute_tolerance=1e-14)
+    result = graph.solve(relative_tolerance=1e-12, absolute_tolerance=1e-14, **options)
+    assert result.status_name == "CONVERGED"
+    assert float(result.cost) < 0.5 * float(graph.cost())
+    np.testing.assert_allclose(result.cost, reference.cost, rtol=1e-7)
+    np.testing.assert_allclose(result.values[1], reference.values[1], atol=1e-5)
+
+
+def test_bundle_gradient_matches_finite_differences(bundle):
+    graph, *_ = bundle
+    values = graph.initial_values
+    _, _, _, grad = graph.linearize(values)
+    expected_grads = tangent_gradient(graph, values, eps=1e-7)
+    expected_grads[0][graph.variables[0].fixed] = 0.0  # fixed cameras do not move
+    for g, expected in zip(grad, expected_grads):
+        scale = np.abs(expected).max()
+        np.testing.assert_allclose(g, expected, rtol=1e-5, atol=1e-6 * scale)
+
+
+# ---- marginals --------------------------------------------------------------------------------
+
+
+def test_marginals_match_dense_inverse(landmarks):
+    graph, poses, marks, *_ = landmarks
+    result = graph.solve()
+    _, diag, off, grad = graph.linearize(result.values)
+    layout = graph.layout
+    dense = np.asarray(dense_matrix(layout.pattern, *to_padded(layout, diag, off, grad)[:2]))
+    inverse = np.linalg.inv(dense)
+    D = layout.block_size
+    for var, k in ((poses, 0), (marks, 1)):
+        d = layout.dims[k]
+        for method in ("dense", "cholesky"):
+            cov = marginal_covariances(graph, result.values, var, [1, 3], method=method)
+            for m, a in enumerate((1, 3)):
+                start = (layout.offsets[k] + a) * D
+                np.testing.assert_allclose(
+                    cov[m], inverse[start : start + d, start : start + d], rtol=1e-8, atol=1e-14
+                )
+
+
+def test_marginals_match_gtsam():
+    gtsam = pytest.importorskip("gtsam")
+    truth, i, j, measured, _, start = chain(n=5, seed=4)
+    sigmas = np.array([0.1, 0.2, 0.05])
+    poses = Var(start, name="poses")
+    graph = FactorGraph(
+        [
+            Factor(between, (poses[i], poses[j]), measured, sqrt_information=np.diag(1 / sigmas)),
+            Factor(prior, (poses[0],), truth[:1], sqrt_information=np.diag(1 / sigmas)),
+        ]
+    )
+    # marginals are defined at any linearization point: compare at the start (no solve)
+    values = graph.initial_values
+    ours = marginal_covariances(graph, values, poses)
+
+    def pose2(x):
+        c, s, tx, ty = np.asarray(x.parameters())
+        return gtsam.Pose2(tx, ty, np.arctan2(s, c))
+
+    factors = gtsam.NonlinearFactorGraph()
+    noise = gtsam.noiseModel.Diagonal.Sigmas(sigmas)
+    factors.add(gtsam.PriorFactorPose2(0, pose2(truth[0]), noise))
+    for a, b, z in zip(i, j, measured):
+        factors.add(gtsam.BetweenFactorPose2(int(a), int(b), pose2(z), noise))
+    gtsam_values = gtsam.Values()
+    for a in range(5):
+        gtsam_values.insert(a, pose2(values[0][a]))
+    marginals = gtsam.Marginals(factors, gtsam_values)
+    for a in range(5):
+        np.testing.assert_allclose(ours[a], marginals.marginalCovariance(a), rtol=1e-6, atol=1e-12)
+
+
+# ---- vmap and implicit derivatives ------------------------------------------------------------
+
+
+def test_vmapped_solve_equals_single_solves(gps_graph):
+    graph, _, (_, _, _, position, _) = gps_graph
+    rng = np.random.default_rng(5)
+    batch = jnp.asarray(position[None] + rng.normal(size=(3, *position.shape)) * 0.1)
+    root = graph.data[1][1]
+
+    def solve(p):
+        return graph.solve(data=[None, (p, root, None)], throw=False)
+
+    batched = jax.vmap(solve)(batch)
+    for b in range(3):
+        single = solve(batch[b])
+        np.testing.assert_allclose(batched.cost[b], single.cost, rtol=1e-10)
+        assert int(batched.iterations[b]) == int(single.iterations)
+        np.testing.assert_allclose(
+            batched.values[0][b].parameters(), single.values[0].parameters(), atol=1e-10
+        )
+
+
+def test_implicit_derivative_matches_finite_differences(gps_graph):
+    graph, _, (_, _, _, position, _) = gps_graph
+    root = graph.data[1][1]
+    options = {"relative_tolerance": 1e-14, "absolute_tolerance": 1e-20, "throw": False}
+
+    def solution(p):
+        return graph.solve(data=[None, (p, root, None)], **options)
+
+    base = solution(jnp.asarray(position))
+    direction = np.random.default_rng(6).normal(size=position.shape)
+
+    def moved(p):
+        return solution(p).values[0].rminus(base.values[0])
+
+    _, tangent = jax.jvp(lambda p: moved(p), (jnp.asarray(position),), (jnp.asarray(direction),))
+    eps = 1e-5
+    fd = (moved(position + eps * direction) - moved(position - eps * direction)) / (2 * eps)
+    np.testing.assert_allclose(tangent, fd, rtol=1e-5, atol=1e-8)
+    # reverse mode: the gradient of the final cost and of a solution coordinate
+    grad = jax.grad(lambda p: solution(p).values[0].translation()[3, 0])(jnp.asarray(position))
+    x = lambda p: solution(p).values[0].translation()[3, 0]
+    fd = (x(position + eps * direction) - x(position - eps * direction)) / (2 * eps)
+    np.testing.assert_allclose(np.vdot(grad, direction), fd, rtol=1e-5)
+    assert np.all(np.isfinite(grad))
+
+
+# ---- bad input --------------------------------------------------------------------------------
+
+
+def test_bad_input_errors():
+    _, i, j, measured, position, start = chain(n=5)
+    poses = Var(start, name="poses")
+    with pytest.raises(ValueError, match=r"'between'.*index 7 .*out of range.*'poses'"):
+        FactorGraph(
+            [Factor(between, (poses[i], poses[np.r_[j[:-1], 7]]), measured, name="between")]
+        )
+    with pytest.raises(ValueError, match=r"index -1"):
+        FactorGraph([Factor(between, (poses[np.r_[-1, i[1:]]], poses[j]), measured)])
+    with pytest.raises(ValueError, match=r"sqrt_information must have shape \(3, 3\)"):
+        FactorGraph([Factor(between, (poses[i], poses[j]), measured, sqrt_information=np.eye(2))])
+    with pytest.raises(ValueError, match="not symmetric positive definite"):
+        Factor(between, (poses[i], poses[j]), measured, information=-np.eye(3))
+    with pytest.raises(ValueError, match=r"sqrt_information 2 is not finite"):
+        roots = np.tile(np.eye(3), (len(i), 1, 1))
+        roots[2] = 0.0
+        FactorGraph([Factor(between, (poses[i], poses[j]), measured, sqrt_information=roots)])
+    bad = np.array(position)
+    bad[3, 1] = np.nan
+    with pytest.raises(ValueError, match=r"'gps': data of instance 3 is not finite"):
+        FactorGraph([Factor(gps, (poses[np.arange(5)],), bad, name="gps")])
+    with pytest.raises(ValueError, match=r"leading axis 4"):
+        FactorGraph([Factor(gps, (poses[np.arange(4)],), position, name="gps")])
+    with pytest.raises(ValueError, match=r"'poses'\[0\]\): their gauge is free"):
+        FactorGraph([Factor(between, (poses[i], poses[j]), measured)])
+    with pytest.raises(ValueError, match=r"uses variable 'poses'\[2\] for arguments 0 and 1"):
+        FactorGraph(
+            [Factor(between, (poses[i], poses[np.r_[1, 2, 2, 4, 4, 5][: len(i)] % 5]), measured)],
+            check_gauge=False,
+        )
+    with pytest.raises(ValueError, match=r"index must be a 1-D integer array"):
+        Factor(between, (poses[i.astype(float)], poses[j]), measured)
+    with pytest.raises(ValueError, match=r"different lengths"):
+        Factor(between, (poses[i], poses[j[:-1]]), measured)
+    with pytest.raises(ValueError, match=r"residual must be a vector"):
+        FactorGraph([Factor(lambda x: x.log()[None], (poses[np.arange(5)],))])
+    with pytest.raises(ValueError, match=r"fixed index 9 is out of range"):
+        Var(start, fixed=[9])
+    graph = FactorGraph(
+        [
+            Factor(between, (poses[i], poses[j]), measured),
+            Factor(gps, (poses[np.arange(5)],), position),
+        ]
+    )
+    with pytest.raises(ValueError, match="cannot eliminate variable kind 'poses'"):
+        graph.solve(eliminate=poses)
+    with pytest.raises(ValueError, match="solver must be one of"):
+        graph.solve(solver="qr")
+    with pytest.raises(ValueError, match=r"values for 'poses' have shapes"):
+        graph.solve(values=[start[:3]])
+
+
+def test_nonfinite_start_raises_or_reports(gps_graph):
+    graph, _, (_, _, _, _, start) = gps_graph
+    params = np.array(start.parameters())
+    params[2, 2] = np.inf
+    values = [SE2(jnp.asarray(params))]
+    with pytest.raises(lstsq.SolveError, match="NONFINITE"):
+        graph.solve(values=values)
+    result = jax.jit(lambda v: graph.solve(values=v))(values)
+    assert int(result.status) == lstsq.Status.NONFINITE
+
+
+def test_bundle_adjustment_with_lieax_ba():
+    ba = pytest.importorskip("lieax.ba")
+    problem = ba.synthetic_bal(5, 24, 80, seed=2).problem
+    cameras = Var(problem.camera_variables(jnp.float64), fixed=[0], name="cameras")
+    points = Var(jnp.asarray(problem.points), fixed=[0], name="points")
+    args = (cameras[problem.camera_indices], points[problem.point_indices])
+    observed = jnp.asarray(problem.observations)
+    closed = FactorGraph(
+        [Factor(ba.camera_residual, args, observed, jacobian_fn=ba.camera_jacobians)],
+        check_gauge=False,
+    )
+    autodiff = FactorGraph([Factor(ba.camera_residual, args, observed)], check_gauge=False)
+    options = {"eliminate": points, "solver": "cholesky", "relative_tolerance": 1e-10}
+    result = closed.solve(**options)
+    reference = autodiff.solve(**options)
+    assert result.status_name == "CONVERGED"
+    assert float(result.cost) < 0.05 * float(closed.cost())  # down to the pixel noise
+    np.testing.assert_allclose(result.cost, reference.cost, rtol=1e-6)
+
+
+def test_structure_is_analysed_once(gps_graph):
+    graph, poses, (i, j, measured, position, _) = gps_graph
+    graph.solve()
+    again = FactorGraph(
+        [
+            Factor.make(
+                between,
+                (poses[i], poses[j]),
+                measured,
+                sqrt_information=np.diag([20.0, 20.0, 50.0]),
+            ),
+            Factor(
+                gps,
+                (poses[np.arange(len(position))],),
+                jnp.asarray(position) + 0.1,
+                sqrt_information=10.0 * np.eye(2),
+            ),
+        ]
+    )
+    assert again.layout is graph.layout and again.plans is graph.plans
+    loops = dict(graph._loops)
+    result = again.solve()
+    assert again._loops.keys() == loops.keys()  # the compiled loop was reused
+    assert result.status_name == "CONVERGED"
+
+
+@pytest.mark.parametrize("group", [SE2, SE3])
+def test_pose_graph_blocks_match_finite_differences(group):
+    """`from_pose_graph`'s closed-form between and prior blocks against central differences in
+    local coordinates and against `lieax.jacobian`, with errors rotating by 0 (pure
+    translation), 1e-9, 1e-4, 1, π - 1e-4 and π - 1e-6 rad."""
+    import lieax
+    from lieax.factorgraph._pose_graph import between_blocks, prior_blocks
+
+    d = group.tangent_dim
+    eps = 1e-6
+    steps = jnp.concatenate([eps * jnp.eye(d), -eps * jnp.eye(d)])
+
+    @jax.jit
+    def check(x_i, x_j, z):
+        _, blocks = between_blocks(x_i, x_j, z)
+        auto = lieax.jacobian(lambda a, b: z.between(a.between(b)).log(), (0, 1))(x_i, x_j)
+        prior = prior_blocks(x_j, z)[1][0], lieax.jacobian(lambda b: z.between(b).log())(x_j)
+        fd = []
+        for k, x in enumerate((x_i, x_j)):
+
+            def f(t, k=k, x=x):
+                args = [x_i, x_j]
+                args[k] = x.rplus(t)
+                return between_blocks(*args, z)[0]
+
+            values = jax.vmap(f)(steps)
+            fd.append(((values[:d] - values[d:]) / (2 * eps)).T)
+        return blocks, auto, prior, fd
+
+    rng = np.random.default_rng(d)
+    for angle in (0.0, 1e-9, 1e-4, 1.0, np.pi - 1e-4, np.pi - 1e-6):
+        xi = rng.normal(size=(2, d))
+        x_i, x_j = group.exp(jnp.asarray(xi[0])), group.exp(jnp.asarray(xi[1]))
+        axis = np.ones(1) if d == 3 else rng.normal(size=3)
+        err = np.r_[rng.normal(size=2 if d == 3 else 3), angle * axis / np.linalg.norm(axis)]
+        z = x_i.between(x_j).rplus(-jnp.asarray(err))  # leaves the error `err`
+        blocks, auto, prior, fd = check(x_i, x_j, z)
+        for block, expected in zip((*blocks, prior[0]), (*auto, prior[1])):
+            np.testing.assert_allclose(block, expected, atol=1e-8)
+            assert np.all(np.isfinite(block))
+        if angle < np.pi - 1e-3:  # central differences would cross π
+            for block, expected in zip(blocks, fd):
+                np.testing.assert_allclose(block, expected, atol=1e-6)

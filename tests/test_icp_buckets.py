@@ -1,0 +1,73 @@
+"""Capacity buckets (`lieax.icp._batch.bucket_size`): ICP pads clouds of new sizes to a few
+shapes, so that a stream of clouds of varying sizes compiles a few loops, not one per size, and
+the padded call gives the unpadded call's results."""
+
+import numpy as np
+import pytest
+
+from lieax import icp
+from lieax.icp import _normals, _registration
+from lieax.icp._batch import bucket_size, pad_to_bucket
+
+
+def test_bucket_sizes():
+    # 2^(b-1) < n <= 2^b is padded to a multiple of 2^(b-3): 5, 6, 7 or 8 times it.
+    expected = {1: 1, 8: 8, 9: 10, 300: 320, 3000: 3072, 3100: 3584, 4097: 5120, 25_000: 28_672}
+    assert {n: bucket_size(n) for n in expected} == expected
+    sizes = np.arange(9, 1 << 16)
+    buckets = np.array([bucket_size(int(n)) for n in sizes])
+    assert np.all(buckets >= sizes) and np.all(buckets <= 1.25 * sizes)
+    assert np.all(np.diff(buckets) >= 0)
+    for b in range(4, 16):  # four shapes per doubling
+        assert len(set(buckets[(sizes > 1 << (b - 1)) & (sizes <= 1 << b)])) == 4
+
+
+def test_pad_to_bucket_masks_the_new_rows():
+    points = np.ones((9, 3))
+    padded, mask, normals, missing = pad_to_bucket(points, np.ones(9, bool), points, None)
+    assert padded.shape == normals.shape == (10, 3) and missing is None
+    np.testing.assert_array_equal(np.asarray(mask), [True] * 9 + [False])
+    np.testing.assert_array_equal(np.asarray(padded)[9], 0.0)
+
+
+@pytest.fixture(scope="module")
+def pair():
+    return icp.synthetic_pair(300, rotation_deg=8.0, translation=0.08, noise=0.002, seed=3)
+
+
+@pytest.mark.parametrize("kind", ["point_to_plane", "point_to_point"])
+def test_padding_does_not_change_results(pair, kind):
+    """300 points padded to 320 (and the target normals estimated on the padded cloud) give the
+    unpadded results: the pose to 1e-12, the same matches, statistics and iterations."""
+    source, target, _, _ = pair
+    register = getattr(icp, kind)
+    padded = register(source, target, max_correspondence_distance=0.4)
+    exact = register(source, target, max_correspondence_distance=0.4, buckets=False)
+    assert padded.status_name == exact.status_name == "CONVERGED"
+    difference = padded.transform.rminus(exact.transform)
+    assert float(np.max(np.abs(np.asarray(difference)))) < 1e-12
+    assert padded.correspondences.shape == (300,)
+    np.testing.assert_array_equal(
+        np.asarray(padded.correspondences), np.asarray(exact.correspondences)
+    )
+    assert int(padded.iterations) == int(exact.iterations)
+    assert float(padded.fitness) == float(exact.fitness)
+    assert float(padded.inlier_rmse) == pytest.approx(float(exact.inlier_rmse), rel=1e-12)
+
+
+def test_a_stream_of_sizes_compiles_one_loop():
+    """20 clouds of 321 to 384 points (one bucket), target normals estimated: at most one new
+    compilation of the loop and of the normals, where exact shapes would need up to twenty of
+    each. (A stream of 3000 to 4500 points spans four buckets: `benchmarks/icp_buckets.py`.)"""
+    rng = np.random.default_rng(0)
+    sizes = rng.integers(321, 385, size=20)
+    assert len(set(sizes)) > 10 and {bucket_size(int(n)) for n in sizes} == {384}
+    loops, normals = _registration._solve._cache_size(), _normals._estimate._cache_size()
+    for k, n in enumerate(sizes):
+        source, target, _, _ = icp.synthetic_pair(
+            int(n), rotation_deg=5.0, translation=0.05, seed=int(k)
+        )
+        result = icp.point_to_plane(source, target, max_correspondence_distance=0.4)
+        assert result.status_name == "CONVERGED" and result.correspondences.shape == (n,)
+    assert _registration._solve._cache_size() - loops <= 1
+    assert _normals._estimate._cache_size() - normals <= 1

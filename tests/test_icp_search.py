@@ -1,0 +1,248 @@
+"""The nearest-neighbour backends (`lieax.icp._search`): each against SciPy's exact cKDTree, inside
+ICP against the graph backend, under `vmap`, and their errors."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from lieax import icp
+from lieax.icp import _grid, _host_kdtree, _search
+
+BACKENDS = ("graph", "grid", "kdtree", "brute")
+EXACT_BACKENDS = ("grid", "kdtree", "brute")
+
+
+@jax.jit
+def _nearest(index, queries, radius, mask):
+    return _search.nearest(index, queries, radius=radius, mask=mask)
+
+
+def _dense_cloud(rng):
+    """Cells of the radius holding hundreds of points each, and sparse points around them."""
+    dense = rng.uniform(0.0, 0.25, (2500, 3))
+    sparse = rng.uniform(-1.0, 1.0, (500, 3))
+    target = np.concatenate([dense, sparse])
+    queries = np.concatenate([rng.uniform(-0.1, 0.35, (600, 3)), rng.uniform(-1.2, 1.2, (300, 3))])
+    return target, queries, 0.1
+
+
+def _ring_cloud(rng):
+    """A LiDAR-like scan: rings on the ground around the sensor plus a wall, 1 m radius."""
+    rings = []
+    for rho in np.geomspace(3.0, 40.0, 12):
+        angle = rng.uniform(0, 2 * np.pi, 200)
+        rings.append(np.stack([rho * np.cos(angle), rho * np.sin(angle), -1.7 + 0 * angle], 1))
+    wall = np.stack([rng.uniform(-20, 20, 600), np.full(600, 15.0), rng.uniform(-1.7, 3, 600)], 1)
+    target = np.concatenate(rings + [wall])
+    queries = target[rng.choice(len(target), 900, replace=False)] + rng.normal(0, 0.4, (900, 3))
+    return target, queries, 1.0
+
+
+def _far_queries(rng):
+    """No query has a target point within the radius."""
+    target = rng.uniform(-1, 1, (3000, 3))
+    return target, rng.uniform(5, 6, (900, 3)) * rng.choice([-1, 1], (900, 3)), 0.5
+
+
+# Every cloud has 3000 target points and 900 queries: one compilation per backend and dtype.
+CLOUDS = {"dense": _dense_cloud, "rings": _ring_cloud, "far": _far_queries}
+
+
+def _check_against_kdtree(result, target, target_mask, queries, query_mask, radius, exact_only):
+    kept = np.flatnonzero(target_mask)
+    reference, _ = cKDTree(target[kept]).query(queries, 1)
+    distance, index = np.asarray(result.distance), np.asarray(result.index)
+    within = (reference <= radius) & query_mask
+    assert within.any() or not np.any(reference <= radius)
+    tol = 1e-5 * max(1.0, np.abs(target).max()) if target.dtype == np.float32 else 1e-12
+    np.testing.assert_allclose(distance[within], reference[within], rtol=0, atol=tol)
+    # Indices equal up to ties: the reported point is valid and at the reference distance.
+    assert np.all(target_mask[index[within]])
+    gap = np.linalg.norm(target[index[within]] - queries[within], axis=1)
+    np.testing.assert_allclose(gap, reference[within], rtol=0, atol=tol)
+    beyond = (reference > radius * (1 + 1e-5)) & query_mask
+    assert np.all(distance[beyond] > radius)
+    if exact_only:
+        assert np.all(np.isinf(distance[beyond])) and np.all(index[beyond] == -1)
+
+
+# Every backend on every cloud in float64, and in float32 (the graph, slow to compile, on one).
+CASES = [
+    (search, cloud, dtype)
+    for search in BACKENDS
+    for cloud in sorted(CLOUDS)
+    for dtype in (np.float64, np.float32)
+    if not (search == "graph" and dtype == np.float32 and cloud != "dense")
+]
+
+
+@pytest.mark.parametrize("search, cloud, dtype", CASES)
+def test_nearest_equals_ckdtree_within_radius(search, cloud, dtype):
+    rng = np.random.default_rng(sorted(CLOUDS).index(cloud))
+    target, queries, radius = (a if np.isscalar(a) else a.astype(dtype) for a in CLOUDS[cloud](rng))
+    target_mask = rng.uniform(size=len(target)) > 0.2
+    query_mask = rng.uniform(size=len(queries)) > 0.1
+    index = _search.build_index(target, target_mask, search=search, max_distance=radius)
+    result = _nearest(index, queries, radius, query_mask)
+    _check_against_kdtree(
+        result, target, target_mask, queries, query_mask, radius, search in EXACT_BACKENDS
+    )
+
+
+@pytest.mark.parametrize("capacity", [16, 2**22])
+def test_grid_is_exact_with_colliding_buckets_and_wide_tables(capacity):
+    """16 buckets: each mixes many cells; 2**22: keys too wide to pack (a key-value sort)."""
+    rng = np.random.default_rng(3)
+    target, queries, radius = _dense_cloud(rng)
+    index = _grid.build_grid(target, cell_size=radius, capacity=capacity)
+    assert index.capacity == capacity
+    result = _nearest(index, queries, radius, np.ones(len(queries), bool))
+    ones = np.ones(len(target), bool)
+    _check_against_kdtree(result, target, ones, queries, np.ones(len(queries), bool), radius, True)
+
+
+def test_kdtree_warm_start_keeps_only_provably_nearest_matches():
+    """Earlier matches kept by the spacing test (right ones, wrong ones, random ones) change
+    nothing: the result is still the exact nearest point within the radius."""
+    rng = np.random.default_rng(5)
+    target, queries, radius = _ring_cloud(rng)
+    index = _search.build_index(target, search="kdtree")
+    exact = _search.match(index, queries, radius)
+    reference, _ = cKDTree(target).query(queries, 1)
+    within = reference <= radius
+    match = jax.jit(lambda q, p: _search.match(index, q, radius, previous=p))
+    for previous in (exact[0], rng.integers(0, len(target), len(queries)), exact[0][::-1]):
+        _, d2 = match(queries, jnp.asarray(previous, jnp.int32))
+        np.testing.assert_allclose(np.sqrt(d2[within]), reference[within], rtol=0, atol=1e-12)
+        assert np.all(np.isinf(d2[~within]))
+    spacing, _ = cKDTree(target).query(target, 2)
+    np.testing.assert_allclose(index.spacing, spacing[:, 1], rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("search", EXACT_BACKENDS)
+def test_distance_derivatives_forward_and_reverse(search):
+    """d|q - p|/dq = (q - p)/|q - p| at the match p, against central differences (the match is
+    locally constant), in forward and reverse mode."""
+    rng = np.random.default_rng(6)
+    target, queries = rng.uniform(-1, 1, (300, 3)), rng.uniform(-0.8, 0.8, (40, 3))
+    index = _search.build_index(target, search=search, max_distance=0.6)
+
+    def total(q):
+        distance = _search.nearest(index, q, radius=0.6).distance
+        return jnp.sum(jnp.where(jnp.isfinite(distance), distance, 0.0))
+
+    reverse = jax.grad(total)(jnp.asarray(queries))
+    direction = rng.normal(size=queries.shape)
+    _, forward = jax.jvp(total, (jnp.asarray(queries),), (jnp.asarray(direction),))
+    h = 1e-6
+    central = (total(queries + h * direction) - total(queries - h * direction)) / (2 * h)
+    assert np.all(np.isfinite(reverse))
+    np.testing.assert_allclose(forward, central, rtol=1e-6)
+    np.testing.assert_allclose(np.sum(reverse * direction), central, rtol=1e-6)
+
+
+@pytest.fixture(scope="module")
+def pair():
+    return icp.synthetic_pair(1500, rotation_deg=6.0, translation=0.08, noise=0.002,
+                              same_samples=False, seed=4)  # fmt: skip
+
+
+def _register(source, target, normals, search, **kw):
+    return icp.point_to_plane(
+        source, target, target_normals=normals, max_correspondence_distance=0.15,
+        relative_fitness=1e-12, relative_rmse=1e-12, max_iterations=60, search=search, **kw,
+    )  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def graph_result(pair):
+    source, target, normals, _ = pair
+    return _register(source, target, normals, "graph")
+
+
+@pytest.mark.parametrize("search", EXACT_BACKENDS + ("auto",))
+def test_point_to_plane_agrees_with_the_graph_backend(pair, graph_result, search):
+    source, target, normals, truth = pair
+    result = _register(source, target, normals, search)
+    assert result.status_name == "CONVERGED"
+    np.testing.assert_allclose(
+        result.transform.as_matrix(), graph_result.transform.as_matrix(), atol=1e-7
+    )
+    np.testing.assert_array_equal(result.correspondences, graph_result.correspondences)
+    gap = np.asarray(result.transform.as_matrix()) - np.asarray(truth.as_matrix())
+    assert np.abs(gap).max() < 1e-2
+
+
+@pytest.mark.parametrize("search", EXACT_BACKENDS)
+def test_vmap_over_sources_sharing_a_target(pair, search):
+    source, target, normals, _ = pair
+    sources = jnp.stack([source, source + 0.003, source[::-1]])
+
+    def one(s):
+        return _register(s, target, normals, search, throw=False)
+
+    batched = jax.vmap(one)(sources)
+    for b in range(sources.shape[0]):
+        single = one(sources[b])
+        np.testing.assert_allclose(
+            batched.transform.parameters()[b], single.transform.parameters(), atol=1e-10
+        )
+        np.testing.assert_array_equal(batched.correspondences[b], single.correspondences)
+
+
+def test_vmap_over_targets_builds_one_host_tree_each(pair):
+    source, target, _, _ = pair
+    targets = jnp.stack([target, target + 0.01])
+    index = jax.vmap(lambda t: _search.build_index(t, search="kdtree"))(targets)
+    assert index.tree.shape == (2,) and int(index.tree[0]) != int(index.tree[1])
+    result = jax.vmap(lambda ix: _search.nearest(ix, source, radius=0.1))(index)
+    for b in range(2):
+        reference, _ = cKDTree(np.asarray(targets[b])).query(np.asarray(source), 1)
+        within = reference <= 0.1
+        np.testing.assert_allclose(result.distance[b][within], reference[within], atol=1e-12)
+
+
+def test_prebuilt_index_is_reused(pair):
+    source, target, normals, _ = pair
+    first = _search.build_index(target, search="kdtree")
+    again = _search.build_index(target, search="kdtree")
+    assert int(first.tree) == int(again.tree)  # the host registry found the same target
+    reference = _register(source, target, normals, "kdtree")
+    for index in (first, _search.build_index(target, search="grid", max_distance=0.15)):
+        result = _register(source, target, normals, index)
+        np.testing.assert_allclose(
+            result.transform.parameters(), reference.transform.parameters(), atol=1e-12
+        )
+    small_grid = _search.build_index(target, search="grid", max_distance=0.05)
+    with pytest.raises(ValueError, match="cell size"):
+        _register(source, target, normals, small_grid)
+    with pytest.raises(ValueError, match="points"):
+        _register(source, target[:-1], normals[:-1], first)
+
+
+def test_auto_rule():
+    assert _search.resolve("auto", 10**6, platform="cpu") == "kdtree"
+    assert _search.resolve("auto", 1000, platform="gpu") == "brute"
+    assert _search.resolve("auto", 10**6, platform="gpu") == "grid"
+    assert _search.resolve("auto", 10**6, has_radius=False, platform="gpu") == "brute"
+    assert _search.resolve("grid", 10, platform="cpu") == "grid"
+
+
+def test_bad_search_arguments(pair, monkeypatch):
+    source, target, normals, _ = pair
+    with pytest.raises(ValueError, match="search must be one of"):
+        _register(source, target, normals, "octree")
+    with pytest.raises(ValueError, match="max_distance"):
+        _search.build_index(target, search="grid")
+    with pytest.raises(ValueError, match="shape"):
+        _search.build_index(target[:, :2], search="brute")
+    with pytest.raises(TypeError, match="not a neighbour index"):
+        _search.nearest((target,), source)
+    with pytest.raises(ValueError, match="library"):
+        _search.build_index(target, search="kdtree", library="flann")
+    # The host tree refuses to run for another backend (checked while tracing).
+    monkeypatch.setattr(_host_kdtree.jax, "default_backend", lambda: "gpu")
+    with pytest.raises(ValueError, match="search='kdtree' runs on the host CPU"):
+        jax.jit(lambda t: _search.build_index(t, search="kdtree"))(target)
