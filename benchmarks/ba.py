@@ -207,6 +207,26 @@ def _mul(A, B):
     )
 
 
+def _solve_with_ceres(ceres_problem, iterations):
+    """Ceres' LM with `SPARSE_SCHUR` (default threads) on a built `pyceres.Problem`; returns the
+    wall time, Ceres' summary, its time spent evaluating residuals and Jacobians, and the steps
+    tried (successful or not)."""
+    import pyceres
+
+    options = pyceres.SolverOptions()
+    options.linear_solver_type = pyceres.LinearSolverType.SPARSE_SCHUR
+    options.trust_region_strategy_type = pyceres.TrustRegionStrategyType.LEVENBERG_MARQUARDT
+    options.max_num_iterations = iterations
+    options.minimizer_progress_to_stdout = False
+    summary = pyceres.SolverSummary()
+    start = time.perf_counter()
+    pyceres.solve(options, ceres_problem, summary)
+    total = time.perf_counter() - start
+    evaluation = summary.residual_evaluation_time_in_seconds
+    evaluation += summary.jacobian_evaluation_time_in_seconds
+    return total, summary, evaluation, summary.num_successful_steps + summary.num_unsuccessful_steps
+
+
 def run_ceres(problem, iterations, loss, delta):
     import pyceres
 
@@ -220,18 +240,7 @@ def run_ceres(problem, iterations, loss, delta):
         ceres_problem.add_residual_block(
             SnavelyCost(observed.tolist()), loss_function, [cameras[camera], points[point]]
         )
-    options = pyceres.SolverOptions()
-    options.linear_solver_type = pyceres.LinearSolverType.SPARSE_SCHUR
-    options.trust_region_strategy_type = pyceres.TrustRegionStrategyType.LEVENBERG_MARQUARDT
-    options.max_num_iterations = iterations
-    options.minimizer_progress_to_stdout = False
-    summary = pyceres.SolverSummary()
-    start = time.perf_counter()
-    pyceres.solve(options, ceres_problem, summary)
-    total = time.perf_counter() - start
-    evaluation = summary.residual_evaluation_time_in_seconds
-    evaluation += summary.jacobian_evaluation_time_in_seconds
-    steps = summary.num_successful_steps + summary.num_unsuccessful_steps
+    total, summary, evaluation, steps = _solve_with_ceres(ceres_problem, iterations)
     initial = cost(problem, problem.cameras, problem.points, loss, delta)
     final = cost(problem, cameras, points, loss, delta)
     checks = (("initial", initial, summary.initial_cost), ("final", final, summary.final_cost))
@@ -369,26 +378,13 @@ def _from_colmap(problem, reconstruction, point_ids):
 
 
 def run_ceres_colmap(problem, iterations, loss, delta):
-    import pyceres
-
     reconstruction, adjuster, point_ids = _colmap_problem(problem, loss, delta)
     ceres_problem = adjuster.problem
     initial = cost(problem, problem.cameras, problem.points, loss, delta)
     start_cost = _colmap_initial_cost(ceres_problem, loss, delta)
     if not math.isclose(initial, start_cost, rel_tol=1e-9):
         raise RuntimeError(f"pycolmap's initial cost {start_cost} differs from {initial}.")
-    options = pyceres.SolverOptions()
-    options.linear_solver_type = pyceres.LinearSolverType.SPARSE_SCHUR
-    options.trust_region_strategy_type = pyceres.TrustRegionStrategyType.LEVENBERG_MARQUARDT
-    options.max_num_iterations = iterations
-    options.minimizer_progress_to_stdout = False
-    summary = pyceres.SolverSummary()
-    start = time.perf_counter()
-    pyceres.solve(options, ceres_problem, summary)
-    total = time.perf_counter() - start
-    evaluation = summary.residual_evaluation_time_in_seconds
-    evaluation += summary.jacobian_evaluation_time_in_seconds
-    steps = summary.num_successful_steps + summary.num_unsuccessful_steps
+    total, summary, evaluation, steps = _solve_with_ceres(ceres_problem, iterations)
     cameras, points = _from_colmap(problem, reconstruction, point_ids)
     final = cost(problem, cameras, points, loss, delta)
     if not math.isclose(initial, summary.initial_cost, rel_tol=1e-9):

@@ -35,10 +35,11 @@ def pair():
     return icp.synthetic_pair(300, rotation_deg=8.0, translation=0.08, noise=0.002, seed=3)
 
 
-@pytest.mark.parametrize("kind", ["point_to_plane", "point_to_point"])
+@pytest.mark.parametrize("kind", ["point_to_plane", "point_to_point", "gicp"])
 def test_padding_does_not_change_results(pair, kind):
-    """300 points padded to 320 (and the target normals estimated on the padded cloud) give the
-    unpadded results: the pose to 1e-12, the same matches, statistics and iterations."""
+    """300 points padded to 320 (and the target normals or the covariances estimated on the padded
+    clouds) give the unpadded results: the pose to 1e-12, the same matches, statistics and
+    iterations."""
     source, target, _, _ = pair
     register = getattr(icp, kind)
     padded = register(source, target, max_correspondence_distance=0.4)

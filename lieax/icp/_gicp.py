@@ -256,6 +256,7 @@ def gicp(
     verbose=False,
     throw=True,
     search="auto",
+    buckets=True,
 ) -> ICPResult:
     """Generalized ICP: minimize
     $\\sum_i \\rho\\big(r_i^\\top (C^d_i + R C^s_i R^\\top)^{-1} r_i\\big)$, $r_i = T s_i - d_i$,
@@ -287,6 +288,8 @@ def gicp(
     - `throw`: raise `ICPError` for a `NONFINITE` or `DEGENERATE` result when called outside
       `jit`/`vmap` (inside, read `status`).
     - `search`: the correspondence search, as for `point_to_plane`.
+    - `buckets`: pad the clouds (and the default covariances' clouds) to capacity buckets, as for
+      `point_to_plane`.
 
     Derivatives through `gicp` raise `NotImplementedError` (the implicit derivatives of
     `lieax.icp._implicit` cover point-to-point and point-to-plane).
@@ -298,23 +301,25 @@ def gicp(
     source_mask = check_mask(source_mask, source, "source_mask")
     target_mask = check_mask(target_mask, target, "target_mask")
     if source_covariances is None:
-        source_covariances = _bucketed_covariances(source, source_mask, covariances_k)
+        source_covariances = _default_covariances(source, source_mask, covariances_k, buckets)
     if target_covariances is None:
-        target_covariances = _bucketed_covariances(target, target_mask, covariances_k)
+        target_covariances = _default_covariances(target, target_mask, covariances_k, buckets)
     source_covariances = _check_covariances(source_covariances, source, "source_covariances")
     target_covariances = _check_covariances(target_covariances, target, "target_covariances")
     return _register(
         "gicp", source, target, max_correspondence_distance, None, init, max_iterations,
         relative_fitness, relative_rmse, loss, source_mask, target_mask, exact, 0, verbose, throw,
         search=search, source_covariances=source_covariances,
-        target_covariances=target_covariances,
+        target_covariances=target_covariances, buckets=buckets,
     )  # fmt: skip
 
 
-def _bucketed_covariances(points, mask, k):
-    """`estimate_covariances` on the cloud padded (masked rows) to its capacity bucket, as
-    `_register` pads it (`lieax.icp._batch.bucket_size`), cut back to the cloud's rows: a cloud of
-    a new size in a known bucket compiles nothing new."""
+def _default_covariances(points, mask, k, buckets):
+    """`estimate_covariances` of a cloud; with `buckets`, on the cloud padded (masked rows) to its
+    capacity bucket, as `_register` pads it (`lieax.icp._batch.bucket_size`), cut back to the
+    cloud's rows: a cloud of a new size in a known bucket compiles nothing new."""
+    if not buckets:
+        return estimate_covariances(points, k=k, mask=mask)
     padded, padded_mask = pad_to_bucket(points, mask)
     return estimate_covariances(padded, k=k, mask=padded_mask)[: points.shape[0]]
 
