@@ -2,36 +2,36 @@
 
 Conventions (right perturbation, wxyz quaternions, translation-first tangents) are listed in the
 README's "Conventions" section.
+
+Layers, bottom up: `groups` (the Lie groups and their kernels), `autodiff` (tangents of pytrees,
+manifold-local Jacobians, implicit derivatives) and `retractions`, the solvers (`lstsq`, `optax`,
+`factorgraph`, `graph`), and the applications (`icp`, `ba`, `align`, `io`, `conventions`).
 """
 
-from . import conventions, retractions
+from importlib.metadata import version as _version
+
+from . import ba, conventions, factorgraph, graph, icp, io, lstsq, optax, retractions, sharding
 from ._align import align
-from ._autodiff import grad, jacobian, value_and_grad, value_and_jacobian
-from ._base import AbstractGroup, AbstractManifold
-from ._pointcloud_io import read_pcd, read_ply, read_point_cloud, write_pcd, write_ply
-from ._implicit_function import (
+from .autodiff import (
+    flatten_tangents,
+    grad,
     implicit_jacobian,
     inverse_function_jacobian,
-    with_implicit_derivative,
-    with_inverse_derivative,
-)
-from ._manifold import (
-    flatten_tangents,
+    jacobian,
     rminus,
     rplus,
     tangent_dim,
     unflatten_tangents,
+    value_and_grad,
+    value_and_jacobian,
+    with_implicit_derivative,
+    with_inverse_derivative,
     zero_tangents,
 )
-from ._s2 import S2
-from ._se2 import SE2
-from ._se3 import SE3
-from ._sim3 import Sim3
-from ._so2 import SO2
-from ._so3 import SO3
-from . import ba, factorgraph, graph, icp, lstsq, optax, sharding  # noqa: E402  (after the groups they build on)
+from .groups import S2, SE2, SE3, SO2, SO3, AbstractGroup, AbstractManifold, Sim3
+from .io import read_pcd, read_ply, read_point_cloud, write_pcd, write_ply
 
-__version__ = "0.1.0"
+__version__ = _version("lieax")
 
 __all__ = [
     "AbstractGroup",
@@ -55,6 +55,7 @@ __all__ = [
     "read_point_cloud",
     "retractions",
     "implicit_jacobian",
+    "io",
     "inverse_function_jacobian",
     "jacobian",
     "lstsq",

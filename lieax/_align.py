@@ -34,13 +34,13 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from . import _se3 as se3
-from . import _sim3 as sim3
-from . import _so3 as so3
 from ._checks import as_float_array, broadcast_batch, check_last_axis
-from ._se3 import SE3
-from ._sim3 import Sim3
-from ._so3 import cross, matvec, rotate_back
+from ._linalg import cross, matvec, rotate_back, unskew
+from .groups import _se3 as se3
+from .groups import _sim3 as sim3
+from .groups import _so3 as so3
+from .groups._se3 import SE3
+from .groups._sim3 import Sim3
 
 
 def _moments(points_a, points_b, weights):
@@ -91,7 +91,7 @@ def _align_kernel_jvp(with_scale, primals, tangents):
     m = 0.5 * (m + jnp.swapaxes(m, -1, -2))
     stiffness = _trace(m)[..., None, None] * jnp.eye(3, dtype=m.dtype) - m
     projected_dot = rotation_t @ correlation_dot
-    omega = 2.0 * jnp.linalg.solve(stiffness, so3.unskew(projected_dot)[..., None])[..., 0]
+    omega = 2.0 * jnp.linalg.solve(stiffness, unskew(projected_dot)[..., None])[..., 0]
     if with_scale:
         scale = jnp.exp(sim3.to_parameters(params)[..., 7:])
         scale_dot = (_trace(projected_dot)[..., None] - scale * spread_b_dot[..., None]) / spread_b[

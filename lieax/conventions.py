@@ -21,12 +21,13 @@ with $f(X \\oplus \\delta) \\ominus f(X) \\approx J \\delta$.
 import jax.numpy as jnp
 import numpy as np
 
-from . import _s2 as s2
-from . import _so3 as so3
 from ._checks import as_float_array, check_last_axis
-from ._se3 import SE3
-from ._sim3 import Sim3
-from ._so3 import SO3, cross, dot, matvec, rotate_back
+from ._linalg import cross, dot, matvec, quat_conjugate, quat_multiply, rotate_back
+from .groups import _s2 as s2
+from .groups import _so3 as so3
+from .groups._se3 import SE3
+from .groups._sim3 import Sim3
+from .groups._so3 import SO3
 
 __all__ = [
     "ceres_quaternion_minus",
@@ -252,7 +253,7 @@ def ceres_quaternion_plus(q, delta):
     delta = check_last_axis(delta, 3, "Ceres quaternion delta")
     # (cos|δ|, sin|δ|/|δ| δ), NaN-free at 0; to_parameters: raw derivatives, not SO3's carrier
     q_delta = so3.to_parameters(so3.exp(2.0 * delta))
-    return so3.quat_multiply(q_delta, q)
+    return quat_multiply(q_delta, q)
 
 
 def ceres_quaternion_minus(y, x):
@@ -260,7 +261,7 @@ def ceres_quaternion_minus(y, x):
     $\\mathrm{atan2}(|u|, w)\\,u / |u|$ (0 where $u = 0$); `ceres_quaternion_plus(x, minus(y, x)) == y`."""
     y = check_last_axis(y, 4, "quaternion y", "wxyz")
     x = check_last_axis(x, 4, "quaternion x", "wxyz")
-    ambient = so3.quat_multiply(y, so3.quat_conjugate(x))
+    ambient = quat_multiply(y, quat_conjugate(x))
     w, u = ambient[..., :1], ambient[..., 1:]
     squared = dot(u, u)[..., None]
     positive = squared > 0.0
@@ -274,7 +275,7 @@ def ceres_quaternion_plus_jacobian(q):
     q = check_last_axis(q, 4, "quaternion", "wxyz")
     eye = jnp.eye(3, dtype=q.dtype)
     pure = jnp.concatenate([jnp.zeros((3, 1), dtype=q.dtype), eye], axis=-1)  # (0, e_i)
-    columns = so3.quat_multiply(pure, q[..., None, :])  # (*batch, 3, 4)
+    columns = quat_multiply(pure, q[..., None, :])  # (*batch, 3, 4)
     return jnp.swapaxes(columns, -1, -2)
 
 

@@ -34,9 +34,9 @@ import jax
 import jax.numpy as jnp
 import optax  # the optax package (absolute import; this module is lieax.optax)
 
-from ._autodiff import value_and_grad
-from ._base import AbstractManifold
-from ._manifold import check_retraction, manifold_leaves, rplus, zero_tangents
+from .autodiff._jacobian import value_and_grad
+from .autodiff._tangents import check_retraction, manifold_leaves, rplus, zero_tangents
+from .groups._base import AbstractManifold
 from .retractions import Retraction, exp
 
 __all__ = ["MinimizeResult", "apply_updates", "minimize", "on_manifold"]

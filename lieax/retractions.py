@@ -33,15 +33,14 @@ Conventions: the README's "Conventions".
 import dataclasses
 from collections.abc import Callable
 
-import jax
 import jax.numpy as jnp
 
-from . import _se3 as se3
-from . import _so3 as so3
-from ._base import AbstractManifold
 from ._checks import check_last_axis
-from ._se3 import SE3
-from ._so3 import SO3, cross, dot
+from .groups import _se3 as se3
+from .groups import _so3 as so3
+from .groups._base import AbstractManifold
+from .groups._se3 import SE3
+from .groups._so3 import SO3, cayley_quaternion, cayley_quaternion_inverse
 
 __all__ = ["Retraction", "cayley", "exp", "first_order"]
 
@@ -81,54 +80,6 @@ def _exp_rminus(y, x):
 
 
 exp = Retraction("exp", _exp_rplus, _exp_rminus)  # the default everywhere
-
-
-# ---- the Cayley transform on unit quaternions ---------------------------------------------------
-
-
-@jax.custom_jvp
-def cayley_quaternion(omega):
-    """$\\mathrm{cay}(\\omega)$ as a unit quaternion: $q = (2, \\omega) / \\sqrt{4 + |\\omega|^2}$,
-    i.e. $(1, \\omega/2)$ normalized, $\\tan(\\alpha/2) = |\\omega|/2$ for the rotation angle
-    $\\alpha$. Its matrix is GTSAM's `Rot3::CayleyChart::Retract`,
-    $[(4 - |\\omega|^2) I + 2\\omega\\omega^\\top + 4[\\omega]_\\times] / (4 + |\\omega|^2)$."""
-    n = jnp.sqrt(4.0 + dot(omega, omega))[..., None]
-    return jnp.concatenate([2.0 / n, omega / n], axis=-1)
-
-
-@cayley_quaternion.defjvp
-def _cayley_quaternion_jvp(primals, tangents):
-    """Local block (the Cayley map's right Jacobian, $\\mathrm{cay}(\\omega + \\dot\\omega) \\approx
-    \\mathrm{cay}(\\omega)\\,\\mathrm{Exp}(J\\dot\\omega)$): with $q = (a, u)$,
-    $2\\,\\mathrm{Im}(\\bar q \\otimes \\dot q) = 2(a\\dot u - \\dot a u - u \\times \\dot u)$ gives
-    $J = \\frac{4}{4 + |\\omega|^2}\\,(I - \\tfrac12[\\omega]_\\times)$ (the identity at zero)."""
-    (omega,), (omega_dot,) = primals, tangents
-    q = cayley_quaternion(omega)
-    factor = (4.0 / (4.0 + dot(omega, omega)))[..., None]
-    local = factor * (omega_dot - 0.5 * cross(omega, omega_dot))
-    return q, so3.from_local(q, local)
-
-
-@jax.custom_jvp
-def cayley_quaternion_inverse(q):
-    """$\\mathrm{cay}^{-1}(q) = 2\\,u / w$ for $q = (w, u)$: the Gibbs vector of the rotation,
-    $2\\tan(\\alpha/2)$ along the axis; the same for $q$ and $-q$ (no sign to fix), and scale-free
-    (any nonzero multiple of a unit quaternion). Defined for rotation angles below $\\pi$ ($w \\ne 0$);
-    it grows without bound as the angle nears $\\pi$ (GTSAM's `Rot3::CayleyChart::Local`)."""
-    return 2.0 * q[..., 1:] / q[..., :1]
-
-
-@cayley_quaternion_inverse.defjvp
-def _cayley_quaternion_inverse_jvp(primals, tangents):
-    """$\\dot\\omega = J^{-1}\\omega_{local} = \\omega_{local} + \\tfrac12 \\omega \\times \\omega_{local}
-    + \\tfrac14 \\omega\\,(\\omega^\\top \\omega_{local})$, the inverse of `cayley_quaternion`'s block
-    ($(I - \\tfrac12[\\omega]_\\times)^{-1} = I + (2[\\omega]_\\times + [\\omega]_\\times^2)/(4 + |\\omega|^2)$);
-    the radial part of the carrier does not move $u / w$."""
-    (q,), (carrier,) = primals, tangents
-    omega = cayley_quaternion_inverse(q)
-    local = so3.to_local(q, carrier)
-    omega_dot = local + 0.5 * cross(omega, local) + 0.25 * omega * dot(omega, local)[..., None]
-    return omega, omega_dot
 
 
 # ---- SO3 and SE3 --------------------------------------------------------------------------------

@@ -19,7 +19,7 @@ jax.config.update("jax_enable_x64", True)
 
 import lieax
 from lieax._align import align
-from lieax._sim3 import Sim3
+from lieax.groups._sim3 import Sim3
 
 SE3 = lieax.SE3
 

@@ -14,10 +14,10 @@ import scipy.linalg
 jax.config.update("jax_enable_x64", True)
 
 import lieax
-from lieax import _base
 from lieax import conventions as cv
-from lieax._s2 import S2
-from lieax._sim3 import Sim3
+from lieax.groups import _base
+from lieax.groups._s2 import S2
+from lieax.groups._sim3 import Sim3
 
 SE3, SO3 = lieax.SE3, lieax.SO3
 MANIFOLD_PATCH = hasattr(_base, "AbstractManifold")

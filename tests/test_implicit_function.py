@@ -14,7 +14,7 @@ from jax import lax
 
 jax.config.update("jax_enable_x64", True)
 
-from lieax._implicit_function import (
+from lieax.autodiff._implicit import (
     implicit_jacobian,
     inverse_function_jacobian,
     with_implicit_derivative,

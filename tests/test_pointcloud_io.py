@@ -5,7 +5,7 @@ import os
 import numpy as np
 import pytest
 
-from lieax import _pointcloud_io as pcio
+from lieax.io import _pointcloud as pcio
 
 DATA_DIR = os.environ.get("LIEAX_DATA_DIR")
 

@@ -1,4 +1,4 @@
-"""The coefficient functions `g_n(s) = Σ_k (-1)^k s^k / (2k + n)!` of `lieax._series`.
+"""The coefficient functions `g_n(s) = Σ_k (-1)^k s^k / (2k + n)!` of `lieax.groups._series`.
 
 References, all without mpmath: the series summed exactly in 60-digit `decimal` arithmetic (any s),
 the closed forms from `np.cos` / `np.sin` in float64 (moderate s), and the Taylor polynomial
@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from registry import SERIES_TOLERANCE
 
-from lieax import _series
+from lieax.groups import _series
 
 g = _series.g
 LIMIT = _series._SERIES_LIMIT

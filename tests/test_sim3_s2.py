@@ -24,9 +24,9 @@ jax.config.update("jax_enable_x64", True)
 
 import lieax
 import lieax.lstsq
-from lieax import _base
-from lieax._s2 import S2, SINGULAR_DIRECTION
-from lieax._sim3 import Sim3, w_coefficients
+from lieax.groups import _base
+from lieax.groups._s2 import S2, SINGULAR_DIRECTION
+from lieax.groups._sim3 import Sim3, w_coefficients
 
 SO3 = lieax.SO3
 MANIFOLD_PATCH = hasattr(_base, "AbstractManifold")

@@ -22,8 +22,8 @@ tangent, so $R = \\mathrm{Exp}(\\omega)$), $t$, then $f, k_1, k_2$ (`bal_to_came
 import jax.numpy as jnp
 
 from .._checks import broadcast_batch, check_last_axis
-from .._se3 import SE3
-from .._so3 import SO3
+from ..groups._se3 import SE3
+from ..groups._so3 import SO3
 
 
 def _check_pose(pose):

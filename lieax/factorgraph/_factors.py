@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._autodiff import value_and_jacobian
+from ..autodiff._jacobian import value_and_jacobian
 from ._variables import VarRef
 
 

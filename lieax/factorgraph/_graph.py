@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._manifold import manifold_leaves
+from ..autodiff._tangents import manifold_leaves
 from ..lstsq import SolveError, Status
 from ._factors import Factor, linearize_one
 from ._implicit import solve_implicit

@@ -16,8 +16,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._base import AbstractManifold
-from .._manifold import leaf_tangent_from_local, manifold_leaves
+from ..autodiff._tangents import leaf_tangent_from_local, manifold_leaves
+from ..groups._base import AbstractManifold
 from ._variables import flat_tangent_to_tree
 
 MAX_UNKNOWNS = 2000

@@ -34,8 +34,8 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from .._base import AbstractGroup
-from .._manifold import manifold_leaves, rplus
+from ..autodiff._tangents import manifold_leaves, rplus
+from ..groups._base import AbstractGroup
 from ..lstsq import Status
 from ._assembly import assemble, evaluate
 from ._linear import schur_solve, solve_system

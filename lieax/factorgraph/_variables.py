@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._manifold import leaf_array, leaf_tangent_shape, manifold_leaves
+from ..autodiff._tangents import leaf_array, leaf_tangent_shape, manifold_leaves
 
 
 class Var:

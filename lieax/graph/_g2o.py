@@ -25,8 +25,8 @@ import os
 import jax.numpy as jnp
 import numpy as np
 
-from .._se2 import SE2
-from .._se3 import SE3
+from ..groups._se2 import SE2
+from ..groups._se3 import SE3
 from ._graph import BetweenFactors, PoseGraph, square_root_information
 
 # tag -> (dimension, kind, number of fields after the tag)

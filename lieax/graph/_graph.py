@@ -12,9 +12,9 @@ import dataclasses
 import jax.numpy as jnp
 import numpy as np
 
-from .._base import AbstractGroup
-from .._se2 import SE2
-from .._se3 import SE3
+from ..groups._base import AbstractGroup
+from ..groups._se2 import SE2
+from ..groups._se3 import SE3
 
 GROUPS = {2: SE2, 3: SE3}
 

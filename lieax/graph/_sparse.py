@@ -32,6 +32,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from .._host_call import host_call
+
 # ---- the pattern and assembly -------------------------------------------------------------------
 
 
@@ -435,81 +437,6 @@ def cholesky_solve(plan, diag, off, rhs):
     definite."""
     result = jax.ShapeDtypeStruct(rhs.shape, rhs.dtype)
     return host_call(plan.solve, result, diag, off, rhs)
-
-
-def host_call(fn, result, *args):
-    """`fn(*args)` on the host, from traced code: `fn` takes and returns numpy arrays, the result
-    shaped like `result` (a `jax.ShapeDtypeStruct`); under `vmap`, one call per element.
-
-    `jax.pure_callback` puts every operand on a device as a `jax.Array` and converts the result
-    back, about 0.2 ms per call for a pose graph's normal equations (10% of an iteration on
-    smallGrid3D); this primitive hands XLA's host buffers to `fn` as numpy arrays (7 µs). It
-    lowers through JAX's own `emit_python_callback`, which is not public API: when that is
-    missing, `host_call` falls back to `jax.pure_callback`."""
-    if _HOST_CALL is None:
-        return jax.pure_callback(
-            lambda *a: np.asarray(fn(*(np.asarray(x) for x in a)), result.dtype),
-            result,
-            *args,
-            vmap_method="sequential",
-        )
-    return _HOST_CALL.bind(*args, fn=fn, shape=tuple(result.shape), dtype=np.dtype(result.dtype))
-
-
-def _host_call_primitive():
-    import inspect
-
-    try:
-        from jax._src.callback import emit_python_callback
-        from jax.extend.core import Primitive
-        from jax.interpreters import batching, mlir
-    except ImportError:  # pragma: no cover - depends on JAX's internals
-        return None
-    parameters = inspect.signature(emit_python_callback).parameters
-    if not {"has_side_effect", "returns_token"} <= parameters.keys():  # pragma: no cover
-        return None
-
-    primitive = Primitive("lieax_host_call")
-
-    def impl(*args, fn, shape, dtype):
-        return jnp.asarray(np.asarray(fn(*(np.asarray(a) for a in args)), dtype))
-
-    def abstract_eval(*args, fn, shape, dtype):
-        return jax.core.ShapedArray(shape, dtype)
-
-    def lowering(ctx, *args, fn, shape, dtype):
-        def call(*arrays):
-            return (np.asarray(fn(*arrays), dtype),)
-
-        result, _, _ = emit_python_callback(
-            ctx,
-            call,
-            None,
-            list(args),
-            ctx.avals_in,
-            ctx.avals_out,
-            has_side_effect=False,
-            returns_token=False,
-        )
-        return result
-
-    def batch(args, dims, *, fn, shape, dtype):
-        size = next(a.shape[d] for a, d in zip(args, dims) if d is not None)
-        args = [
-            jnp.broadcast_to(a, (size, *a.shape)) if d is None else jnp.moveaxis(a, d, 0)
-            for a, d in zip(args, dims)
-        ]
-        out = lax.map(lambda xs: primitive.bind(*xs, fn=fn, shape=shape, dtype=dtype), args)
-        return out, 0
-
-    primitive.def_impl(impl)
-    primitive.def_abstract_eval(abstract_eval)
-    mlir.register_lowering(primitive, lowering, cacheable=False)
-    batching.primitive_batchers[primitive] = batch
-    return primitive
-
-
-_HOST_CALL = _host_call_primitive()
 
 
 # Host linear algebra must not wake two OpenBLAS thread pools: SciPy's wheels bundle a second

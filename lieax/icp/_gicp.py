@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import as_float_array
-from .._se3 import SE3
+from ..groups._se3 import SE3
 from . import _neighbors, _search
 from ._batch import pad_to_bucket
 from ._checks import check_cloud, check_mask

@@ -2,7 +2,7 @@
 
 On a CPU the compiled k-d trees of SciPy (`cKDTree`) and pykdtree answer a nearest-neighbour query
 in well under a microsecond, faster than any fixed-shape search XLA compiles (see
-`benchmarks/neighbors.py`), and `lieax.graph._sparse.host_call` hands XLA's host buffers to NumPy
+`benchmarks/neighbors.py`), and `lieax._host_call.host_call` hands XLA's host buffers to NumPy
 in a few microseconds. So the tree lives on the host:
 
 - `build_kdtree` sends the target to the host once; the host builds the tree over its valid points
@@ -33,7 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..graph._sparse import host_call
+from .._host_call import host_call
 
 _CAPACITY = 256
 # id -> [digest, tree, dtype, kept, spacing (filled by the first `_spacing` call)]

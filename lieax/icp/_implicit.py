@@ -50,8 +50,8 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from .._se3 import SE3
-from .._so3 import quat_to_matrix
+from .._linalg import quat_to_matrix
+from ..groups._se3 import SE3
 from . import _neighbors
 from ._normals import estimate_normals
 from ._robust import loss_weights

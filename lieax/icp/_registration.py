@@ -43,9 +43,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.linalg import cho_solve
 
-from .._autodiff import jacobian
-from .._se3 import SE3
-from .._so3 import quat_to_matrix
+from .._linalg import quat_to_matrix
+from ..autodiff._jacobian import jacobian
+from ..groups._se3 import SE3
 from . import _neighbors, _search
 from ._batch import pad_to_bucket
 from ._checks import check_cloud, check_mask, check_same_length

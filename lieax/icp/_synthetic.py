@@ -5,7 +5,7 @@ exact normals, optional noise, and a pair of views related by a known rigid moti
 import jax.numpy as jnp
 import numpy as np
 
-from .._se3 import SE3
+from ..groups._se3 import SE3
 
 # (kind, parameters): the floor z = 0 and walls x = -1, y = -1 over [-1, 1]^2 patches, a sphere and
 # a vertical cylinder standing on the floor. Together they constrain all six degrees of freedom of

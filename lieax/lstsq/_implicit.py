@@ -23,8 +23,7 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from .._base import AbstractManifold
-from .._manifold import (
+from ..autodiff._tangents import (
     leaf_array,
     leaf_tangent_from_local,
     manifold_leaves,
@@ -32,6 +31,7 @@ from .._manifold import (
     tangent_dim,
     unflatten_tangents,
 )
+from ..groups._base import AbstractManifold
 from ._normal_equations import cholesky_with_fallback, solve_factored
 from ._problem import cost
 

@@ -17,8 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from .._base import AbstractManifold
-from .._manifold import (
+from ..autodiff._tangents import (
     check_retraction,
     leaf_array,
     leaf_tangent_shape,
@@ -27,6 +26,7 @@ from .._manifold import (
     tangent_dim,
     unflatten_tangents,
 )
+from ..groups._base import AbstractManifold
 from ..retractions import Retraction, exp
 from ._implicit import with_implicit_derivatives
 from ._losses import AbstractLoss

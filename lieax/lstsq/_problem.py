@@ -16,9 +16,9 @@ import math
 import jax
 import jax.numpy as jnp
 
-from .._autodiff import value_and_jacobian
-from .._base import AbstractManifold
-from .._manifold import manifold_leaves
+from ..autodiff._jacobian import value_and_jacobian
+from ..autodiff._tangents import manifold_leaves
+from ..groups._base import AbstractManifold
 from ._losses import AbstractLoss
 from ._normal_equations import normal_equations
 

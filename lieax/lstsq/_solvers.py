@@ -28,7 +28,6 @@ import jax.numpy as jnp
 
 from ._normal_equations import solve_spd
 
-
 _SCALINGS = ("minpack", "jacobi", "clipped")
 
 

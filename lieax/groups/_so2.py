@@ -8,15 +8,15 @@ closed-form block, and converts the result back, so code that touches $(\\cos, \
 gets correct derivatives. SO(2) is commutative: its adjoint and Jacobians of Exp are $[1]$.
 
 Formulas: Solà, Deray, Atchuthan, "A micro Lie theory for state estimation in robotics" (2018),
-App. A; the coefficients are the $g_n$ of `lieax._series`.
+App. A; the coefficients are the $g_n$ of `lieax.groups._series`.
 """
 
 import jax
 import jax.numpy as jnp
 
+from .._checks import as_float_array
 from . import _rules
 from ._base import AbstractGroup
-from ._checks import as_float_array
 from ._series import g
 
 # ---- planar algebra on the last axis ------------------------------------------------------------

@@ -16,7 +16,7 @@ from typing import ClassVar
 import jax
 import jax.numpy as jnp
 
-from ._checks import as_float_array, broadcast_batch, check_last_axis, check_matrix
+from .._checks import as_float_array, broadcast_batch, check_last_axis, check_matrix
 
 
 class AbstractManifold:

@@ -37,10 +37,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._checks import check_last_axis
+from .._linalg import cross, dot
 from . import _so3 as so3
 from ._base import AbstractManifold
-from ._checks import check_last_axis
-from ._so3 import SO3, cross, dot
+from ._so3 import SO3
 
 # ---- the tangent basis ---------------------------------------------------------------------------
 

@@ -11,8 +11,8 @@ import math
 import jax
 import jax.numpy as jnp
 
-from ._base import AbstractManifold
-from .retractions import Retraction, exp
+from ..groups._base import AbstractManifold
+from ..retractions import Retraction, exp
 
 
 def _is_leaf(x) -> bool:

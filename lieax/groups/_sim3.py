@@ -7,7 +7,7 @@ $\\xi^\\wedge = [[\\omega]_\\times + \\sigma I, v; 0, 0]$; right perturbation
 $T \\oplus \\xi = T\\,\\mathrm{Exp}(\\xi)$, so $\\dot t = s R v$, $\\dot q = q \\otimes (0, \\omega/2)$ and
 $\\dot\\sigma = \\sigma_\\xi$.
 
-Tangent carrier (see `lieax._so3` and `lieax._se3`): the 8-vector tangent of the parameter leaf holds
+Tangent carrier (see `lieax.groups._so3` and `lieax.groups._se3`): the 8-vector tangent of the parameter leaf holds
 $(\\rho, \\omega, v, \\sigma)$, aligned with the parameter slots: SO3's carrier in the quaternion slot,
 the local translation $v$ in the translation slot and $\\dot\\sigma$ in the scale slot. Kernels use
 local tangents without conversion; `Sim3(params)`, `parameters()`, `translation()`, `log_scale()`
@@ -22,7 +22,7 @@ Formulas.
   $C = \\int_0^1 e^{\\sigma\\tau} (1 - \\cos\\tau\\theta)/\\theta^2\\,d\\tau$
   $= (A - (e^\\sigma(\\sigma g_0 + s g_1) - \\sigma)/(\\sigma^2 + s))/s$
   $= (e^\\sigma(\\sigma^2 g_2 + 1 - \\sigma g_1) - 1)/(\\sigma(\\sigma^2 + s))$
-  ($g_n$ the coefficients of `lieax._series`). Each closed form is used only where its divisor
+  ($g_n$ the coefficients of `lieax.groups._series`). Each closed form is used only where its divisor
   is at least 1 and dominant (for $C$: the division by $\\sigma$ where $\\sigma^2 \\ge \\max(1, s)$,
   by $s$ where $s \\ge \\max(1, \\sigma^2)$); near $\\sigma = \\theta = 0$ the double series
   $\\sum_{k,m} (-s)^k \\sigma^m / (m!\\,n_k!\\,(m + n_k + 1))$ of the integrals is summed (both branches
@@ -48,12 +48,24 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._checks import as_float_array, check_last_axis
+from .._linalg import (
+    cross,
+    dot,
+    matvec,
+    quat_conjugate,
+    quat_multiply,
+    quat_rotate,
+    quat_to_matrix,
+    rotate_back,
+    skew,
+    unskew,
+)
 from . import _rules
 from . import _so3 as so3
 from ._base import AbstractGroup
-from ._checks import as_float_array, check_last_axis
 from ._series import g
-from ._so3 import SO3, cross, dot, matvec, rotate_back, skew
+from ._so3 import SO3
 
 # ---- the coefficients of W = A I + B [ω]x + C [ω]x² ---------------------------------------------
 
@@ -203,7 +215,7 @@ def from_local(params, xi):
 
 
 def _unit_rotation(q):
-    return so3.quat_to_matrix(so3.normalize(q))
+    return quat_to_matrix(so3.normalize(q))
 
 
 @jax.custom_jvp
@@ -236,7 +248,7 @@ def _from_parameters_jvp(primals, tangents):
     (params,), (params_dot,) = primals, tangents
     q, sigma = params[..., :4], params[..., 7:]
     rotational = so3.radial_and_local(q, params_dot[..., :4])
-    v = so3.rotate_back(_unit_rotation(q), params_dot[..., 4:7]) * jnp.exp(-sigma)
+    v = rotate_back(_unit_rotation(q), params_dot[..., 4:7]) * jnp.exp(-sigma)
     return from_parameters(params), jnp.concatenate([rotational, v, params_dot[..., 7:]], axis=-1)
 
 
@@ -276,7 +288,7 @@ def vee(matrix):
     linear = matrix[..., :3, :3]
     trace = linear[..., 0, 0] + linear[..., 1, 1] + linear[..., 2, 2]
     return jnp.concatenate(
-        [matrix[..., :3, 3], so3.unskew(linear), trace[..., None] / 3.0], axis=-1
+        [matrix[..., :3, 3], unskew(linear), trace[..., None] / 3.0], axis=-1
     )
 
 
@@ -377,8 +389,8 @@ def compose(params1, params2):
     """$T_1 T_2 = (q_1 \\otimes q_2,\\ s_1 R_1 t_2 + t_1,\\ \\sigma_1 + \\sigma_2)$."""
     q1, t1, sigma1 = _split(params1)
     q2, t2, sigma2 = _split(params2)
-    t = jnp.exp(sigma1) * so3.quat_rotate(q1, t2) + t1
-    return _join(so3.quat_multiply(q1, q2), t, sigma1 + sigma2)
+    t = jnp.exp(sigma1) * quat_rotate(q1, t2) + t1
+    return _join(quat_multiply(q1, q2), t, sigma1 + sigma2)
 
 
 @_rules.defjvp(compose)
@@ -406,9 +418,9 @@ def _compose_jvp(primals, tangents):
 def inverse(params):
     """$T^{-1} = (\\bar q,\\ -R^\\top t / s,\\ -\\sigma)$."""
     q, t, sigma = _split(params)
-    q_inverse = so3.quat_conjugate(q)
+    q_inverse = quat_conjugate(q)
     return jnp.concatenate(
-        [q_inverse, -jnp.exp(-sigma) * so3.quat_rotate(q_inverse, t), -sigma], axis=-1
+        [q_inverse, -jnp.exp(-sigma) * quat_rotate(q_inverse, t), -sigma], axis=-1
     )
 
 
@@ -431,7 +443,7 @@ def _inverse_jvp(primals, tangents):
 def act(params, points):
     """$T p = s R p + t$."""
     q, t, sigma = _split(params)
-    return jnp.exp(sigma) * matvec(so3.quat_to_matrix(q), points) + t
+    return jnp.exp(sigma) * matvec(quat_to_matrix(q), points) + t
 
 
 @_rules.defjvp(act)
@@ -455,7 +467,7 @@ def _act_jvp(primals, tangents):
 def adjoint(params):
     """$\\mathrm{Ad}_T = [[sR, [t]_\\times R, -t], [0, R, 0], [0, 0, 1]]$ (tangent $(v, \\omega, \\sigma)$)."""
     q, t, sigma = _split(params)
-    rotation = so3.quat_to_matrix(q)
+    rotation = quat_to_matrix(q)
     s = jnp.exp(sigma)[..., None]
     zero33 = jnp.zeros_like(rotation)
     zero31 = jnp.zeros_like(t[..., None])
@@ -482,7 +494,7 @@ def _adjoint_jvp(primals, tangents):
 def as_matrix(params):
     """$T = [s R(q), t; 0, 1]$."""
     q, t, sigma = _split(params)
-    linear = jnp.exp(sigma)[..., None] * so3.quat_to_matrix(q)
+    linear = jnp.exp(sigma)[..., None] * quat_to_matrix(q)
     top = jnp.concatenate([linear, t[..., None]], axis=-1)
     bottom = jnp.broadcast_to(
         jnp.array([0.0, 0.0, 0.0, 1.0], dtype=params.dtype), top[..., :1, :].shape
@@ -617,7 +629,7 @@ class Sim3(AbstractGroup):
     def align(cls, points_a, points_b, weights=None):
         """The similarity $T_{ab}$ minimizing $\\sum_i w_i |a_i - T_{ab} b_i|^2$ (Umeyama); see
         `lieax.align`."""
-        from ._align import align
+        from .._align import align
 
         return align(points_a, points_b, weights, with_scale=True)
 

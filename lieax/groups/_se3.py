@@ -4,7 +4,7 @@ a translation, $T = [R(q), t; 0, 1]$.
 Tangent $\\xi = (v, \\omega)$, translation first; right perturbation $T \\oplus \\xi = T\\,\\mathrm{Exp}(\\xi)$,
 so $\\dot t = R v$ and $\\dot q = q \\otimes (0, \\omega/2)$.
 
-Tangent carrier (see `lieax._so3`): the 7-vector tangent of the parameter leaf holds
+Tangent carrier (see `lieax.groups._so3`): the 7-vector tangent of the parameter leaf holds
 $(\\rho, \\omega, v)$, the local tangent itself (and the quaternion's radial part $\\rho$), so the
 rotation slot carries exactly SO3's carrier and kernels use local tangents without conversion.
 `SE3(wxyz_xyz)`, `parameters()`, `translation()` and `from_rotation_and_translation` convert
@@ -12,18 +12,30 @@ where raw arrays cross the API.
 
 Formulas: Solà, Deray, Atchuthan, "A micro Lie theory for state estimation in robotics" (2018),
 Sec. IV-D and App. D; the coupling block $Q$ of the Jacobians from Barfoot, "State Estimation for
-Robotics" (2017), eq. 7.86, with coefficients rewritten as the $g_n$ of `lieax._series`.
+Robotics" (2017), eq. 7.86, with coefficients rewritten as the $g_n$ of `lieax.groups._series`.
 """
 
 import jax
 import jax.numpy as jnp
 
+from .._checks import check_last_axis
+from .._linalg import (
+    cross,
+    dot,
+    matvec,
+    quat_conjugate,
+    quat_multiply,
+    quat_rotate,
+    quat_to_matrix,
+    rotate_back,
+    skew,
+    unskew,
+)
 from . import _rules
 from . import _so3 as so3
 from ._base import AbstractGroup
-from ._checks import check_last_axis
 from ._series import g
-from ._so3 import SO3, cross, dot, matvec, quat_conjugate, rotate_back, skew
+from ._so3 import SO3
 
 # ---- parameter and tangent layout ---------------------------------------------------------------
 
@@ -51,7 +63,7 @@ def from_local(params, xi):
 
 
 def _unit_rotation(q):
-    return so3.quat_to_matrix(so3.normalize(q))
+    return quat_to_matrix(so3.normalize(q))
 
 
 @jax.custom_jvp
@@ -82,7 +94,7 @@ def _from_parameters_jvp(primals, tangents):
     (params,), (params_dot,) = primals, tangents
     q = params[..., :4]
     rotational = so3.radial_and_local(q, params_dot[..., :4])
-    v = so3.rotate_back(_unit_rotation(q), params_dot[..., 4:])
+    v = rotate_back(_unit_rotation(q), params_dot[..., 4:])
     return from_parameters(params), jnp.concatenate([rotational, v], axis=-1)
 
 
@@ -190,7 +202,7 @@ def compose(params1, params2):
     """$T_1 T_2 = (q_1 \\otimes q_2,\\ R_1 t_2 + t_1)$."""
     q1, t1 = _split(params1)
     q2, t2 = _split(params2)
-    return _join(so3.quat_multiply(q1, q2), so3.quat_rotate(q1, t2) + t1)
+    return _join(quat_multiply(q1, q2), quat_rotate(q1, t2) + t1)
 
 
 @_rules.defjvp(compose)
@@ -218,7 +230,7 @@ def inverse(params):
     """$T^{-1} = (\\bar q,\\ -R^\\top t)$."""
     q, t = _split(params)
     q_inverse = quat_conjugate(q)
-    return jnp.concatenate([q_inverse, -so3.quat_rotate(q_inverse, t)], axis=-1)
+    return jnp.concatenate([q_inverse, -quat_rotate(q_inverse, t)], axis=-1)
 
 
 @inverse.defjvp
@@ -239,7 +251,7 @@ def _inverse_jvp(primals, tangents):
 def act(params, points):
     """$T p = R p + t$."""
     q, t = _split(params)
-    return matvec(so3.quat_to_matrix(q), points) + t
+    return matvec(quat_to_matrix(q), points) + t
 
 
 @_rules.defjvp(act)
@@ -263,7 +275,7 @@ def _act_jvp(primals, tangents):
 def adjoint(params):
     """$\\mathrm{Ad}_T = [R, [t]_\\times R; 0, R]$ (translation-first tangents; Solà eq. 178)."""
     q, t = _split(params)
-    rotation = so3.quat_to_matrix(q)
+    rotation = quat_to_matrix(q)
     return _block_upper_triangular(rotation, skew(t) @ rotation)
 
 
@@ -287,14 +299,14 @@ def hat(xi):
 
 
 def vee(matrix):
-    return jnp.concatenate([matrix[..., :3, 3], so3.unskew(matrix[..., :3, :3])], axis=-1)
+    return jnp.concatenate([matrix[..., :3, 3], unskew(matrix[..., :3, :3])], axis=-1)
 
 
 @jax.custom_jvp
 def as_matrix(params):
     """$T = [R(q), t; 0, 1]$."""
     q, t = _split(params)
-    top = jnp.concatenate([so3.quat_to_matrix(q), t[..., None]], axis=-1)
+    top = jnp.concatenate([quat_to_matrix(q), t[..., None]], axis=-1)
     bottom = jnp.broadcast_to(
         jnp.array([0.0, 0.0, 0.0, 1.0], dtype=params.dtype), top[..., :1, :].shape
     )
@@ -405,7 +417,7 @@ class SE3(AbstractGroup):
         """The least-squares $T_{ab}$ with $a_i \\approx T_{ab} b_i$ (SVD of the correlation matrix,
         proper rotation; Umeyama scale and a `Sim3` result with `with_scale`), differentiable with
         respect to the points and weights; see `lieax.align`."""
-        from ._align import align
+        from .._align import align
 
         return align(points_a, points_b, weights, with_scale=with_scale)
 

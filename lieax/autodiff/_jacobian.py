@@ -17,11 +17,11 @@ import math
 import jax
 import jax.numpy as jnp
 
-from ._base import AbstractManifold
-from ._manifold import (
+from ..groups._base import AbstractManifold
+from ._tangents import (
     leaf_array,
-    leaf_tangent_from_local,
     leaf_local_from_tangent,
+    leaf_tangent_from_local,
     leaf_tangent_shape,
     manifold_leaves,
 )

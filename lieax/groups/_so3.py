@@ -12,89 +12,27 @@ Inside rules, anything that depends on $q$ is computed by kernels (`as_matrix`) 
 `to_parameters(q)`, so second derivatives stay consistent with the carrier.
 
 Formulas: Solà, Deray, Atchuthan, "A micro Lie theory for state estimation in robotics" (2018),
-Sec. IV-B and App. B; the coefficients are the $g_n$ of `lieax._series`.
+Sec. IV-B and App. B; the coefficients are the $g_n$ of `lieax.groups._series`.
 """
 
 import jax
 import jax.numpy as jnp
 
+from .._checks import as_float_array, check_last_axis
+from .._linalg import (
+    cross,
+    dot,
+    matvec,
+    quat_conjugate,
+    quat_multiply,
+    quat_to_matrix,
+    rotate_back,
+    skew,
+    unskew,
+)
 from . import _rules
 from ._base import AbstractGroup
-from ._checks import as_float_array, check_last_axis
 from ._series import g
-
-# ---- vector and quaternion algebra on the last axis ---------------------------------------------
-
-
-def cross(a, b):
-    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
-    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    return jnp.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
-
-
-def dot(a, b):
-    return jnp.sum(a * b, axis=-1)
-
-
-def matvec(matrix, x):
-    """$M x$ as a contraction (`dot_general`), not a broadcast product and sum: XLA's CPU backend
-    runs the contraction and its transpose several times faster (see benchmarks/chain.py)."""
-    return jnp.einsum("...ij,...j->...i", matrix, x)
-
-
-def skew(v):
-    """$[v]_\\times$, with $[v]_\\times x = v \\times x$."""
-    v0, v1, v2 = v[..., 0], v[..., 1], v[..., 2]
-    zero = jnp.zeros_like(v0)
-    rows = [[zero, -v2, v1], [v2, zero, -v0], [-v1, v0, zero]]
-    return jnp.stack([jnp.stack(row, axis=-1) for row in rows], axis=-2)
-
-
-def unskew(m):
-    """The vector of the skew part of `m`: $\\mathrm{vee}((m - m^\\top)/2)$."""
-    return 0.5 * jnp.stack(
-        [m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]],
-        axis=-1,
-    )
-
-
-def quat_multiply(a, b):
-    """Hamilton product $a \\otimes b$ of wxyz quaternions."""
-    aw, ax, ay, az = (a[..., i] for i in range(4))
-    bw, bx, by, bz = (b[..., i] for i in range(4))
-    return jnp.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        axis=-1,
-    )
-
-
-def quat_conjugate(q):
-    return q * jnp.array([1.0, -1.0, -1.0, -1.0], dtype=q.dtype)
-
-
-def quat_rotate(q, p):
-    """$R(q)\\,p = p + w\\,t + u \\times t$ with $t = 2\\,u \\times p$ (unit $q = (w, u)$)."""
-    w, u = q[..., :1], q[..., 1:]
-    t = 2.0 * cross(u, p)
-    return p + w * t + cross(u, t)
-
-
-def quat_to_matrix(q):
-    """$R(q) = (w^2 - u^\\top u) I + 2 u u^\\top + 2 w [u]_\\times$, written out."""
-    w, x, y, z = (q[..., i] for i in range(4))
-    xx, yy, zz = x * x, y * y, z * z
-    xy, xz, yz, wx, wy, wz = x * y, x * z, y * z, w * x, w * y, w * z
-    rows = [
-        [1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy)],
-        [2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx)],
-        [2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy)],
-    ]
-    return jnp.stack([jnp.stack(row, axis=-1) for row in rows], axis=-2)
 
 
 def radial_and_local(q, q_dot):
@@ -116,11 +54,6 @@ def to_local(q, carrier):
 def from_local(q, omega):
     """The carrier of a right-local tangent: $(0, \\omega)$."""
     return jnp.concatenate([jnp.zeros_like(omega[..., :1]), omega], axis=-1)
-
-
-def rotate_back(rotation, x):
-    """$R^\\top x$."""
-    return jnp.einsum("...ji,...j->...i", rotation, x)
 
 
 @jax.custom_jvp
@@ -381,6 +314,54 @@ def vee(matrix):
 def sample_uniform(key, batch_shape, dtype):
     """Uniform rotations: a normalized standard normal 4-vector (Shoemake)."""
     return normalize(jax.random.normal(key, (*batch_shape, 4), dtype=dtype))
+
+
+# ---- the Cayley transform on unit quaternions (the kernels of `lieax.retractions.cayley`) ---------------------------------------------------
+
+
+@jax.custom_jvp
+def cayley_quaternion(omega):
+    """$\\mathrm{cay}(\\omega)$ as a unit quaternion: $q = (2, \\omega) / \\sqrt{4 + |\\omega|^2}$,
+    i.e. $(1, \\omega/2)$ normalized, $\\tan(\\alpha/2) = |\\omega|/2$ for the rotation angle
+    $\\alpha$. Its matrix is GTSAM's `Rot3::CayleyChart::Retract`,
+    $[(4 - |\\omega|^2) I + 2\\omega\\omega^\\top + 4[\\omega]_\\times] / (4 + |\\omega|^2)$."""
+    n = jnp.sqrt(4.0 + dot(omega, omega))[..., None]
+    return jnp.concatenate([2.0 / n, omega / n], axis=-1)
+
+
+@cayley_quaternion.defjvp
+def _cayley_quaternion_jvp(primals, tangents):
+    """Local block (the Cayley map's right Jacobian, $\\mathrm{cay}(\\omega + \\dot\\omega) \\approx
+    \\mathrm{cay}(\\omega)\\,\\mathrm{Exp}(J\\dot\\omega)$): with $q = (a, u)$,
+    $2\\,\\mathrm{Im}(\\bar q \\otimes \\dot q) = 2(a\\dot u - \\dot a u - u \\times \\dot u)$ gives
+    $J = \\frac{4}{4 + |\\omega|^2}\\,(I - \\tfrac12[\\omega]_\\times)$ (the identity at zero)."""
+    (omega,), (omega_dot,) = primals, tangents
+    q = cayley_quaternion(omega)
+    factor = (4.0 / (4.0 + dot(omega, omega)))[..., None]
+    local = factor * (omega_dot - 0.5 * cross(omega, omega_dot))
+    return q, from_local(q, local)
+
+
+@jax.custom_jvp
+def cayley_quaternion_inverse(q):
+    """$\\mathrm{cay}^{-1}(q) = 2\\,u / w$ for $q = (w, u)$: the Gibbs vector of the rotation,
+    $2\\tan(\\alpha/2)$ along the axis; the same for $q$ and $-q$ (no sign to fix), and scale-free
+    (any nonzero multiple of a unit quaternion). Defined for rotation angles below $\\pi$ ($w \\ne 0$);
+    it grows without bound as the angle nears $\\pi$ (GTSAM's `Rot3::CayleyChart::Local`)."""
+    return 2.0 * q[..., 1:] / q[..., :1]
+
+
+@cayley_quaternion_inverse.defjvp
+def _cayley_quaternion_inverse_jvp(primals, tangents):
+    """$\\dot\\omega = J^{-1}\\omega_{local} = \\omega_{local} + \\tfrac12 \\omega \\times \\omega_{local}
+    + \\tfrac14 \\omega\\,(\\omega^\\top \\omega_{local})$, the inverse of `cayley_quaternion`'s block
+    ($(I - \\tfrac12[\\omega]_\\times)^{-1} = I + (2[\\omega]_\\times + [\\omega]_\\times^2)/(4 + |\\omega|^2)$);
+    the radial part of the carrier does not move $u / w$."""
+    (q,), (carrier,) = primals, tangents
+    omega = cayley_quaternion_inverse(q)
+    local = to_local(q, carrier)
+    omega_dot = local + 0.5 * cross(omega, local) + 0.25 * omega * dot(omega, local)[..., None]
+    return omega, omega_dot
 
 
 class SO3(AbstractGroup):

@@ -8,7 +8,7 @@ local tangents once, applies the closed-form block, and converts the result back
 touches the parameters itself still gets correct derivatives.
 
 Notation: $J = [[0, -1], [1, 0]]$ (the rotation by $+\\pi/2$, `perp`), and the coefficients are the
-$g_n(s)$ of `lieax._series` at $s = \\omega^2$ ($g_1 = \\sin\\omega/\\omega$,
+$g_n(s)$ of `lieax.groups._series` at $s = \\omega^2$ ($g_1 = \\sin\\omega/\\omega$,
 $g_2 = (1 - \\cos\\omega)/\\omega^2$, $g_3 = (\\omega - \\sin\\omega)/\\omega^3$).
 
 Formulas: Solà, Deray, Atchuthan, "A micro Lie theory for state estimation in robotics" (2018),
@@ -18,10 +18,10 @@ App. C, rewritten with $J$ and the $g_n$ so that none divides by $\\omega$.
 import jax
 import jax.numpy as jnp
 
+from .._checks import as_float_array, broadcast_batch, check_last_axis
 from . import _rules
 from . import _so2 as so2
 from ._base import AbstractGroup
-from ._checks import as_float_array, broadcast_batch, check_last_axis
 from ._series import g
 from ._so2 import SO2, perp, rotate, unrotate
 from ._so3 import jr_inverse_coefficient
@@ -264,14 +264,14 @@ def _as_matrix_jvp(primals, tangents):
 
 @jax.custom_jvp
 def from_matrix(matrix):
-    """The nearest rotation of the 2×2 block (`lieax._so2.nearest_rotation`) and the last column."""
+    """The nearest rotation of the 2×2 block (`lieax.groups._so2.nearest_rotation`) and the last column."""
     cs, _ = so2.nearest_rotation(matrix[..., :2, :2])
     return jnp.concatenate([cs, matrix[..., :2, 2]], axis=-1)
 
 
 @from_matrix.defjvp
 def _from_matrix_jvp(primals, tangents):
-    """$v = R^\\top \\dot t$, $\\omega$ of `lieax._so2.nearest_rotation_tangent` (the skew part of
+    """$v = R^\\top \\dot t$, $\\omega$ of `lieax.groups._so2.nearest_rotation_tangent` (the skew part of
     $R^\\top \\dot R$ at a rotation)."""
     (matrix,), (matrix_dot,) = primals, tangents
     cs, norm = so2.nearest_rotation(matrix[..., :2, :2])
@@ -299,7 +299,7 @@ def vee(matrix):
 
 
 def sample_uniform(key, batch_shape, dtype):
-    """Uniform rotations (`lieax._so2.sample_uniform`), translations uniform in $[-1, 1]^2$."""
+    """Uniform rotations (`lieax.groups._so2.sample_uniform`), translations uniform in $[-1, 1]^2$."""
     rotation_key, translation_key = jax.random.split(key)
     cs = so2.sample_uniform(rotation_key, batch_shape, dtype)
     t = jax.random.uniform(translation_key, (*batch_shape, 2), dtype, minval=-1.0, maxval=1.0)
