@@ -1,6 +1,7 @@
 """The general factor-graph solver (`lieax.factorgraph`) on pose graphs, against
-`lieax.graph.optimize` (the specialised pose-graph solver it should one day carry) and GTSAM 4.3's
-`LevenbergMarquardtOptimizer`, and its first-call cost as factor kinds are added.
+`lieax.graph.optimize` (the pose-graph layer over it: the column measures that layer's cost, its
+cached factor graph and result conversion) and GTSAM 4.3's `LevenbergMarquardtOptimizer`, and
+its first-call cost as factor kinds are added.
 
 Needs the `bench` extra (GTSAM 4.3) and the g2o sets of `shared/data/g2o` (`--data` or
 `LIEAX_DATA_DIR`). Same setup as `benchmarks/pgo.py` (one pinned core, one thread each, GTSAM's
@@ -47,7 +48,7 @@ def benchmark_set(name, path, is3d, rounds):
     start = time.perf_counter()
     fg, _ = from_pose_graph(graph)
     ours = fg.solve()
-    ours.cost.block_until_ready()
+    jax.block_until_ready(ours)
     first_call = time.perf_counter() - start
     fg_auto, _ = from_pose_graph(graph, closed_form=False)
     auto = fg_auto.solve()
@@ -125,9 +126,9 @@ def first_calls(n, max_kinds):
         graph = FactorGraph(factors, [poses])
         analysed = time.perf_counter()
         result = graph.solve(max_iterations=20)
-        result.cost.block_until_ready()
+        jax.block_until_ready(result)
         first = time.perf_counter()
-        graph.solve(max_iterations=20).cost.block_until_ready()
+        jax.block_until_ready(graph.solve(max_iterations=20))
         warm = time.perf_counter() - first
         rows.append(
             [
@@ -168,7 +169,7 @@ def bundle_adjustment(cameras, points, observations, rounds):
     for name, options in variants.items():
         start = time.perf_counter()
         results[name] = graph.solve(**options)
-        results[name].cost.block_until_ready()
+        jax.block_until_ready(results[name])
         first[name] = time.perf_counter() - start
     timings = time_interleaved(
         {name: (lambda o=o: graph.solve(**o).cost) for name, o in variants.items()},

@@ -20,7 +20,7 @@ from lieax import graph as lg
 from lieax.factorgraph import Factor, FactorGraph, Var, from_pose_graph, marginal_covariances
 from lieax.factorgraph._linear import to_padded
 from lieax.factorgraph._solve import retract
-from lieax.graph._sparse import dense_matrix
+from lieax.factorgraph._sparse import dense_matrix
 
 jax.config.update("jax_enable_x64", True)
 

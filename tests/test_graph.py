@@ -16,7 +16,9 @@ import pytest
 import lieax
 from lieax import SE2, SE3, retractions
 from lieax import graph as lg
-from lieax.graph import _optimize, _sparse
+from lieax.factorgraph import _graph as factorgraph_module
+from lieax.factorgraph import _sparse
+from lieax.graph import _optimize
 
 jax.config.update("jax_enable_x64", True)
 
@@ -279,16 +281,8 @@ def test_block_cholesky_of_a_forest():
 
 
 def gradient_norm(graph, poses):
-    problem = _optimize._problem(graph, "cholesky", True, 16, False, None, retractions.exp)
-    data = (
-        graph.between.measured,
-        graph.between.sqrt_information,
-        graph.between.loss,
-        None
-        if graph.priors is None
-        else (graph.priors.measured, graph.priors.sqrt_information, graph.priors.loss),
-    )
-    _, _, _, grad = problem._linearize(poses, data, problem.indices)
+    factor_graph = _optimize._factor_graph(graph, exact=True)
+    _, _, _, (grad,) = factor_graph.linearize((poses,), _optimize.factor_data(graph))
     return float(jnp.max(jnp.abs(grad)))
 
 
@@ -363,11 +357,12 @@ def test_dense_and_multifrontal_steps_agree(monkeypatch):
 
     graph, _ = noisy_graph(SE3, n=30, loops=40, sigma=0.02, init_sigma=0.05, seed=4)
     graph = graph.with_loss(Huber(3.0))
-    assert graph.num_poses * 6 <= _optimize._DENSE_LIMIT
+    assert graph.num_poses * 6 <= factorgraph_module._DENSE_LIMIT
     dense = lg.optimize(graph, relative_tolerance=1e-10, absolute_tolerance=1e-10)
-    monkeypatch.setattr(_optimize, "_DENSE_LIMIT", 0)
+    monkeypatch.setattr(factorgraph_module, "_DENSE_LIMIT", 0)
     sparse = lg.optimize(graph, relative_tolerance=1e-10, absolute_tolerance=1e-10)
-    assert _optimize._problem(graph, "cholesky", True, 128, False, None, retractions.exp).plan is not None
+    methods = {key[2] for key in _optimize._factor_graph(graph, exact=True)._loops}
+    assert methods == {"dense", "cholesky"}
     assert sparse.iterations == dense.iterations
     assert sparse.linear_solves == dense.linear_solves
     np.testing.assert_allclose(sparse.cost_history, dense.cost_history, rtol=1e-10)

@@ -10,8 +10,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..autodiff._tangents import manifold_leaves
+from ..autodiff._tangents import check_retraction, manifold_leaves
 from ..lstsq import SolveError, Status
+from ..retractions import exp
 from ._factors import Factor, linearize_one
 from ._implicit import solve_implicit
 from ._solve import make_loop
@@ -159,6 +160,7 @@ class FactorGraph:
         algorithm="levenberg_marquardt",
         damping="identity",
         lambda_update="gtsam",
+        retraction=None,
         lambda_initial=1e-5,
         lambda_factor=10.0,
         lambda_max=1e5,
@@ -188,6 +190,9 @@ class FactorGraph:
         - `damping`: `"identity"` ($\\lambda I$, GTSAM) or `"marquardt"` ($\\lambda$ diag $H$,
           clipped to `[diagonal_min, diagonal_max]`, Ceres).
         - `lambda_update`: `"gtsam"` or `"nielsen"`.
+        - `retraction`: how a step moves the values, a `lieax.retractions.Retraction` (default
+          `lieax.retractions.exp`, $x \\oplus \\delta$; `cayley` is GTSAM's default Pose3 chart).
+          The Jacobians and the optimum do not depend on it, the path to the optimum does.
         - the rest: as `lieax.graph.optimize`, GTSAM's defaults.
         - `verbose`: print iteration, cost, gain ratio and damping at every attempt.
         - `throw`: raise `SolveError` when the solve ends `DIVERGED` or `NONFINITE` (only outside
@@ -205,6 +210,7 @@ class FactorGraph:
             raise ValueError(f"lambda_update must be 'gtsam' or 'nielsen', got {lambda_update!r}.")
         if max_iterations < 0:
             raise ValueError(f"max_iterations must be non-negative, got {max_iterations}.")
+        retraction = exp if retraction is None else check_retraction(retraction)
         if values is None:
             values = self.initial_values  # checked by the `Var`s
         else:
@@ -229,6 +235,7 @@ class FactorGraph:
             "damping": damping,
             "lambda_update": lambda_update,
             "algorithm": algorithm,
+            "retraction": retraction,
             "history_size": max(16, 1 << int(max_iterations).bit_length()),
             "verbose": bool(verbose),
             "cg_max_iterations": cg_max_iterations,
@@ -243,16 +250,16 @@ class FactorGraph:
                     "damping",
                     "lambda_update",
                     "algorithm",
+                    "retraction",
                     "history_size",
                     "verbose",
                     "cg_max_iterations",
                 )
             ),
         )
-        loops = self._loops.get(key)
-        if loops is None:
-            loops = self._loops[key] = _compiled(self, options)
-        loop, plain = loops
+        loop = self._loops.get(key)
+        if loop is None:
+            loop = self._loops[key] = make_loop(self, options)
         leaves = [getattr(x, "_params", x) for x in jax.tree_util.tree_leaves(values)]
         dtype = np.result_type(*(x.dtype for x in leaves))
         params = np.asarray(
@@ -273,8 +280,9 @@ class FactorGraph:
         if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves((values, data))):
             # under a transformation: the solve with its implicit derivatives
             result = _result(*solve_implicit(self, loop, values, data, params))
-        else:
-            result = plain(values, data, params)  # one dispatch
+        else:  # one dispatch, one transfer of the scalars: they come back as NumPy values
+            solution, summary = loop(values, data, params)
+            result = _result(solution, np.asarray(summary))
         if throw and not isinstance(result.status, jax.core.Tracer):
             status = Status(int(result.status))
             if status in (Status.DIVERGED, Status.NONFINITE):
@@ -305,24 +313,19 @@ class FactorGraph:
 
 
 def _result(solution, summary):
+    """The `SolveResult` of the loop's `summary` (`[cost, lambda, iterations, solves, status,
+    *history]`, a JAX array under transformations, else NumPy)."""
     from ._result import SolveResult
 
     return SolveResult(
         values=solution,
         cost=summary[0],
-        iterations=summary[2].astype(jnp.int32),
-        linear_solves=summary[3].astype(jnp.int32),
-        status=summary[4].astype(jnp.int32),
+        iterations=summary[2].astype(np.int32),
+        linear_solves=summary[3].astype(np.int32),
+        status=summary[4].astype(np.int32),
         cost_history=summary[5:],
         lambda_=summary[1],
     )
-
-
-def _compiled(graph, options):
-    """`(loop, plain)`: the jitted loop, and the jitted loop with the result unpacked (the path
-    of untransformed calls)."""
-    loop = make_loop(graph, options)
-    return loop, jax.jit(lambda v, d, p: _result(*loop(v, d, p)))
 
 
 def _check_factor(f):

@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..graph._sparse import cholesky_solve, dense_solve, pcg
+from ._sparse import cholesky_solve, dense_solve, pcg
 
 
 def to_padded(layout, diag, off, rhs):

@@ -10,7 +10,7 @@ multifrontal `CholeskyPlan` and solve for the unit right-hand sides of the reque
 
 import numpy as np
 
-from ..graph._sparse import dense_matrix
+from ._sparse import dense_matrix
 from ._linear import to_padded
 
 _DENSE_LIMIT = 2000

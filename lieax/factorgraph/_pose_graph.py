@@ -9,6 +9,7 @@ $\\partial e / \\partial X = J_r^{-1}(e)$. The gauge is `lieax.graph.optimize`'s
 `graph.fixed`, else none with priors, else the first pose.
 """
 
+import jax.numpy as jnp
 import numpy as np
 
 from ._factors import Factor
@@ -29,6 +30,15 @@ def between_blocks(pose_i, pose_j, measured):
     return error, (-J_e_pose_j @ relative.inverse().adjoint(), J_e_pose_j)
 
 
+def between_blocks_approximate(pose_i, pose_j, measured):
+    """`(e, (-Ad((X_i^{-1}X_j)^{-1}), I))`: the blocks without $J_r^{-1}(e)$, GTSAM's "I before
+    the Log" (builds without `GTSAM_SLOW_BUT_CORRECT_BETWEENFACTOR`)."""
+    relative = pose_i.between(pose_j)
+    error = measured.between(relative).log()
+    eye = jnp.eye(error.shape[-1], dtype=error.dtype)
+    return error, (-relative.inverse().adjoint(), eye)
+
+
 def prior_residual(pose, measured):
     """$\\mathrm{Log}(Z^{-1} X)$."""
     return measured.between(pose).log()
@@ -39,10 +49,17 @@ def prior_blocks(pose, measured):
     return error, (type(pose).right_jacobian_inverse(error),)
 
 
-def from_pose_graph(graph, *, closed_form=True):
+def prior_blocks_approximate(pose, measured):
+    error = prior_residual(pose, measured)
+    return error, (jnp.eye(error.shape[-1], dtype=error.dtype),)
+
+
+def from_pose_graph(graph, *, closed_form=True, exact=True, check_gauge=True):
     """`(factor_graph, poses)`: the `FactorGraph` of a `lieax.graph.PoseGraph` and its pose
     `Var`. `closed_form` gives the factors the closed-form Jacobian blocks (default); otherwise
-    `lieax.jacobian` differentiates the residuals through the groups' `custom_jvp` rules."""
+    `lieax.jacobian` differentiates the residuals through the groups' `custom_jvp` rules.
+    `exact=False` drops $J_r^{-1}(e)$ from the closed-form blocks (`lieax.graph.optimize`'s
+    `jacobian="approximate"`). `check_gauge` as `FactorGraph`'s."""
     if len(graph.fixed):
         fixed = np.asarray(graph.fixed)
     elif graph.priors is not None and len(graph.priors):
@@ -58,7 +75,9 @@ def from_pose_graph(graph, *, closed_form=True):
             b.measured,
             sqrt_information=b.sqrt_information,
             loss=b.loss,
-            jacobian_fn=between_blocks if closed_form else None,
+            jacobian_fn=(between_blocks if exact else between_blocks_approximate)
+            if closed_form
+            else None,
             name="between",
         )
     ]
@@ -71,8 +90,10 @@ def from_pose_graph(graph, *, closed_form=True):
                 p.measured,
                 sqrt_information=p.sqrt_information,
                 loss=p.loss,
-                jacobian_fn=prior_blocks if closed_form else None,
+                jacobian_fn=(prior_blocks if exact else prior_blocks_approximate)
+                if closed_form
+                else None,
                 name="prior",
             )
         )
-    return FactorGraph(factors, [poses]), poses
+    return FactorGraph(factors, [poses], check_gauge=check_gauge), poses

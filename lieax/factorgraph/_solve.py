@@ -2,10 +2,11 @@
 
 Each attempt solves $(H + \\lambda D)\\,\\delta = -g$ with the block normal equations of
 `_assembly`, retracts every instance $x \\leftarrow x \\oplus \\delta$ (right perturbation,
-`lieax.rplus`) and compares the actual cost decrease with the decrease predicted by the
-undamped model, $-g^\\top\\delta - \\tfrac12 \\delta^\\top H \\delta
-= \\tfrac12(-g^\\top\\delta + \\lambda\\,\\delta^\\top D\\,\\delta)$ (the gain ratio, or model
-fidelity). $D = I$ (`damping="identity"`, GTSAM's default) or $D = \\mathrm{diag}(H)$ clipped to
+`lieax.rplus`, or another `retraction` from `lieax.retractions`) and compares the actual cost
+decrease with the decrease predicted by the undamped model,
+$-g^\\top\\delta - \\tfrac12 \\delta^\\top H \\delta
+= \\tfrac12(-g^\\top\\delta + \\lambda\\,\\delta^\\top D\\,\\delta)$ (the gain ratio, or model fidelity).
+$D = I$ (`damping="identity"`, GTSAM's default) or $D = \\mathrm{diag}(H)$ clipped to
 `[diagonal_min, diagonal_max]` (`damping="marquardt"`, Marquardt 1963, Ceres' default with the
 same clipping `[1e-6, 1e32]`): the step then does not depend on the units of the parameters.
 
@@ -37,6 +38,7 @@ from jax import lax
 from ..autodiff._tangents import manifold_leaves, rplus
 from ..groups._base import AbstractGroup
 from ..lstsq import Status
+from ..retractions import exp
 from ._assembly import assemble, evaluate
 from ._linear import schur_solve, solve_system
 from ._variables import flat_tangent_to_tree
@@ -65,19 +67,20 @@ def _normalized(tree):
     )
 
 
-def retract(variables, values, delta):
-    """Every kind's instances moved by its tangents `delta[k]` `(n_k, d_k)`."""
+def retract(variables, values, delta, retraction=exp):
+    """Every kind's instances moved by its tangents `delta[k]` `(n_k, d_k)` (by `retraction`, a
+    `lieax.retractions.Retraction`)."""
     return tuple(
-        _normalized(rplus(v, flat_tangent_to_tree(var, dk)))
+        _normalized(rplus(v, flat_tangent_to_tree(var, dk), retraction))
         for var, v, dk in zip(variables, values, delta)
     )
 
 
 def make_loop(graph, options):
     """The jitted `run(values, data, params) -> (values, summary)` of `graph` under the static
-    `options` (a dict: method, schur plan, damping, lambda_update, algorithm, history_size,
-    verbose, cg_max_iterations); `summary` is `[cost, lambda, iterations, solves, status,
-    *history]`."""
+    `options` (a dict: method, schur plan, damping, lambda_update, algorithm, retraction,
+    history_size, verbose, cg_max_iterations); `summary` is `[cost, lambda, iterations, solves,
+    status, *history]`."""
     layout, factors, plans, variables = graph.layout, graph.factors, graph.plans, graph.variables
     method, schur = options["method"], options["schur"]
     marquardt = options["damping"] == "marquardt"
@@ -118,7 +121,7 @@ def make_loop(graph, options):
         g_delta = sum(jnp.vdot(g, x) for g, x in zip(grad, delta))
         d_delta = sum(jnp.vdot(s * x, x) for s, x in zip(scale, delta))
         predicted = -0.5 * g_delta + 0.5 * lam * d_delta
-        return retract(variables, values, delta), predicted, solved
+        return retract(variables, values, delta, options["retraction"]), predicted, solved
 
     def assembled(parts, dtype):
         """The normal equations from `evaluate`'s parts, and whether they are finite."""

@@ -22,7 +22,7 @@ import hashlib
 
 import numpy as np
 
-from ..graph._sparse import BlockPattern, CholeskyPlan
+from ._sparse import BlockPattern, CholeskyPlan
 
 
 @dataclasses.dataclass

@@ -1,10 +1,11 @@
-"""Pose graphs: g2o files, between and prior factors, Levenberg-Marquardt on block-sparse normal
+r"""Pose graphs: g2o files, between and prior factors, Levenberg-Marquardt on block-sparse normal
 equations.
 
 `read_g2o` / `write_g2o` read and write 2D and 3D g2o files into a `PoseGraph` (poses as one
 batched `SE2`/`SE3` in file order, the file's ids in `vertex_ids`, edges as index arrays with
 measurements and square-root information). `optimize` runs Levenberg-Marquardt with GTSAM's
-semantics and returns an `OptimizeResult` whose `cost` is GTSAM's error $\tfrac12\\sum r^\top\\Omega r$.
+semantics (the pose graph as a `lieax.factorgraph.FactorGraph` of between and prior factors,
+solved by its loop) and returns an `OptimizeResult` whose `cost` is GTSAM's error $\tfrac12\sum r^\top\Omega r$.
 
 The linear solver by default is a multifrontal block Cholesky with a fixed symbolic analysis
 (`CholeskyPlan`: a minimum-degree ordering of the pose graph, supernodes and batched dense
@@ -15,12 +16,12 @@ perturbations, translation-first tangents; g2o's SE3 information, ordered transl
 rotation, is used as read). Plot a graph with `lieax.viz.plot_pose_graph(graph, poses)`.
 """
 
+from ..factorgraph._sparse import BlockPattern, CholeskyPlan, block_matvec, pcg
 from ._factors import between_error, between_jacobians, cost, prior_error, prior_jacobian
 from ._g2o import G2oError, read_g2o, write_g2o
 from ._graph import BetweenFactors, PoseGraph, PriorFactors, square_root_information
 from ._init import chordal_initialization, spanning_tree_poses
 from ._optimize import OptimizeResult, Status, optimize
-from ._sparse import BlockPattern, CholeskyPlan, block_matvec, pcg
 
 __all__ = [
     "BetweenFactors",

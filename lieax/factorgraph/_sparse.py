@@ -1,7 +1,8 @@
-"""Block-sparse normal equations of a pose graph, and their solvers.
+"""Block-sparse normal equations, and their solvers (for `lieax.factorgraph`, and so for pose
+graphs).
 
-The matrix is symmetric with `n` diagonal blocks of size `d` (one per pose) and one off-diagonal
-block per pair of poses joined by a factor: `diag` `(n, d, d)` holds $H_{aa}$, `off` `(p, d, d)`
+The matrix is symmetric with `n` diagonal blocks of size `d` (one per pose or variable) and one
+off-diagonal block per pair joined by a factor: `diag` `(n, d, d)` holds $H_{aa}$, `off` `(p, d, d)`
 holds $H_{ab}$ for the pairs `rows[k] = a < b = cols[k]` of a fixed `BlockPattern`
 ($H_{ba} = H_{ab}^\\top$). Assembly is a segment sum over edges into these fixed slots, so
 nothing is rebuilt from one iteration to the next.
