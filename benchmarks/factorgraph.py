@@ -8,7 +8,7 @@ Needs the `bench` extra (GTSAM 4.3) and the g2o sets of `shared/data/g2o` (`--da
 default parameters, a tight prior on the first pose in GTSAM, the first pose fixed in lieax):
 warm medians over interleaved rounds in one process, iterations, final costs, and the first
 call (structure analysis, tracing and XLA compilation) separately. `factorgraph` uses the
-closed-form between blocks (`from_pose_graph`'s default), `factorgraph (autodiff)` lets
+closed-form between blocks (`lieax.graph.to_factor_graph`'s default), `factorgraph (autodiff)` lets
 `lieax.jacobian` differentiate the residual through the groups' `custom_jvp` rules.
 
 The second table is the first call on a generated 2D problem of about 10k poses as factor kinds
@@ -38,7 +38,7 @@ from _timing import (
 
 from lieax import SE2
 from lieax import graph as lg
-from lieax.factorgraph import Factor, FactorGraph, Var, from_pose_graph
+from lieax.factorgraph import Factor, FactorGraph, Var
 
 jax.config.update("jax_enable_x64", True)
 
@@ -46,11 +46,11 @@ jax.config.update("jax_enable_x64", True)
 def benchmark_set(name, path, is3d, rounds):
     graph = lg.read_g2o(path)
     start = time.perf_counter()
-    fg, _ = from_pose_graph(graph)
+    fg, _ = lg.to_factor_graph(graph)
     ours = fg.solve()
     jax.block_until_ready(ours)
     first_call = time.perf_counter() - start
-    fg_auto, _ = from_pose_graph(graph, closed_form=False)
+    fg_auto, _ = lg.to_factor_graph(graph, closed_form=False)
     auto = fg_auto.solve()
     reference = lg.optimize(graph)
     gt_graph, gt_initial = pgo.gtsam_problem(path, is3d)

@@ -21,8 +21,7 @@ Levenberg-Marquardt loop in one jitted `lax.while_loop` with the dense, sparse C
 from ._factors import Factor
 from ._graph import FactorGraph
 from ._marginals import marginal_covariances
-from ._pose_graph import from_pose_graph
 from ._result import SolveResult
 from ._variables import Var
 
-__all__ = ["Factor", "FactorGraph", "SolveResult", "Var", "from_pose_graph", "marginal_covariances"]
+__all__ = ["Factor", "FactorGraph", "SolveResult", "Var", "marginal_covariances"]

@@ -17,6 +17,7 @@ rotation, is used as read). Plot a graph with `lieax.viz.plot_pose_graph(graph, 
 """
 
 from ..factorgraph._sparse import BlockPattern, CholeskyPlan, block_matvec, pcg
+from ._factor_graph import to_factor_graph
 from ._factors import between_error, between_jacobians, cost, prior_error, prior_jacobian
 from ._g2o import G2oError, read_g2o, write_g2o
 from ._graph import BetweenFactors, PoseGraph, PriorFactors, square_root_information
@@ -44,5 +45,6 @@ __all__ = [
     "read_g2o",
     "spanning_tree_poses",
     "square_root_information",
+    "to_factor_graph",
     "write_g2o",
 ]

@@ -2,7 +2,7 @@ r"""Levenberg-Marquardt on a pose graph, with GTSAM's `LevenbergMarquardtOptimiz
 
 `optimize` is a thin layer over `lieax.factorgraph`: the `PoseGraph` becomes a `FactorGraph` of
 between factors $\mathrm{Log}(Z^{-1} X_i^{-1} X_j)$ and prior factors $\mathrm{Log}(Z^{-1} X)$
-with their closed-form blocks (`lieax.factorgraph.from_pose_graph`), built once per structure
+with their closed-form blocks (`to_factor_graph`), built once per structure
 (edges, priors, fixed poses) and reused with the new graph's poses and measurements as values
 and data, and `FactorGraph.solve` runs the loop (one jitted `lax.while_loop`; see
 `lieax.factorgraph._solve` for the steps).
@@ -21,8 +21,8 @@ import hashlib
 import numpy as np
 
 from .. import retractions
-from ..factorgraph._pose_graph import from_pose_graph
 from ..lstsq import Status
+from ._factor_graph import to_factor_graph
 
 _SOLVERS = ("cholesky", "cg")
 
@@ -186,7 +186,7 @@ def _factor_graph(graph, exact):
     factor_graph = _CACHE.get(key)
     if factor_graph is None:
         check_anchored(graph, gauge_fixed(graph))
-        factor_graph, _ = from_pose_graph(graph, exact=exact, check_gauge=False)
+        factor_graph, _ = to_factor_graph(graph, exact=exact, check_gauge=False)
         if len(_CACHE) >= _CACHE_SIZE:
             _CACHE.pop(next(iter(_CACHE)))
         _CACHE[key] = factor_graph
