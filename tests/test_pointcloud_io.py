@@ -5,7 +5,7 @@ import os
 import numpy as np
 import pytest
 
-from lieax.io import _pointcloud as pcio
+import lieax.io as pcio
 
 DATA_DIR = os.environ.get("LIEAX_DATA_DIR")
 
@@ -154,12 +154,12 @@ def test_errors(tmp_path):
         b"ply\nformat binary_little_endian 1.0\nelement vertex 10\nproperty float x\n"
         b"property float y\nproperty float z\nend_header\n" + bytes(12)
     )
-    with pytest.raises(ValueError, match="ends before"):
+    with pytest.raises(pcio.PointCloudFileError, match=r"short.ply: byte 116: .* ends after 12"):
         pcio.read_ply(tmp_path / "short.ply")
     (tmp_path / "noxyz.pcd").write_text(
         "VERSION 0.7\nFIELDS a b\nSIZE 4 4\nTYPE F F\nCOUNT 1 1\nWIDTH 1\nHEIGHT 1\nPOINTS 1\nDATA ascii\n1 2\n"
     )
-    with pytest.raises(ValueError, match="no x, y, z"):
+    with pytest.raises(pcio.PointCloudFileError, match=r"noxyz.pcd:2: expected fields x, y, z"):
         pcio.read_pcd(tmp_path / "noxyz.pcd")
     with pytest.raises(ValueError, match=r"normals must have 50 rows"):
         pcio.write_ply(tmp_path / "x.ply", np.zeros((50, 3)), np.zeros((3, 3)))

@@ -1,0 +1,91 @@
+"""LZF decompression (Marc Lehmann's liblzf format), as PCD's `binary_compressed` data uses it."""
+
+from ._common import byte_error
+
+
+def lzf_decompress(data, size, path, offset) -> bytes:
+    """Decompress LZF `data` to exactly `size` bytes, refusing a corrupt stream as liblzf's
+    `lzf_decompress` does.
+
+    The stream is a sequence of chunks, each opened by a control byte $c$: $c < 32$ is a literal
+    run of the next $c + 1$ bytes; otherwise a back reference copies $L + 2$ bytes from $d$ bytes
+    before the end of the output, where $L = c \\gg 5$ (plus the next byte when $L = 7$) and
+    $d = ((c \\mathbin{\\&} 31) \\ll 8) + b + 1$ with $b$ the byte after (liblzf's `lzf_d.c`). A
+    copy may overlap its own output, repeating its last $d$ bytes.
+
+    **Arguments:**
+    - `data`: the compressed bytes.
+    - `size`: the uncompressed size the file declares.
+    - `path`, `offset`: the file and the byte where `data` starts in it, for the error message.
+
+    **Raises:** `PointCloudFileError` naming the byte of the chunk at fault for a chunk that reads
+    past the end of `data`, writes past `size`, or refers before the start of the output, and for
+    a stream that ends short of `size`.
+    """
+    out = bytearray(size)
+    i = j = 0
+    n = len(data)
+    while i < n:
+        start = i
+        control = data[i]
+        i += 1
+        if control < 32:
+            length = control + 1
+            if i + length > n:
+                raise byte_error(
+                    path,
+                    offset + start,
+                    f"LZF literal run of {length} bytes goes past the end of the compressed data "
+                    f"({n - i} bytes left)",
+                )
+            if j + length > size:
+                raise _overrun(path, offset + start, j + length, size)
+            out[j : j + length] = data[i : i + length]
+            i += length
+            j += length
+            continue
+        length = control >> 5
+        if length == 7:
+            if i >= n:
+                raise _truncated(path, offset + start)
+            length += data[i]
+            i += 1
+        if i >= n:
+            raise _truncated(path, offset + start)
+        distance = ((control & 0x1F) << 8) + data[i] + 1
+        i += 1
+        length += 2
+        reference = j - distance
+        if reference < 0:
+            raise byte_error(
+                path,
+                offset + start,
+                f"LZF back reference {distance} bytes back from output byte {j}, before the "
+                "start of the output (corrupt data)",
+            )
+        if j + length > size:
+            raise _overrun(path, offset + start, j + length, size)
+        if distance >= length:
+            out[j : j + length] = out[reference : reference + length]
+        else:  # overlapping its own output: the last `distance` bytes repeated
+            out[j : j + length] = (out[reference:j] * (length // distance + 1))[:length]
+        j += length
+    if j != size:
+        raise byte_error(
+            path,
+            offset + n,
+            f"LZF data ends after {j} uncompressed bytes, expected {size} (truncated data)",
+        )
+    return bytes(out)
+
+
+def _overrun(path, offset, end, size):
+    return byte_error(
+        path,
+        offset,
+        f"LZF chunk writes up to byte {end}, past the declared uncompressed size {size}",
+    )
+
+
+def _truncated(path, offset):
+    return byte_error(path, offset, "LZF back reference cut off by the end of the compressed data")
