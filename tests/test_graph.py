@@ -160,20 +160,20 @@ BAD_FILES = {
         ":3",
         "fields",
     ),
-    "not a number": ("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 zero 0\n", ":2", "not a number"),
-    "unknown tag": ("VERTEX_SE2 0 0 0 0\n# comment\nFOO 1 2\n", ":3", "unknown tag"),
-    "unsupported tag": ("VERTEX_SE2 0 0 0 0\nVERTEX_XY 1 2 3\n", ":2", "not supported"),
+    "not a number": ("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 zero 0\n", ":2", "expected a number"),
+    "bad FIX": ("VERTEX_SE2 0 0 0 0\n# comment\nFIX 1\n", ":3", "vertex 1"),
+    "huge id": ("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 99999999999999999999 0 0 0\n", ":2", "int64"),
     "missing vertex": ("VERTEX_SE2 0 0 0 0\nEDGE_SE2 0 7 1 0 0 1 0 0 1 0 1\n", ":2", "vertex 7"),
     "not positive definite": (
-        "VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\n\nEDGE_SE2 0 1 1 0 0 1 0 0 -1 0 1\n",
+        "VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\n\nEDGE_SE2 0 1 1 0 0 -1 0 0 -1 0 -1\n",
         ":4",
-        "positive definite",
+        "no positive eigenvalue",
     ),
     "mixed dimensions": ("VERTEX_SE2 0 0 0 0\nVERTEX_SE3:QUAT 1 0 0 0 0 0 0 1\n", ":2", "mixed"),
     "duplicate vertex": ("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 0 1 0 0\n", ":2", "already defined"),
     "self loop": ("VERTEX_SE2 0 0 0 0\nEDGE_SE2 0 0 1 0 0 1 0 0 1 0 1\n", ":2", "itself"),
-    "not unit quaternion": ("VERTEX_SE3:QUAT 0 0 0 0 0 0 0 2\n", ":1", "not unit"),
-    "empty": ("# nothing\n", "", "no vertices"),
+    "zero quaternion": ("VERTEX_SE3:QUAT 0 0 0 0 0 0 0 0\n", ":1", "no rotation"),
+    "empty": ("# nothing\n", "", "no pose-graph vertices"),
 }
 
 

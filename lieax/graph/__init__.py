@@ -19,7 +19,7 @@ rotation, is used as read). Plot a graph with `lieax.viz.plot_pose_graph(graph, 
 from ..factorgraph._sparse import BlockPattern, CholeskyPlan, block_matvec, pcg
 from ._factor_graph import to_factor_graph
 from ._factors import between_error, between_jacobians, cost, prior_error, prior_jacobian
-from ._g2o import G2oError, read_g2o, write_g2o
+from ._g2o import G2oError, G2oWarning, read_g2o, write_g2o
 from ._graph import BetweenFactors, PoseGraph, PriorFactors, square_root_information
 from ._init import chordal_initialization, spanning_tree_poses
 from ._optimize import OptimizeResult, Status, optimize
@@ -29,6 +29,7 @@ __all__ = [
     "BlockPattern",
     "CholeskyPlan",
     "G2oError",
+    "G2oWarning",
     "OptimizeResult",
     "PoseGraph",
     "PriorFactors",
