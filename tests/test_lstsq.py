@@ -290,7 +290,14 @@ def test_status_max_iterations_and_the_iteration_table(capsys):
     jax.effects_barrier()
     lines = capsys.readouterr().out.strip().splitlines()
     assert lines[0].split() == [
-        "iter", "cost", "cost_change", "|gradient|", "|step|", "gain_ratio", "damping", "accepted"
+        "iter",
+        "cost",
+        "cost_change",
+        "|gradient|",
+        "|step|",
+        "gain_ratio",
+        "damping",
+        "accepted",
     ]
     assert [int(line.split()[0]) for line in lines[1:4]] == [0, 1, 2]
     printed_costs = [float(line.split()[1]) for line in lines[1:4]]
@@ -329,7 +336,7 @@ def test_vmap_over_64_problems_equals_a_loop_and_compiles_once():
     assert len(traces) == traced and solve._cache_size() == 1
 
     for i in range(64):
-        data = jax.tree_util.tree_map(lambda a: a[i], batch)
+        data = jax.tree_util.tree_map(lambda a, i=i: a[i], batch)
         single = ls.least_squares(similarity_residual, similarity_start(), data)
         assert int(batched.status[i]) == int(single.status) == ls.Status.CONVERGED
         # the same decisions, up to rounding at a tolerance's threshold

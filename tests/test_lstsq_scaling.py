@@ -27,6 +27,7 @@ import lieax.lstsq as ls  # noqa: E402
 
 RESCALED_MAGNITUDES = (1e-9, 1e3)  # the smallest and largest |p_j| of a rescaled problem
 MAX_ITERATIONS = 1000
+LEVENBERG_MARQUARDT = ls.LevenbergMarquardt()  # the default solver
 SIGNIFICANT = 1e-4  # four significant digits: |b - b_certified| <= 1e-4 |b_certified|
 
 
@@ -269,7 +270,7 @@ def solve_lieax(residual, solver, starts, scales, x, y):
     return jax.vmap(solve)(starts, scales)
 
 
-def lieax_results(problem, solver=ls.LevenbergMarquardt()):
+def lieax_results(problem, solver=LEVENBERG_MARQUARDT):
     """`[(b, iterations, status name)]` in the order of `cases(problem)`."""
     rows = cases(problem)
     scales = np.stack([scale for _, _, scale in rows])

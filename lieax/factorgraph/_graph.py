@@ -6,12 +6,14 @@ caches its problems; values and factor data are arguments of the compiled loop, 
 or new measurements of the same structure reuse it, under `vmap` too.
 """
 
+import operator
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ..autodiff._tangents import check_retraction, manifold_leaves
-from ..lstsq import SolveError, Status
+from ..lstsq import NonFiniteStartError, SolveError, Status
 from ..retractions import exp
 from ._factors import Factor, linearize_one
 from ._implicit import solve_implicit
@@ -196,7 +198,9 @@ class FactorGraph:
         - the rest: as `lieax.graph.optimize`, GTSAM's defaults.
         - `verbose`: print iteration, cost, gain ratio and damping at every attempt.
         - `throw`: raise `SolveError` when the solve ends `DIVERGED` or `NONFINITE` (only outside
-          `jit`/`vmap`; inside, read `status`).
+          `jit`/`vmap`; inside, read `status`); `lieax.lstsq.NonFiniteStartError` (also a
+          `ValueError`) naming the values or factor data that hold NaN or infinite entries when
+          the start was not finite (the result then holds the values unchanged, 0 iterations).
 
         **Returns:** a `SolveResult`.
         """
@@ -208,8 +212,9 @@ class FactorGraph:
             raise ValueError(f"damping must be 'identity' or 'marquardt', got {damping!r}.")
         if lambda_update not in ("gtsam", "nielsen"):
             raise ValueError(f"lambda_update must be 'gtsam' or 'nielsen', got {lambda_update!r}.")
-        if max_iterations < 0:
-            raise ValueError(f"max_iterations must be non-negative, got {max_iterations}.")
+        max_iterations = _count(max_iterations, "max_iterations")
+        if cg_max_iterations is not None:
+            cg_max_iterations = _count(cg_max_iterations, "cg_max_iterations")
         retraction = exp if retraction is None else check_retraction(retraction)
         if values is None:
             values = self.initial_values  # checked by the `Var`s
@@ -285,6 +290,14 @@ class FactorGraph:
             result = _result(solution, np.asarray(summary))
         if throw and not isinstance(result.status, jax.core.Tracer):
             status = Status(int(result.status))
+            if status == Status.NONFINITE and int(result.iterations) == 0:
+                inputs = _nonfinite_inputs(self, values, data)
+                if inputs:
+                    raise NonFiniteStartError(
+                        "the factor graph solve ended NONFINITE at its start: "
+                        f"{'; '.join(inputs)}. The result holds the values unchanged (pass "
+                        "throw=False to get it back)."
+                    )
             if status in (Status.DIVERGED, Status.NONFINITE):
                 raise SolveError(
                     f"the factor graph solve ended {status.name} after {int(result.iterations)} "
@@ -300,9 +313,7 @@ class FactorGraph:
             )
         for v, value in zip(self.variables, values):
             leaves, treedef = manifold_leaves(value, f"values[{v.name!r}]")
-            if treedef != v.treedef or [type(x) for x in leaves] != [
-                type(x) for x in manifold_leaves(v.value)[0]
-            ]:
+            if treedef != v.treedef or _kinds(leaves) != _kinds(manifold_leaves(v.value)[0]):
                 raise ValueError(f"values for {v.name!r} must have the structure of its Var.")
             shapes = [jnp.shape(getattr(x, "_params", x)) for x in leaves]
             expected = [jnp.shape(getattr(x, "_params", x)) for x in manifold_leaves(v.value)[0]]
@@ -310,6 +321,40 @@ class FactorGraph:
                 raise ValueError(
                     f"values for {v.name!r} have shapes {shapes}, expected {expected}."
                 )
+
+
+def _nonfinite_inputs(graph, values, data):
+    """The values and factor data with NaN or infinite entries, named by variable and factor
+    kind (concrete floating leaves only; computed when a solve has failed)."""
+    found = []
+    named = [(f"values[{v.name!r}]", value) for v, value in zip(graph.variables, values)]
+    named += [(f"data of factor {f.name!r}", d) for f, d in zip(graph.factors, data)]
+    for name, tree in named:
+        for leaf in jax.tree_util.tree_leaves(tree):
+            array = getattr(leaf, "_params", leaf)
+            if isinstance(array, jax.core.Tracer) or not hasattr(array, "dtype"):
+                continue
+            array = np.asarray(array)
+            if np.issubdtype(array.dtype, np.inexact) and not np.all(np.isfinite(array)):
+                found.append(f"{name} has NaN or infinite entries")
+                break
+    return found
+
+
+def _kinds(leaves):
+    """Each leaf's group type, or `"array"` (an array under `vmap` is a tracer, not an Array)."""
+    return [type(x) if hasattr(x, "_params") else "array" for x in leaves]
+
+
+def _count(value, name):
+    """`value` as a non-negative Python int (an int or a NumPy integer, by `operator.index`)."""
+    try:
+        count = operator.index(value)
+    except TypeError:
+        raise ValueError(f"{name} must be a non-negative int, got {value!r}.") from None
+    if count < 0:
+        raise ValueError(f"{name} must be non-negative, got {count}.")
+    return count
 
 
 def _result(solution, summary):

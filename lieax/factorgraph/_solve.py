@@ -21,7 +21,19 @@ $\\lambda = 0$. An iteration ends with a taken step or, without one, when the co
 `relative_tolerance` × cost; the run stops when an iteration decreases the cost by at most
 `absolute_tolerance` or `relative_tolerance` × cost (`CONVERGED`), after `max_iterations`
 iterations (`MAX_ITERATIONS`), when $\\lambda$ reaches `lambda_max` without a decrease
-(`DIVERGED`) or when the linearization is not finite (`NONFINITE`).
+(`DIVERGED`) or when the linearization is not finite (`NONFINITE`). A point whose gradient is
+exactly zero (a zero error, as GTSAM's `errorTol` of 0) is `CONVERGED` (there is no step to try;
+at the start, after 0 iterations); no other start is: every other convergence test compares a
+tried step's decrease.
+
+What depends on the size of the residual, as in GTSAM: `absolute_tolerance` (GTSAM's
+`absoluteErrorTol`) is a cost, absolute by definition (a problem whose whole cost is below it
+stops after its first iteration; pass 0 to make every test relative), and $\\lambda$ with
+`damping="identity"` is in the units of $H$ (`lambda_initial`, `lambda_max`); with
+`damping="marquardt"` only the clip of $\\mathrm{diag}(H)$ to `diagonal_min` is. The relative
+tests (`relative_tolerance`, the predicted decrease against $\\varepsilon$ × cost) are
+invariant. A non-finite start (values, or data where the factors read them) ends `NONFINITE`
+after 0 iterations with the values unchanged.
 
 Each pass of the loop evaluates one trial point (`_assembly.evaluate`: whitened residuals,
 Jacobian blocks and weights of every factor kind, in one trace), decides, and when the step is
@@ -236,6 +248,12 @@ def make_loop(graph, options):
                 lambda: (system, jnp.ones((), bool)),
             )
             status = jnp.where(finite, status, Status.NONFINITE).astype(jnp.int32)
+            # a point with an exactly zero gradient (a zero error: GTSAM's `errorTol` = 0) is
+            # stationary: no step to try (at the start: converged after 0 iterations)
+            stationary = jnp.all(jnp.stack([jnp.all(g == 0) for g in system[2]]))
+            status = jnp.where(
+                (status == Status.RUNNING) & stationary, Status.CONVERGED, status
+            ).astype(jnp.int32)
             go_on = status == Status.RUNNING
             trial, predicted, solved = lax.cond(
                 go_on,

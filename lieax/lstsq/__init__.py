@@ -7,7 +7,7 @@ Conventions (right perturbation $x \\oplus \\delta$, tangent layouts): the READM
 
 from ._least_squares import least_squares
 from ._losses import AbstractLoss, Cauchy, GemanMcClure, Huber, Tukey
-from ._solution import Solution, SolveError, Status
+from ._solution import NonFiniteStartError, Solution, SolveError, Status
 from ._solvers import AbstractSolver, GaussNewton, LevenbergMarquardt
 
 __all__ = [
@@ -18,6 +18,7 @@ __all__ = [
     "GemanMcClure",
     "Huber",
     "LevenbergMarquardt",
+    "NonFiniteStartError",
     "Solution",
     "SolveError",
     "Status",

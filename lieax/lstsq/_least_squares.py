@@ -10,6 +10,7 @@ Every problem of a `vmap` runs this same loop in lockstep; a problem that has st
 state while the others run on (the batching rule of `while_loop`).
 """
 
+import operator
 from typing import NamedTuple
 
 import jax
@@ -31,7 +32,7 @@ from ..retractions import Retraction, exp
 from ._implicit import with_implicit_derivatives
 from ._losses import AbstractLoss
 from ._problem import linearize
-from ._solution import Solution, SolveError, Status
+from ._solution import NonFiniteStartError, Solution, SolveError, Status
 from ._solvers import AbstractSolver, LevenbergMarquardt
 
 _DEFAULT_TOLERANCES = {  # (function, gradient, parameter) by dtype
@@ -39,6 +40,7 @@ _DEFAULT_TOLERANCES = {  # (function, gradient, parameter) by dtype
     np.dtype(np.float32): (1e-6, 1e-6, 1e-6),
 }
 _DIFFERENTIATION = ("implicit", "unrolled")
+_LEVENBERG_MARQUARDT = LevenbergMarquardt()  # the default solver (immutable, so shared)
 
 
 def least_squares(
@@ -46,7 +48,7 @@ def least_squares(
     x0,
     args=None,
     *,
-    solver: AbstractSolver = LevenbergMarquardt(),
+    solver: AbstractSolver = _LEVENBERG_MARQUARDT,
     loss=None,
     max_iterations: int = 100,
     function_tolerance=None,
@@ -80,7 +82,9 @@ def least_squares(
       $\\max_j |g_j| / (c_j \\|r\\|) \\le \\text{tol}$, the largest cosine between the (weighted)
       residual and a column of the Jacobian, $g = J^\\top W r$, $c_j$ the column's norm and
       $\\|r\\| = \\sqrt{2\\,\\text{cost}}$ (MINPACK's `gtol`; a zero residual passes): independent
-      of the units of the unknowns and of the residual.
+      of the units of the unknowns and of the residual. At `x0`, where no step has been tried,
+      only an exactly zero gradient (a stationary start, such as a zero residual) stops the
+      solve, with `iterations == 0`.
     - `parameter_tolerance`: converged when a step $\\delta$ has
       $\\|D\\delta\\| \\le \\text{tol}\\,(\\|D|x|\\| + \\text{tol}\\,\\|d\\|/\\sqrt{n})$, with
       $D = \\mathrm{diag}(d)$ the solver's scaling of the variables (`solver.scale`: for
@@ -89,7 +93,11 @@ def least_squares(
       values; a group element's parameter norm spread over its coordinates) and $n$ the tangent
       dimension: relative to the state as MINPACK's `xtol`, so that it holds for unknowns of any
       size (with $D = I$: $\\|\\delta\\| \\le \\text{tol}\\,(\\|x\\| + \\text{tol})$).
-      The three tolerances default to $10^{-10}$ in float64 and $10^{-6}$ in float32.
+      The three tolerances default to $10^{-10}$ in float64 and $10^{-6}$ in float32. Every
+      test is relative (to the cost, the residual norm, the state): multiplying the residual by a
+      constant changes neither the iterates (up to rounding) nor the status, with the default
+      `LevenbergMarquardt()` and `GaussNewton()` (the `"jacobi"` and `"clipped"` scalings'
+      absolute clip of the damping diagonal is Ceres' and does depend on the residual's size).
     - `differentiation`: `"implicit"` (default): derivatives of `value` and `cost` with respect
       to `args` (and the loss's scale) by the implicit function theorem at the solution, with no
       iteration unrolled; the start `x0` gets zero derivative, and a solve that did not converge
@@ -106,8 +114,17 @@ def least_squares(
       compiled loop. Under `vmap` every problem prints its rows, the
       problems' rows interleaved.
     - `throw`: raise `SolveError` when the solve ends `DIVERGED` or `NONFINITE` (this waits for
-      the result). Only possible when the status is concrete: under `jit` or `vmap` nothing is
-      raised and `Solution.status` says what happened, as with `throw=False`.
+      the result); `NonFiniteStartError` (a `SolveError` and a `ValueError`) when the start
+      was not finite, naming the input (`x0`, `args` or a loss's scale) by its pytree path.
+      Only possible when the status is concrete: under `jit` or `vmap` nothing is raised and
+      `Solution.status` says what happened, as with `throw=False`.
+
+    A non-finite start (NaN or infinity in `x0`, in `args` where the residual reads them, or a
+    loss scale that is not positive and finite) is not solved: the `Solution` holds `x0`
+    unchanged, `iterations == 0` and `Status.NONFINITE` (the start is what the caller gave;
+    an invented finite value would be a silently wrong answer). A non-finite residual met later
+    ends the solve `NONFINITE` with `iterations > 0` and the last finite iterate. Under `vmap`
+    each problem stops on its own: one bad problem does not change the others' results.
 
     **Returns:** a `Solution` (`value`, `cost`, `iterations`, `status`, `cost_history`).
 
@@ -126,8 +143,7 @@ def least_squares(
         raise TypeError(
             f"solver must be a lieax.lstsq solver (e.g. LevenbergMarquardt()), got {solver!r}."
         )
-    if not isinstance(max_iterations, (int, np.integer)) or max_iterations < 0:
-        raise ValueError(f"max_iterations must be a non-negative int, got {max_iterations!r}.")
+    max_iterations = _non_negative_int(max_iterations, "max_iterations")
     if differentiation not in _DIFFERENTIATION:
         raise ValueError(
             f"differentiation must be one of {_DIFFERENTIATION}, got {differentiation!r}."
@@ -144,7 +160,7 @@ def least_squares(
     )
     solution = _solve(
         residual_fn,
-        int(max_iterations),
+        max_iterations,
         bool(verbose),
         differentiation,
         check_retraction(retraction),
@@ -155,8 +171,20 @@ def least_squares(
         tolerances,
     )
     if throw:
-        _raise_on_failure(solution)
+        _raise_on_failure(solution, x0, args, loss)
     return solution
+
+
+def _non_negative_int(value, name) -> int:
+    """`value` as a Python int (anything `operator.index` takes: int, NumPy integers), or a
+    `ValueError` naming `name`."""
+    try:
+        value = operator.index(value)
+    except TypeError:
+        raise ValueError(f"{name} must be a non-negative int, got {value!r}.") from None
+    if value < 0:
+        raise ValueError(f"{name} must be a non-negative int, got {value!r}.")
+    return value
 
 
 def _check_loss(loss):
@@ -244,7 +272,9 @@ def _solve(
         args_loop, loss_loop = args, loss
     sg = lax.stop_gradient
     n = tangent_dim(x0)
-    dtype = jnp.result_type(*(leaf_array(leaf) for leaf in manifold_leaves(x0, "x0")[0]))
+    x0_arrays = [leaf_array(leaf) for leaf in manifold_leaves(x0, "x0")[0]]
+    dtype = jnp.result_type(*x0_arrays)
+    start_finite = _all_finite(*x0_arrays)  # a NaN the residual does not read counts too
 
     # One linearization per iteration, at the trial point the previous iteration chose; the
     # first iteration evaluates x0 (so the residual is traced and compiled once).
@@ -253,7 +283,9 @@ def _solve(
         cost_trial, hessian_trial, gradient_trial = linearize(
             residual_fn, state.x_trial, args_loop, loss_loop
         )
-        trial_finite = _all_finite(cost_trial, hessian_trial, gradient_trial)
+        trial_finite = _all_finite(cost_trial, hessian_trial, gradient_trial) & (
+            ~first | start_finite
+        )
 
         # keep or reject the trial point (x0 is always kept); decisions are not differentiated,
         # they only select between differentiable values
@@ -273,8 +305,8 @@ def _solve(
         step, next_solver_state = solver.step(solver_state, hessian, gradient)
         step = step.astype(dtype)
 
-        # stop? (at x0 only on a non-finite residual or a zero gradient); the gradient as a
-        # cosine, the step in the solver's scaled variables (see `AbstractSolver.scale`)
+        # stop? (at x0 only on a non-finite start or an exactly zero gradient); the gradient as
+        # a cosine, the step in the solver's scaled variables (see `AbstractSolver.scale`)
         column_norms = jnp.sqrt(jnp.maximum(sg(jnp.diagonal(hessian)), 0.0))
         column_norms = jnp.where(column_norms > 0, column_norms, 1.0)
         residual_norm = jnp.sqrt(2.0 * sg(cost))
@@ -291,10 +323,14 @@ def _solve(
         # a rejected step that promised less than the tolerance: no measurable progress is left
         # (the cost's rounding noise, not the model, decided the rejection)
         small_promise = ~first & ~accept & (predicted < function_tolerance * sg(state.cost))
+        # at x0 no step has been tried: only an exactly stationary start stops there
+        small_gradient = jnp.where(
+            first, jnp.all(sg(gradient) == 0), gradient_norm <= gradient_tolerance
+        )
         converged = (
             (small_step & trial_finite)
             | (small_promise & trial_finite)
-            | (accept & (small_change | (gradient_norm <= gradient_tolerance)))
+            | (accept & (small_change | small_gradient))
         )
         nonfinite = ~trial_finite & (first | small_step | (not solver.rejects_steps))
         diverged = ~first & solver.diverged(solver_state, sg(cost), sg(state.cost_history[0]))
@@ -381,12 +417,19 @@ def _solve(
 # ---- errors --------------------------------------------------------------------------------
 
 
-def _raise_on_failure(solution: Solution):
+def _raise_on_failure(solution: Solution, x0, args, loss):
     status = solution.status
     if isinstance(status, jax.core.Tracer):
         return  # under jit / vmap: the status is the report
     code = Status(int(np.asarray(status)))
     iterations = int(np.asarray(solution.iterations))
+    if code == Status.NONFINITE and iterations == 0:
+        inputs = _nonfinite_inputs(x0, args, loss)
+        if inputs:
+            raise NonFiniteStartError(
+                f"least_squares ended NONFINITE at its start: {'; '.join(inputs)}. The "
+                "Solution holds x0 unchanged (pass throw=False to get it back)."
+            )
     if code == Status.NONFINITE:
         where = "at x0" if iterations == 0 else f"after {iterations} iterations"
         raise SolveError(
@@ -401,6 +444,36 @@ def _raise_on_failure(solution: Solution):
             "(LevenbergMarquardt). Try LevenbergMarquardt, a better x0 or a robust loss, or pass "
             "throw=False to get the Solution back."
         )
+
+
+def _nonfinite_inputs(x0, args, loss) -> list:
+    """What makes a start non-finite, each named by its pytree path: NaN or infinite entries of
+    `x0` or `args`, loss scales that are not positive and finite (concrete values only)."""
+    found = []
+    is_group = lambda node: isinstance(node, AbstractManifold)  # noqa: E731
+    for name, tree in (("x0", x0), ("args", args)):
+        for path, leaf in jax.tree_util.tree_flatten_with_path(tree, is_leaf=is_group)[0]:
+            kind = f" ({type(leaf).__name__})" if is_group(leaf) else ""
+            leaf = leaf_array(leaf) if is_group(leaf) else leaf
+            if isinstance(leaf, jax.core.Tracer) or not hasattr(leaf, "dtype"):
+                continue
+            array = np.asarray(leaf)
+            if np.issubdtype(array.dtype, np.inexact) and not np.all(np.isfinite(array)):
+                bad = int(array.size - np.count_nonzero(np.isfinite(array)))
+                found.append(
+                    f"{name}{jax.tree_util.keystr(path)}{kind} has NaN or infinite entries "
+                    f"({bad} of {array.size})"
+                )
+    is_leaf = lambda node: node is None or isinstance(node, AbstractLoss)  # noqa: E731
+    for path, leaf in jax.tree_util.tree_flatten_with_path(loss, is_leaf=is_leaf)[0]:
+        if isinstance(leaf, AbstractLoss) and not isinstance(leaf.scale, jax.core.Tracer):
+            scale = np.asarray(leaf.scale)
+            if not (np.all(np.isfinite(scale)) and np.all(scale > 0)):
+                found.append(
+                    f"loss{jax.tree_util.keystr(path)} {type(leaf).__name__} has scale {scale}, "
+                    "not positive and finite"
+                )
+    return found
 
 
 def _describe_cost(solution: Solution) -> str:

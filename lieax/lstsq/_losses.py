@@ -10,28 +10,58 @@ synthesis", Sec. 3.3; Ceres' `LossFunction` without its second-order correction)
 solution this converges linearly, at a rate set by how much the loss bends.
 
 Losses are pytrees whose one leaf is `scale`: it may be traced, batched under `vmap` and
-differentiated (implicit derivatives of a solution include the loss's scale).
+differentiated (implicit derivatives of a solution include the loss's scale). A concrete scale
+(a Python number or an array) must be positive and finite, or the constructor raises
+`ValueError`; a traced one cannot be checked when it is traced, so a loss whose scale is not
+positive and finite evaluates to NaN (value and weight), and a solve that uses it ends
+`Status.NONFINITE` at its start instead of minimizing another loss than the one asked for.
 """
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 
 class AbstractLoss:
-    """A robust loss with a positive `scale` $c$; subclasses give $\\rho(s)$ and $\\rho'(s)$."""
+    """A robust loss with a positive `scale` $c$; subclasses give $\\rho(s)$ and $\\rho'(s)$ (each
+    passed through `_checked`, so that a traced scale that is not positive gives NaN)."""
 
     __slots__ = ("scale",)
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
         jax.tree_util.register_pytree_node(
-            cls, lambda loss: ((loss.scale,), None), lambda _, leaves: cls(leaves[0])
+            cls, lambda loss: ((loss.scale,), None), lambda _, leaves: cls._unchecked(leaves[0])
         )
 
     def __init__(self, scale=1.0):
-        if isinstance(scale, (int, float)) and not scale > 0:
-            raise ValueError(f"{type(self).__name__} scale must be positive, got {scale}.")
+        if not isinstance(scale, jax.core.Tracer):
+            value = np.asarray(scale)
+            if not np.issubdtype(value.dtype, np.number) or np.iscomplexobj(value):
+                raise TypeError(
+                    f"{type(self).__name__} scale must be a real number, got {scale!r}."
+                )
+            if not (np.all(np.isfinite(value)) and np.all(value > 0)):
+                raise ValueError(
+                    f"{type(self).__name__} scale must be positive and finite, got {scale!r}."
+                )
         object.__setattr__(self, "scale", scale)
+
+    @classmethod
+    def _unchecked(cls, scale):
+        """A loss rebuilt from a pytree leaf, unchecked: JAX's transformations fill the leaf with
+        cotangents, zeros, shapes or sentinels that are no scale."""
+        loss = object.__new__(cls)
+        object.__setattr__(loss, "scale", scale)
+        return loss
+
+    def _checked(self, value):
+        """`value` where the scale is positive and finite, NaN elsewhere (a traced scale is
+        checked here, at run time; a Python number was checked by the constructor)."""
+        if isinstance(self.scale, (int, float)):
+            return value
+        valid = jnp.all(jnp.isfinite(self.scale) & (jnp.asarray(self.scale) > 0))
+        return jnp.where(valid, value, jnp.nan)
 
     def __setattr__(self, name, value):
         raise AttributeError(f"{type(self).__name__} is immutable.")
@@ -57,12 +87,12 @@ class Huber(AbstractLoss):
         c2 = self.scale**2
         inside = s <= c2
         safe_s = jnp.where(inside, c2, s)
-        return jnp.where(inside, s, 2.0 * self.scale * jnp.sqrt(safe_s) - c2)
+        return self._checked(jnp.where(inside, s, 2.0 * self.scale * jnp.sqrt(safe_s) - c2))
 
     def weight(self, s):
         inside = s <= self.scale**2
         safe_s = jnp.where(inside, self.scale**2, s)
-        return jnp.where(inside, jnp.ones_like(s), self.scale / jnp.sqrt(safe_s))
+        return self._checked(jnp.where(inside, jnp.ones_like(s), self.scale / jnp.sqrt(safe_s)))
 
 
 class Cauchy(AbstractLoss):
@@ -71,10 +101,10 @@ class Cauchy(AbstractLoss):
 
     def __call__(self, s):
         c2 = self.scale**2
-        return c2 * jnp.log1p(s / c2)
+        return self._checked(c2 * jnp.log1p(s / c2))
 
     def weight(self, s):
-        return 1.0 / (1.0 + s / self.scale**2)
+        return self._checked(1.0 / (1.0 + s / self.scale**2))
 
 
 class Tukey(AbstractLoss):
@@ -85,11 +115,12 @@ class Tukey(AbstractLoss):
     def __call__(self, s):
         c2 = self.scale**2
         u = jnp.minimum(s / c2, 1.0)
-        return c2 * u * (1.0 - u + u**2 / 3.0)  # c²/3 (1 - (1 - u)³) without cancellation
+        # c²/3 (1 - (1 - u)³) without cancellation
+        return self._checked(c2 * u * (1.0 - u + u**2 / 3.0))
 
     def weight(self, s):
         u = jnp.minimum(s / self.scale**2, 1.0)
-        return (1.0 - u) ** 2
+        return self._checked((1.0 - u) ** 2)
 
 
 class GemanMcClure(AbstractLoss):
@@ -98,8 +129,8 @@ class GemanMcClure(AbstractLoss):
 
     def __call__(self, s):
         c2 = self.scale**2
-        return c2 * s / (c2 + s)
+        return self._checked(c2 * s / (c2 + s))
 
     def weight(self, s):
         c2 = self.scale**2
-        return (c2 / (c2 + s)) ** 2
+        return self._checked((c2 / (c2 + s)) ** 2)

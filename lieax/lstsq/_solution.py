@@ -10,12 +10,16 @@ import numpy as np
 class Status(enum.IntEnum):
     """Why a solve stopped; `Solution.status` holds the integer code.
 
-    - `CONVERGED`: a tolerance was met (step, relative cost change or gradient).
+    - `CONVERGED`: a tolerance was met (step, relative cost change or gradient) after a tried
+      step, or the start is exactly stationary (a zero gradient; `iterations == 0`).
     - `MAX_ITERATIONS`: `max_iterations` iterations ran without meeting a tolerance.
     - `DIVERGED`: the cost grew without bound (Gauss-Newton) or no damping, however large, made
       the cost decrease (Levenberg-Marquardt).
     - `NONFINITE`: the residual or its Jacobian was NaN or infinite at the current point (or,
-      for Levenberg-Marquardt, at every trial point down to the smallest step).
+      for Levenberg-Marquardt, at every trial point down to the smallest step). With
+      `iterations == 0` the start itself: `x0`, `args` where the residual reads them, or a
+      loss scale that is not positive and finite; the solution's `value` is then `x0`
+      unchanged.
 
     `RUNNING` is the state inside the loop and is never returned.
     """
@@ -29,6 +33,12 @@ class Status(enum.IntEnum):
 
 class SolveError(RuntimeError):
     """Raised by `least_squares(..., throw=True)` when a solve ends `DIVERGED` or `NONFINITE`."""
+
+
+class NonFiniteStartError(SolveError, ValueError):
+    """The `SolveError` of a solve that did not start because its input is not finite: NaN or
+    infinite entries in `x0` or `args`, or a loss scale that is not positive and finite (the
+    message names each by its pytree path). Also a `ValueError`: the input is at fault."""
 
 
 class Solution(NamedTuple):

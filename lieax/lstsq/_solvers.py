@@ -133,6 +133,14 @@ class LevenbergMarquardt(AbstractSolver):
 
     `scale` is $d$ (`"minpack"`), $1 + c$ (`"jacobi"`) or ones (`"clipped"`).
 
+    Only `"minpack"` is invariant under a constant factor on the residual (every term of its
+    system scales alike; powers of two leave its iterates unchanged bit for bit,
+    `tests/test_lstsq_faults.py`). The `min_diagonal` clip of `"jacobi"` and `"clipped"` is
+    absolute, as Ceres' `min_lm_diagonal`: for a residual scaled down by $10^{-12}$ the clip sets
+    the damping, the steps become tiny and the tolerances end the solve `CONVERGED` after one
+    iteration with the start barely moved (Rosenbrock's problem scaled by $10^{-12}$), as Ceres
+    would. Use them on residuals of order one.
+
     **Arguments:**
     - `initial_damping`: $\\mu$ at the first iteration (Ceres' initial trust radius $10^4$ is
       $\\mu = 10^{-4}$).
