@@ -16,7 +16,7 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent
 EXAMPLES = ROOT / "examples"
 TESTED = {
     "attitude_estimation", "batch_icp", "bundle_adjustment", "chain_jacobians", "icp_demo",
-    "pose_graph",
+    "inertial_navigation", "pose_graph",
 }  # fmt: skip
 
 try:
@@ -152,3 +152,12 @@ def test_attitude_windows_cover_the_record():
 def test_chain_jacobians(capsys):
     error = load("chain_jacobians").main(["--chains", "20", "--length", "3"])
     assert error < 1e-10
+
+
+def test_inertial_navigation():
+    """`examples/inertial_navigation.py` at a tiny size: the smoother beats the raw fixes."""
+    summary = load("inertial_navigation").main(["--keyframes", "40"])
+    assert summary["status"] == "CONVERGED"
+    assert summary["cost"] < 1e-3 * summary["initial_cost"]
+    assert summary["position_rms"] < summary["fix_rms"]
+    assert summary["attitude_rms_deg"] < 2.0

@@ -1,0 +1,208 @@
+"""IMU preintegration and an IMU + position-fix smoother (`lieax.imu`, `lieax.factorgraph`)
+against GTSAM 4.3 (`PreintegratedImuMeasurements.integrateMeasurement` called from Python, and
+`LevenbergMarquardtOptimizer` on the same factors), on the generated drive of
+`examples/inertial_navigation.py` (200 Hz IMU, 1 Hz fixes, one keyframe per fix).
+
+Table 1: preintegrating all intervals (`jit(vmap(preintegrate))`, the logarithmic-depth
+`preintegrate_associative`, GTSAM's loop), and the largest relative differences: lieax
+sequential vs GTSAM, associative vs sequential. Table 2: the smoother, solved from the same
+start by lieax (warm: structure cached, compiled) and GTSAM (default parameters), iterations and
+final costs ($\\tfrac12\\sum\\|r\\|^2_\\Sigma$, GTSAM's `graph.error`). One pinned core, one thread
+each (as `benchmarks/pgo.py`); medians over interleaved rounds in one process.
+
+    python benchmarks/imu.py [--keyframes 1001] [--rounds 3]
+"""
+
+import argparse
+import importlib.util
+import os
+import pathlib
+import sys
+
+if os.environ.get("LIEAX_BENCH_PIN", "1") != "0" and hasattr(os, "sched_setaffinity"):
+    os.sched_setaffinity(0, {max(os.sched_getaffinity(0))})
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+os.environ.setdefault(
+    "XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+)
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from _timing import (
+    format_ratio,
+    format_seconds,
+    machine_description,
+    markdown_table,
+    time_interleaved,
+)
+
+import lieax.imu as imu
+
+jax.config.update("jax_enable_x64", True)
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def load_example():
+    path = ROOT / "examples" / "inertial_navigation.py"
+    spec = importlib.util.spec_from_file_location("inertial_navigation", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def gtsam_params(example):
+    import gtsam
+
+    params = gtsam.PreintegrationParams.MakeSharedU(example.GRAVITY)
+    params.setAccelerometerCovariance(example.ACCEL_DENSITY**2 * np.eye(3))
+    params.setGyroscopeCovariance(example.GYRO_DENSITY**2 * np.eye(3))
+    params.setIntegrationCovariance(1e-8 * np.eye(3))
+    params.setImuFactorErrorMode(gtsam.ImuFactorErrorMode.ComponentWise)
+    return params
+
+
+def gtsam_preintegrate(params, data):
+    import gtsam
+
+    pims = []
+    dt = data["dt"]
+    for gyro, accel in zip(data["gyro"], data["accel"]):
+        pim = gtsam.PreintegratedImuMeasurements(params, gtsam.imuBias.ConstantBias())
+        for k in range(len(gyro)):
+            pim.integrateMeasurement(accel[k], gyro[k], dt)
+        pims.append(pim)
+    return pims
+
+
+def gtsam_problem(example, data, pims):
+    """The same factors and start as `example.build_graph`, in GTSAM."""
+    import gtsam
+    from gtsam.symbol_shorthand import B, V, X
+
+    n = len(data["fixes"])
+    rotations, positions, velocities, biases = example.initial_guess(data["fixes"])
+    graph, initial = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    fix_noise = gtsam.noiseModel.Isotropic.Sigma(3, example.FIX_SIGMA)
+    walk = np.repeat([example.ACCEL_BIAS_WALK, example.GYRO_BIAS_WALK], 3)
+    for k in range(n):
+        initial.insert(X(k), gtsam.Pose3(gtsam.Rot3(rotations[k]), positions[k]))
+        initial.insert(V(k), velocities[k])
+        initial.insert(B(k), gtsam.imuBias.ConstantBias(biases[k, :3], biases[k, 3:]))
+        graph.add(gtsam.GPSFactor(X(k), data["fixes"][k], fix_noise))
+    for k, pim in enumerate(pims):
+        graph.add(gtsam.ImuFactor(X(k), V(k), X(k + 1), V(k + 1), B(k), pim))
+        noise = gtsam.noiseModel.Diagonal.Sigmas(walk * np.sqrt(pim.deltaTij()))
+        graph.add(
+            gtsam.BetweenFactorConstantBias(B(k), B(k + 1), gtsam.imuBias.ConstantBias(), noise)
+        )
+    graph.add(
+        gtsam.PriorFactorVector(V(0), velocities[0], gtsam.noiseModel.Isotropic.Sigma(3, 1.0))
+    )
+    bias_noise = gtsam.noiseModel.Diagonal.Sigmas(np.repeat([0.1, 0.01], 3))
+    graph.add(gtsam.PriorFactorConstantBias(B(0), gtsam.imuBias.ConstantBias(), bias_noise))
+    return graph, initial
+
+
+def run_gtsam(graph, initial):
+    import gtsam
+
+    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, initial, gtsam.LevenbergMarquardtParams())
+    result = optimizer.optimize()
+    return graph.error(result), optimizer.iterations()
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--keyframes", type=int, default=1001)
+    parser.add_argument("--rounds", type=int, default=3)
+    args = parser.parse_args(argv)
+    example = load_example()
+    data = example.simulate(args.keyframes, np.random.default_rng(0))
+    params = example.params()
+    gyro, accel = jnp.asarray(data["gyro"]), jnp.asarray(data["accel"])
+    intervals, samples = data["gyro"].shape[:2]
+
+    batched = {
+        name: jax.jit(jax.vmap(fn, in_axes=(0, 0, None, None, None)))
+        for name, fn in (
+            ("sequential", imu.preintegrate),
+            ("associative", imu.preintegrate_associative),
+        )
+    }
+    zero = jnp.zeros(6)
+    results = {name: fn(gyro, accel, data["dt"], zero, params) for name, fn in batched.items()}
+    g_params = gtsam_params(example)
+    pims = gtsam_preintegrate(g_params, data)
+
+    def vector(p):
+        return np.concatenate([p.theta, p.delta_p, p.delta_v], axis=-1)
+
+    def relative(a, b):
+        return float(np.max(np.abs(a - b) / np.max(np.abs(b), axis=-1, keepdims=True)))
+
+    reference = np.array([p.preintegrated() for p in pims])
+    sequential, associative = results["sequential"], results["associative"]
+    cov_reference = np.array([p.preintMeasCov() for p in pims])
+    variants = {
+        name: (lambda fn=fn: fn(gyro, accel, data["dt"], zero, params).theta)
+        for name, fn in batched.items()
+    }
+    variants["gtsam"] = lambda: jnp.asarray(gtsam_preintegrate(g_params, data)[-1].deltaTij())
+    timings = time_interleaved(variants, args.rounds, warmup=0, min_sample_s=0.05)
+    gtsam_loop = timings["gtsam"].median
+    print(machine_description())
+    print(f"\n{intervals} intervals x {samples} samples\n")
+    flat = lambda x: np.asarray(x).reshape(len(x), -1)  # noqa: E731
+    print(markdown_table(
+        ["preintegration", "time", "vs GTSAM loop", "max rel. diff (θ,Δp,Δv)", "max rel. diff cov"],
+        [
+            ["lieax `preintegrate` (scan)", format_seconds(timings["sequential"].median),
+             format_ratio(gtsam_loop, timings["sequential"].median),
+             f"{relative(vector(sequential), reference):.1e} vs GTSAM",
+             f"{relative(flat(sequential.covariance), flat(cov_reference)):.1e} vs GTSAM"],
+            ["lieax `preintegrate_associative`", format_seconds(timings["associative"].median),
+             format_ratio(gtsam_loop, timings["associative"].median),
+             f"{relative(vector(associative), vector(sequential)):.1e} vs scan",
+             f"{relative(flat(associative.covariance), flat(sequential.covariance)):.1e} vs scan"],
+            ["GTSAM `integrateMeasurement` loop", format_seconds(gtsam_loop), "1.00×", "", ""],
+        ],
+    ))  # fmt: skip
+
+    graph, _ = example.build_graph(data, sequential, params)
+    start = time.perf_counter()
+    ours = jax.block_until_ready(graph.solve(max_iterations=100))
+    first_call = time.perf_counter() - start
+    g_graph, g_initial = gtsam_problem(example, data, pims)
+    initial_gtsam = g_graph.error(g_initial)
+    gtsam_cost, gtsam_iterations = run_gtsam(g_graph, g_initial)
+    solve_timings = time_interleaved(
+        {"lieax": lambda: graph.solve(max_iterations=100).cost,
+         "gtsam": lambda: jnp.asarray(run_gtsam(g_graph, g_initial)[0])},
+        args.rounds, warmup=0, min_sample_s=0.0,
+    )  # fmt: skip
+    print(f"\n{args.keyframes} keyframes, {intervals} IMU factors, {args.keyframes} fixes\n")
+    print(markdown_table(
+        ["smoother", "time", "iterations", "initial cost", "final cost", "rel. to GTSAM"],
+        [
+            ["lieax `FactorGraph.solve`", format_seconds(solve_timings["lieax"].median),
+             int(ours.iterations), f"{float(ours.cost_history[0]):.6g}", f"{float(ours.cost):.10g}",
+             f"{(float(ours.cost) - gtsam_cost) / gtsam_cost:.1e}"],
+            ["GTSAM LM", format_seconds(solve_timings["gtsam"].median), gtsam_iterations,
+             f"{initial_gtsam:.6g}", f"{gtsam_cost:.10g}", ""],
+        ],
+    ))  # fmt: skip
+    print(
+        f"\nlieax / GTSAM solve time: "
+        f"{format_ratio(solve_timings['lieax'].median, solve_timings['gtsam'].median)}; "
+        f"lieax first call (analysis, trace, compile): {format_seconds(first_call)}"
+    )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,27 @@
+"""Inertial navigation: IMU preintegration (Forster et al., T-RO 2017; GTSAM's
+`PreintegratedImuMeasurements`), its bias-corrected prediction, and IMU and bias random-walk
+factors for `lieax.factorgraph`. Conventions: the README's "Conventions"; the mapping to GTSAM's
+is in `lieax.conventions`.
+"""
+
+from ._factors import bias_random_walk_factor, imu_factor, imu_residual
+from ._preintegration import (
+    ImuError,
+    ImuParams,
+    Preintegrated,
+    predict,
+    preintegrate,
+    preintegrate_associative,
+)
+
+__all__ = [
+    "ImuError",
+    "ImuParams",
+    "Preintegrated",
+    "bias_random_walk_factor",
+    "imu_factor",
+    "imu_residual",
+    "predict",
+    "preintegrate",
+    "preintegrate_associative",
+]
