@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._runtime_error import raise_if
 from ..autodiff._tangents import check_retraction, manifold_leaves
 from ..lstsq import NonFiniteStartError, SolveError, Status
 from ..retractions import exp
@@ -197,10 +198,12 @@ class FactorGraph:
           The Jacobians and the optimum do not depend on it, the path to the optimum does.
         - the rest: as `lieax.graph.optimize`, GTSAM's defaults.
         - `verbose`: print iteration, cost, gain ratio and damping at every attempt.
-        - `throw`: raise `SolveError` when the solve ends `DIVERGED` or `NONFINITE` (only outside
-          `jit`/`vmap`; inside, read `status`); `lieax.lstsq.NonFiniteStartError` (also a
-          `ValueError`) naming the values or factor data that hold NaN or infinite entries when
-          the start was not finite (the result then holds the values unchanged, 0 iterations).
+        - `throw`: raise `SolveError` when the solve ends `DIVERGED` or `NONFINITE`;
+          `lieax.lstsq.NonFiniteStartError` (also a `ValueError`) naming the values or factor
+          data that hold NaN or infinite entries when the start was not finite (the result then
+          holds the values unchanged, 0 iterations). Under `jit` the `SolveError` is raised when
+          the compiled program runs (JAX's runtime error, carrying its message); under `vmap`
+          nothing is raised: read each problem's `status`.
 
         **Returns:** a `SolveResult`.
         """
@@ -288,7 +291,9 @@ class FactorGraph:
         else:  # one dispatch, one transfer of the scalars: they come back as NumPy values
             solution, summary = loop(values, data, params)
             result = _result(solution, np.asarray(summary))
-        if throw and not isinstance(result.status, jax.core.Tracer):
+        if throw and isinstance(result.status, jax.core.Tracer):
+            result = result._replace(status=raise_if(result.status, _failed, _traced_error))
+        elif throw:
             status = Status(int(result.status))
             if status == Status.NONFINITE and int(result.iterations) == 0:
                 inputs = _nonfinite_inputs(self, values, data)
@@ -321,6 +326,17 @@ class FactorGraph:
                 raise ValueError(
                     f"values for {v.name!r} have shapes {shapes}, expected {expected}."
                 )
+
+
+def _failed(code) -> bool:
+    return code in (Status.DIVERGED, Status.NONFINITE)
+
+
+def _traced_error(code) -> SolveError:
+    return SolveError(
+        f"the factor graph solve ended {Status(code).name} (raised from inside jit; pass "
+        "throw=False to read the result's status instead)."
+    )
 
 
 def _nonfinite_inputs(graph, values, data):

@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from .._runtime_error import raise_if
 from ..autodiff._tangents import (
     check_retraction,
     leaf_array,
@@ -116,8 +117,9 @@ def least_squares(
     - `throw`: raise `SolveError` when the solve ends `DIVERGED` or `NONFINITE` (this waits for
       the result); `NonFiniteStartError` (a `SolveError` and a `ValueError`) when the start
       was not finite, naming the input (`x0`, `args` or a loss's scale) by its pytree path.
-      Only possible when the status is concrete: under `jit` or `vmap` nothing is raised and
-      `Solution.status` says what happened, as with `throw=False`.
+      Under `jit` the error is raised when the compiled program runs (JAX's runtime error,
+      carrying the `SolveError`'s message); under `vmap` nothing is raised and
+      `Solution.status` says what happened for each problem, as with `throw=False`.
 
     A non-finite start (NaN or infinity in `x0`, in `args` where the residual reads them, or a
     loss scale that is not positive and finite) is not solved: the `Solution` holds `x0`
@@ -171,7 +173,7 @@ def least_squares(
         tolerances,
     )
     if throw:
-        _raise_on_failure(solution, x0, args, loss)
+        solution = _raise_on_failure(solution, x0, args, loss)
     return solution
 
 
@@ -417,10 +419,22 @@ def _solve(
 # ---- errors --------------------------------------------------------------------------------
 
 
-def _raise_on_failure(solution: Solution, x0, args, loss):
+def _raise_on_failure(solution: Solution, x0, args, loss) -> Solution:
+    """`solution`, after raising the `SolveError` its status calls for: now when the status is
+    concrete, when the compiled program runs under `jit` (`lieax._runtime_error.raise_if`), never
+    under `vmap` (the statuses are the report)."""
     status = solution.status
     if isinstance(status, jax.core.Tracer):
-        return  # under jit / vmap: the status is the report
+        return solution._replace(
+            status=raise_if(
+                status,
+                lambda code: code in (Status.DIVERGED, Status.NONFINITE),
+                lambda code: SolveError(
+                    f"least_squares ended {Status(code).name} (raised from inside jit; pass "
+                    "throw=False to read Solution.status instead)."
+                ),
+            )
+        )
     code = Status(int(np.asarray(status)))
     iterations = int(np.asarray(solution.iterations))
     if code == Status.NONFINITE and iterations == 0:
@@ -444,6 +458,7 @@ def _raise_on_failure(solution: Solution, x0, args, loss):
             "(LevenbergMarquardt). Try LevenbergMarquardt, a better x0 or a robust loss, or pass "
             "throw=False to get the Solution back."
         )
+    return solution
 
 
 def _nonfinite_inputs(x0, args, loss) -> list:
