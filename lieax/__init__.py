@@ -5,12 +5,24 @@ README's "Conventions" section.
 
 Layers, bottom up: `groups` (the Lie groups and their kernels), `autodiff` (tangents of pytrees,
 manifold-local Jacobians, implicit derivatives) and `retractions`, the solvers (`lstsq`, `optax`,
-`factorgraph`, `graph`), and the applications (`icp`, `ba`, `align`, `io`, `conventions`).
+`factorgraph`, `graph`), and the applications (`icp`, `ba`, `imu`, `align`, `io`, `conventions`).
 """
 
 from importlib.metadata import version as _version
 
-from . import ba, conventions, factorgraph, graph, icp, io, lstsq, optax, retractions, sharding
+from . import (
+    ba,
+    conventions,
+    factorgraph,
+    graph,
+    icp,
+    imu,
+    io,
+    lstsq,
+    optax,
+    retractions,
+    sharding,
+)
 from ._align import align
 from .autodiff import (
     flatten_tangents,
@@ -50,6 +62,7 @@ __all__ = [
     "grad",
     "graph",
     "icp",
+    "imu",
     "read_pcd",
     "read_ply",
     "read_point_cloud",

@@ -35,6 +35,7 @@ REQUIRED = [
     "03_batch_icp",
     "04_pose_graphs",
     "05_differentiable_icp",
+    "06_factor_graphs",
 ]
 TIME_LIMIT = float(os.environ.get("LIEAX_NOTEBOOK_TIME_LIMIT", "120"))
 MAX_BYTES = 1_000_000

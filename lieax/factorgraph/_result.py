@@ -39,3 +39,13 @@ class SolveResult(NamedTuple):
     @property
     def converged(self) -> jax.Array:
         return self.status == Status.CONVERGED
+
+    def __repr__(self):
+        """One line (the values and the NaN-padded history are long): status, cost, counts."""
+        if isinstance(self.status, jax.core.Tracer) or np.ndim(self.status):
+            return f"SolveResult(status={self.status!r}, cost={self.cost!r}, ...)"
+        return (
+            f"SolveResult(status={self.status_name}, cost={float(self.cost):.10g}, "
+            f"iterations={int(self.iterations)}, linear_solves={int(self.linear_solves)}, "
+            f"lambda_={float(self.lambda_):.3g}, values=<{len(self.values)} variable kinds>)"
+        )
