@@ -25,7 +25,14 @@ from ._host_kdtree import KDTreeIndex
 from ._multiscale import multi_scale
 from ._neighbors import NeighborIndex, Neighbors
 from ._normals import estimate_normals
-from ._registration import ICPError, ICPResult, Status, point_to_plane, point_to_point
+from ._registration import (
+    ICPError,
+    ICPInputError,
+    ICPResult,
+    Status,
+    point_to_plane,
+    point_to_point,
+)
 from ._search import SEARCHES, BruteIndex, build_index, nearest
 from ._synthetic import synthetic_pair, synthetic_scene
 
@@ -34,6 +41,7 @@ __all__ = [
     "BruteIndex",
     "GridIndex",
     "ICPError",
+    "ICPInputError",
     "ICPResult",
     "KDTreeIndex",
     "NeighborIndex",

@@ -5,7 +5,7 @@ voxel)."""
 import jax
 import jax.numpy as jnp
 
-from ._checks import check_cloud, check_mask
+from ._checks import check_cloud, check_count, check_mask, check_parameter
 
 
 def voxel_downsample(points, voxel_size, *, mask=None, size=None):
@@ -24,14 +24,12 @@ def voxel_downsample(points, voxel_size, *, mask=None, size=None):
     """
     points = check_cloud(points, "points")
     mask = check_mask(mask, points, "mask")
-    if isinstance(voxel_size, (int, float)) and not voxel_size > 0:
-        raise ValueError(f"voxel_size must be positive, got {voxel_size}.")
+    check_parameter(voxel_size, "voxel_size", positive=True)
     voxel_size = jnp.asarray(voxel_size, points.dtype)
     centroids, count = _downsample(points, mask, voxel_size)
     if size is None:
         return centroids[: int(count)]
-    if not isinstance(size, int) or size < 1:
-        raise ValueError(f"size must be a positive int or None, got {size!r}.")
+    size = check_count(size, "size", minimum=1)
     if size > points.shape[0]:
         centroids = jnp.concatenate(
             [centroids, jnp.zeros((size - points.shape[0], 3), centroids.dtype)]

@@ -20,7 +20,7 @@ from .._checks import as_float_array
 from ..groups._se3 import SE3
 from . import _neighbors, _search
 from ._batch import pad_to_bucket
-from ._checks import check_cloud, check_mask
+from ._checks import check_cloud, check_count, check_mask
 from ._normals import smallest_eigenvector
 from ._registration import (
     ICPResult,
@@ -62,8 +62,7 @@ def estimate_covariances(points, *, k=20, mask=None, search="auto"):
     """
     points = check_cloud(points, "points")
     mask = check_mask(mask, points, "mask")
-    if not isinstance(k, int) or k < MIN_NEIGHBOURS:
-        raise ValueError(f"k must be an int of at least {MIN_NEIGHBOURS}, got {k!r}.")
+    k = check_count(k, "k", minimum=MIN_NEIGHBOURS)
     if search not in ("auto", "graph", "kdtree"):
         raise ValueError(f"search must be 'auto', 'graph' or 'kdtree', got {search!r}.")
     traced = any(isinstance(x, jax.core.Tracer) for x in (points, mask))

@@ -53,6 +53,7 @@ import jax.numpy as jnp
 from .._linalg import quat_to_matrix
 from ..groups._se3 import SE3
 from . import _neighbors
+from ._centring import centred_pose, centroid, uncentred_tangent
 from ._normals import estimate_normals
 from ._robust import loss_weights
 
@@ -109,14 +110,20 @@ def _tangents(params, rmse, data, fixed, data_dot, *, kind, static_loss):
     inliers = (correspondences >= 0) & source_mask
     index = jnp.maximum(correspondences, 0)
     count = jnp.maximum(jnp.sum(inliers), 1)
+    # Centred as the loop is (`lieax.icp._centring`): the Hessian of clouds far from the origin is
+    # then as well conditioned as at the origin. The centres are constants of the rule.
+    source_centre = centroid(data[0], inliers)
+    target_centre = centroid(data[1][index], inliers)
+    centred = centred_pose(params, source_centre, target_centre)
 
     def gaps(delta, data):
-        """$T^* \\oplus \\delta$ applied to the inlier source points, minus their matches (rows of
-        rejected points are zero, whatever the data hold there)."""
+        """$T' \\oplus \\delta$ (the centred pose) applied to the inlier source points about their
+        centre, minus their matches about theirs (rows of rejected points are zero, whatever the
+        data hold there)."""
         source, target = data[:2]
-        source = jnp.where(inliers[:, None], source, 0.0)
-        matched = jnp.where(inliers[:, None], target[index], 0.0)
-        pose = SE3._wrap(params).rplus(delta).parameters()
+        source = jnp.where(inliers[:, None], source - source_centre, 0.0)
+        matched = jnp.where(inliers[:, None], target[index] - target_centre, 0.0)
+        pose = SE3._wrap(centred).rplus(delta).parameters()
         moved = jnp.matmul(source, quat_to_matrix(pose[:4]).T, precision="highest") + pose[4:]
         return jnp.where(inliers[:, None], moved - matched, 0.0)
 
@@ -154,6 +161,7 @@ def _tangents(params, rmse, data, fixed, data_dot, *, kind, static_loss):
     _, mean_squared_dot = jax.jvp(mean_squared, (zero, data), (delta_dot, data_dot))
     # d sqrt(m) = dm / (2 sqrt(m)); an exact fit (rmse 0) has zero gaps, and a zero derivative.
     rmse_dot = jnp.where(rmse > 0, mean_squared_dot / (2 * jnp.where(rmse > 0, rmse, 1.0)), 0.0)
+    delta_dot = uncentred_tangent(delta_dot, source_centre)
     return SE3._tangent_from_local(params, delta_dot), rmse_dot.astype(rmse.dtype) * undefined
 
 

@@ -12,7 +12,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._checks import check_cloud, check_mask
+from ..groups._se3 import SE3
+from ._checks import ICPInputError, check_cloud, check_count, check_mask
 from ._downsample import voxel_downsample
 from ._gicp import gicp
 from ._registration import ICPError, Status, point_to_plane, point_to_point
@@ -48,8 +49,10 @@ def multi_scale(
     - `init`: initial `SE3` guess of `T_target_source` for the first level (default identity).
     - `loss`, `source_mask`, `target_mask`: as for the method, at every level.
     - `return_levels`: also return the result of every level.
-    - `throw`: raise `ICPError` when the finest level ends `NONFINITE` or `DEGENERATE` (outside
-      `jit`/`vmap`); a coarse level that fails hands its last pose on.
+    - `throw`: raise `ICPError` when the finest level ends `NONFINITE`, `INVALID` or `DEGENERATE`
+      (outside `jit`/`vmap`); a coarse level that fails hands its last pose on. A valid input
+      point that is not finite makes the result `NONFINITE` (with `init`), whatever the levels
+      (whose voxels drop such points) reached.
     - `options`: further keyword arguments of the method (`relative_fitness`, `normals_k`,
       `covariances_k`, `exact`, ...), the same at every level.
 
@@ -74,8 +77,9 @@ def multi_scale(
     levels = len(voxel_sizes)
     if levels == 0:
         raise ValueError("voxel_sizes must name at least one level.")
-    iterations = (max_iterations,) * levels if isinstance(max_iterations, int) else max_iterations
-    iterations = tuple(iterations)
+    if isinstance(max_iterations, (int, np.integer)):
+        max_iterations = (max_iterations,) * levels
+    iterations = tuple(check_count(cap, "max_iterations") for cap in max_iterations)
     if len(distances) != levels or len(iterations) != levels:
         raise ValueError(
             f"voxel_sizes ({levels} levels), max_correspondence_distances ({len(distances)}) and "
@@ -94,15 +98,39 @@ def multi_scale(
         )  # fmt: skip
         results.append(result)
         pose = result.transform
+    finite = _finite(source, source_mask) & _finite(target, target_mask)
+    result = results[-1] = _unless_finite(finite, result, init)
     if throw and concrete:
         status = Status(int(result.status))
-        if status in (Status.NONFINITE, Status.DEGENERATE):
-            raise ICPError(
+        if status in (Status.NONFINITE, Status.INVALID, Status.DEGENERATE):
+            error = ICPError if status == Status.DEGENERATE else ICPInputError
+            raise error(
                 f"multi-scale ICP ended {status.name} at its finest level (voxel size "
                 f"{voxel_sizes[-1]}, max_correspondence_distance {distances[-1]}): check the "
                 "inputs and the initial guess, or pass throw=False."
             )
     return (result, results) if return_levels else result
+
+
+def _finite(points, mask):
+    return jnp.all(jnp.isfinite(points) | ~mask[:, None])
+
+
+def _unless_finite(finite, result, init):
+    """`result`, or, where a valid input point is not finite (the voxel levels would drop it),
+    the `NONFINITE` result of the methods: `init` (the identity by default), zero iterations,
+    fitness and RMSE, no correspondences."""
+    dtype = result.fitness.dtype
+    start = (SE3.identity(dtype=dtype) if init is None else init).parameters().astype(dtype)
+    keep = lambda new, old: jnp.where(finite, new, old)
+    return result._replace(
+        transform=SE3._wrap(keep(result.transform.parameters(), start)),
+        fitness=keep(result.fitness, 0.0).astype(dtype),
+        inlier_rmse=keep(result.inlier_rmse, 0.0).astype(dtype),
+        iterations=keep(result.iterations, 0),
+        status=keep(result.status, Status.NONFINITE).astype(result.status.dtype),
+        correspondences=keep(result.correspondences, -1),
+    )
 
 
 def _level(source, source_mask, target, target_mask, voxel, concrete):

@@ -211,9 +211,9 @@ def _build_tree(points, valid, depth, size):
 
     def level(depth_here, carry):
         packed, split_axis, split_value = carry
-        l = depth_here.astype(jnp.uint32)
+        here = depth_here.astype(jnp.uint32)
         coords, ok = packed[:, :3], packed[:, 4] > 0
-        width = jnp.uint32(size) << (jnp.uint32(depth) - l)
+        width = jnp.uint32(size) << (jnp.uint32(depth) - here)
         segment = slot // width
         ids = segment.astype(jnp.int32)
         lo = jax.ops.segment_min(
@@ -235,10 +235,10 @@ def _build_tree(points, valid, depth, size):
         scale = jnp.where(span > 0, top / jnp.where(span > 0, span, 1.0), 0.0)
         quantized = jnp.clip(jnp.floor((coordinate - lo_axis) * scale), 0, top - 1)
         quantized = jnp.where(ok, quantized, top).astype(jnp.uint32)
-        position_bits = jnp.uint32(index_bits) - l
-        high = jnp.where(l > 0, segment << (jnp.uint32(key_bits) + position_bits), 0)
+        position_bits = jnp.uint32(index_bits) - here
+        high = jnp.where(here > 0, segment << (jnp.uint32(key_bits) + position_bits), 0)
         key = jnp.sort(high | (quantized << position_bits) | (slot - segment * width))
-        owner = jnp.where(l > 0, key >> (jnp.uint32(key_bits) + position_bits), 0)
+        owner = jnp.where(here > 0, key >> (jnp.uint32(key_bits) + position_bits), 0)
         position = key & ((jnp.uint32(1) << position_bits) - 1)
         packed = packed[(owner * width + position).astype(jnp.int32)]
         # The split: the last coordinate of the left half, if the right half has a valid point.
@@ -248,7 +248,7 @@ def _build_tree(points, valid, depth, size):
         value = jnp.where(
             packed[first_right, 4] > 0, _pick_axis(packed[last_left, :3], axis), jnp.inf
         )
-        count = jnp.uint32(1) << l
+        count = jnp.uint32(1) << here
         node = jnp.where(segment_ids < count, count - 1 + segment_ids, nodes).astype(jnp.int32)
         split_axis = split_axis.at[node].set(axis, mode="drop")
         split_value = split_value.at[node].set(value.astype(split_value.dtype), mode="drop")
@@ -322,17 +322,17 @@ def _beam(node_lo, node_hi, query_lo, query_hi, depth, width, own_leaf=None):
     candidates = jnp.full((m, width), -1, jnp.int32).at[:, 0].set(0)
     reach2 = jnp.full((m,), jnp.inf, node_lo.dtype)
 
-    def level(l, carry):
+    def level(here, carry):
         candidates, reach2 = carry
         children = jnp.concatenate([2 * candidates, 2 * candidates + 1], axis=1)
         children = jnp.where(jnp.concatenate([candidates, candidates], axis=1) >= 0, children, -1)
-        heap = jnp.where(children >= 0, (2 << l) - 1 + children, 0)
+        heap = jnp.where(children >= 0, (2 << here) - 1 + children, 0)
         d2 = _box_distance_squared(
             query_lo[:, None], query_hi[:, None], node_lo[heap], node_hi[heap]
         )
         d2 = jnp.where(children >= 0, d2, jnp.inf)
         if own_leaf is not None:
-            ancestor = own_leaf >> (depth - 1 - l)
+            ancestor = own_leaf >> (depth - 1 - here)
             d2 = jnp.where(children == ancestor[:, None], -1.0, d2)
         chosen, rest = _select_smallest(d2, width)
         kept = jnp.take_along_axis(children, chosen, axis=1)

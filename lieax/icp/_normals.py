@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 
 from . import _neighbors
-from ._checks import check_cloud, check_mask
+from ._checks import check_cloud, check_count, check_mask
 
 
 def estimate_normals(points, *, k=30, radius=None, mask=None, viewpoint=(0.0, 0.0, 0.0)):
@@ -31,8 +31,7 @@ def estimate_normals(points, *, k=30, radius=None, mask=None, viewpoint=(0.0, 0.
     """
     points = check_cloud(points, "points")
     mask = check_mask(mask, points, "mask")
-    if not isinstance(k, int) or k < 3:
-        raise ValueError(f"k must be an int of at least 3, got {k!r}.")
+    k = check_count(k, "k", minimum=3)
     view = None if viewpoint is None else jnp.asarray(viewpoint, points.dtype)
     return _estimate(
         points, mask, jnp.asarray(jnp.inf if radius is None else radius, points.dtype), view, k=k

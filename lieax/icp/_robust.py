@@ -16,8 +16,9 @@ KNOWN_LOSSES = (None, Huber, Cauchy, Tukey, GemanMcClure)
 
 def split_loss(loss):
     """`(dynamic, static)`: no loss and the `lieax.lstsq` losses become a traced `(kind, scale)`
-    pair, so that they share one compiled loop; any other object with a `weight(s)` method is
-    passed as a static argument (it must be hashable)."""
+    pair, so that they share one compiled loop (`lieax.icp._registration` checks a concrete scale;
+    a traced one that is not positive and finite ends the loop `INVALID`); any other object with
+    a `weight(s)` method is passed as a static argument (it must be hashable)."""
     if loss is None:
         return (0, 1.0), None
     if type(loss) in KNOWN_LOSSES:

@@ -26,6 +26,7 @@ import jax
 import jax.numpy as jnp
 
 from . import _grid, _host_kdtree, _neighbors
+from ._checks import check_parameter
 
 SEARCHES = ("auto", "graph", "grid", "kdtree", "brute")
 BRUTE_MAX_TARGET = 16384
@@ -80,8 +81,7 @@ def build_index(points, mask=None, *, search="graph", max_distance=None, **optio
     if search == "grid":
         if max_distance is None:
             raise ValueError("search='grid' needs max_distance (the cell size of the grid).")
-        if isinstance(max_distance, (int, float)) and not max_distance > 0:
-            raise ValueError(f"max_distance must be positive, got {max_distance}.")
+        check_parameter(max_distance, "max_distance", positive=True)
         return _grid.build_grid(points, mask, cell_size=max_distance, **options)
     if search == "kdtree":
         return _host_kdtree.build_kdtree(points, mask, **options)
@@ -210,10 +210,10 @@ def check_icp_search(search, target, max_distance):
             f"{target.shape[0]}: build it on this target."
         )
     if name == "grid":
-        cell, concrete = search.cell_size, not isinstance(search.cell_size, jax.core.Tracer)
-        if concrete and isinstance(max_distance, (int, float)) and float(cell) < max_distance:
+        concrete = not any(isinstance(x, jax.core.Tracer) for x in (search.cell_size, max_distance))
+        if concrete and float(search.cell_size) < float(max_distance):
             raise ValueError(
-                f"the prebuilt grid's cell size {float(cell):g} is below "
-                f"max_correspondence_distance={max_distance:g}: matches would not be exact."
+                f"the prebuilt grid's cell size {float(search.cell_size):g} is below "
+                f"max_correspondence_distance={float(max_distance):g}: matches would not be exact."
             )
     return name, search
