@@ -7,11 +7,13 @@ H_{a_s a_t} \\mathrel{+}= w_i A_{is}^\\top A_{it}, \\qquad
 g_{a_s} \\mathrel{+}= w_i A_{is}^\\top r_i,$$
 each a segment sum over the instances into the fixed slots of the `Layout` (the blocks of
 $J^\\top W J$ and $J^\\top W r$, Dellaert and Kaess, "Factor graphs for robot perception", 2017,
-Sec. 2.3). Fixed instances get an identity diagonal block, zero gradient and zero couplings, so
-their step is zero. `evaluate` computes $r_i$, $A_{is}$ and $w_i$ (the cost with them) and
-`assemble` the sums, so that the solver's cost evaluation of a trial point is, when the step is
-taken, the first half of its linearization; `cost` alone (no Jacobians) serves `FactorGraph.cost`
-and the implicit derivatives.
+Sec. 2.3); where an argument's instances collect long runs of terms (a camera's observations),
+$[H_{a_s a_s} \\mid g_{a_s}]$ is one chunked Gram sum `_gram.gram_sum` of $w_i A_{is}$ against
+$[A_{is} \\mid r_i]$ instead (`FactorPlan.grams`). Fixed instances get an identity diagonal
+block, zero gradient and zero couplings, so their step is zero. `evaluate` computes $r_i$,
+$A_{is}$ and $w_i$ (the cost with them) and `assemble` the sums, so that the solver's cost
+evaluation of a trial point is, when the step is taken, the first half of its linearization;
+`cost` alone (no Jacobians) serves `FactorGraph.cost` and the implicit derivatives.
 """
 
 import jax
@@ -19,6 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._factors import linearize_one, residual_one
+from ._gram import gram_sum
 from ._variables import instance
 
 
@@ -93,9 +96,15 @@ def assemble(layout, plans, parts):
     # pair of kinds, go into one segment sum each (fewer, larger scatters)
     per_kind = [([], []) for _ in layout.dims]
     per_pair = [([], []) for _ in keys]
+    summed = [[] for _ in layout.dims]
     for plan, (r, blocks, w) in zip(plans, parts):
         weighted = blocks if w is None else tuple(w[:, None, None] * b for b in blocks)
-        for s, (k, index) in enumerate(zip(plan.kinds, plan.indices)):
+        for s, (k, index, gram) in enumerate(zip(plan.kinds, plan.indices, plan.grams)):
+            if gram is not None:  # long runs: [A^T W A | A^T W r] by chunks
+                summed[k].append(
+                    gram_sum(gram, weighted[s], jnp.concatenate([blocks[s], r[..., None]], -1))
+                )
+                continue
             wt = jnp.swapaxes(weighted[s], 1, 2)
             both = jnp.concatenate([wt @ blocks[s], jnp.einsum("mab,mb->ma", wt, r)[..., None]], -1)
             per_kind[k][0].append(both)
@@ -111,9 +120,13 @@ def assemble(layout, plans, parts):
             per_pair[j][1].append(slots)
     for k, (pieces, indices) in enumerate(per_kind):
         if pieces:
-            both = jax.ops.segment_sum(
-                jnp.concatenate(pieces), np.concatenate(indices), layout.counts[k]
+            summed[k].append(
+                jax.ops.segment_sum(
+                    jnp.concatenate(pieces), np.concatenate(indices), layout.counts[k]
+                )
             )
+        if summed[k]:
+            both = sum(summed[k][1:], summed[k][0])
             diag[k], grad[k] = both[..., :-1], both[..., -1]
     for j, (pieces, slots) in enumerate(per_pair):
         off[j] = jax.ops.segment_sum(

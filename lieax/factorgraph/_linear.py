@@ -13,13 +13,16 @@ A system is `(diag, off, rhs)`: per variable kind `diag[k]` `(n_k, d_k, d_k)` an
   $S\\,\\delta_r = b_r - H_{re} H_{ee}^{-1} b_e$ (solved by any of the three), then
   $\\delta_e = H_{ee}^{-1}(b_e - H_{er}\\,\\delta_r)$ block by block (Triggs et al., "Bundle
   adjustment — a modern synthesis", 2000, Sec. 6.1; Ceres' `DENSE_SCHUR` / `SPARSE_SCHUR` /
-  `ITERATIVE_SCHUR`, the last here without the implicit products).
+  `ITERATIVE_SCHUR`, the last here without the implicit products). The sums of products
+  $H_{re} H_{ee}^{-1} H_{er}$ are chunked Gram sums (`_gram`), $H_{ee}^{-1}$ of 3×3 blocks (points)
+  is closed form (`spd_inverse`).
 """
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._gram import gram_sum
 from ._sparse import cholesky_solve, dense_solve, pcg
 
 
@@ -74,32 +77,59 @@ def _t(a):
     return jnp.swapaxes(a, -1, -2)
 
 
+def spd_inverse(a):
+    """The inverses of a batch `(n, d, d)` of symmetric positive definite blocks; NaN where a
+    block is not positive definite. For $d = 3$ in closed form (Cramer's rule),
+    $A^{-1} = \\operatorname{adj}(A) / \\det A$ with the cofactors
+    $c_{00} = a_{11}a_{22} - a_{12}^2$, $c_{01} = a_{02}a_{12} - a_{01}a_{22}$,
+    $c_{02} = a_{01}a_{12} - a_{02}a_{11}$, $c_{11} = a_{00}a_{22} - a_{02}^2$,
+    $c_{12} = a_{01}a_{02} - a_{00}a_{12}$, $c_{22} = a_{00}a_{11} - a_{01}^2$ and
+    $\\det A = a_{00}c_{00} + a_{01}c_{01} + a_{02}c_{02}$, positive definite when $a_{00}$,
+    $c_{22}$ and $\\det A$ are positive (Sylvester's criterion; Horn and Johnson, "Matrix
+    analysis", Sec. 0.8.2 and Thm. 7.2.5); other sizes through the Cholesky factor."""
+    d = a.shape[-1]
+    if d != 3:
+        chol = jnp.linalg.cholesky(a)
+        eye = jnp.broadcast_to(jnp.eye(d, dtype=a.dtype), a.shape)
+        return jax.scipy.linalg.cho_solve((chol, True), eye)
+    a00, a01, a02 = a[:, 0, 0], a[:, 0, 1], a[:, 0, 2]
+    a11, a12, a22 = a[:, 1, 1], a[:, 1, 2], a[:, 2, 2]
+    c00, c01, c02 = a11 * a22 - a12 * a12, a02 * a12 - a01 * a22, a01 * a12 - a02 * a11
+    c11, c12, c22 = a00 * a22 - a02 * a02, a01 * a02 - a00 * a12, a00 * a11 - a01 * a01
+    det = a00 * c00 + a01 * c01 + a02 * c02
+    scale = jnp.where((a00 > 0) & (c22 > 0) & (det > 0), 1 / det, jnp.nan)
+    rows = [[c00, c01, c02], [c01, c11, c12], [c02, c12, c22]]
+    return jnp.stack([jnp.stack(row, -1) for row in rows], -2) * scale[:, None, None]
+
+
 def schur_solve(layout, plan, method, diag, off, rhs, **options):
-    """$H^{-1}$ `rhs` by eliminating `plan.eliminated` (a `SchurPlan` of `layout`)."""
+    """$H^{-1}$ `rhs` by eliminating `plan.eliminated` (a `SchurPlan` of `layout`). The sums of
+    products $B_u H_{pp}^{-1} B_v^\\top$ are `gram_sum`s over the plan's chunks of links, with
+    the transposed blocks $B_u^\\top$ `(d_e, d_r)` and $Q_p B_u^\\top$, $Q_p = H_{pp}^{-1}$."""
     e = plan.eliminated
     keys = list(layout.pairs)
     n_e = layout.counts[e]
-    eye = jnp.eye(layout.dims[e], dtype=diag[e].dtype)
-    chol = jnp.linalg.cholesky(diag[e])
-    q = jax.scipy.linalg.cho_solve((chol, True), jnp.broadcast_to(eye, diag[e].shape))
+    q = spd_inverse(diag[e])
     b_e = rhs[e]
-    # B_u = H_{r p} (d_r, d_e) of each link u, and B_u Q_p
-    blocks, bq = {}, {}
+    # B_u^T = H_{p r} (d_e, d_r) of each link u, and Q_p B_u^T
+    bt, qbt = {}, {}
     for r, (key, _, _, point, transposed) in plan.links.items():
         block = off[keys.index(key)]
-        blocks[r] = _t(block) if transposed else block
-        bq[r] = blocks[r] @ q[point]
+        bt[r] = block if transposed else _t(block)
+        qbt[r] = q[point] @ bt[r]
     red = plan.layout
     red_keys = list(red.pairs)
     new = {k: j for j, k in enumerate(plan.kept)}
     s_diag = [diag[k] for k in plan.kept]
     s_rhs = [rhs[k] for k in plan.kept]
-    for r, (_, _, inst, point, _) in plan.links.items():
+    for r, (_, _, _, point, _) in plan.links.items():
         j = new[r]
-        s_diag[j] = s_diag[j] - jax.ops.segment_sum(bq[r] @ _t(blocks[r]), inst, red.counts[j])
-        s_rhs[j] = s_rhs[j] - jax.ops.segment_sum(
-            jnp.einsum("kab,kb->ka", bq[r], b_e[point]), inst, red.counts[j]
+        # [B Q B^T | B Q b_e] in one sum
+        both = gram_sum(
+            plan.diagonal[r], qbt[r], jnp.concatenate([bt[r], b_e[point][..., None]], -1)
         )
+        s_diag[j] = s_diag[j] - both[..., :-1]
+        s_rhs[j] = s_rhs[j] - both[..., -1]
     s_off = [
         jnp.zeros((len(red.pairs[key][0]), red.dims[key[0]], red.dims[key[1]]), diag[0].dtype)
         for key in red_keys
@@ -107,16 +137,16 @@ def schur_solve(layout, plan, method, diag, off, rhs, **options):
     for key, (rkey, slots) in plan.original.items():
         j = red_keys.index(rkey)
         s_off[j] = s_off[j].at[slots].add(off[keys.index(key)])
-    for r1, r2, u, v, rkey, slots in plan.fill:
+    for r1, r2, rkey, fill in plan.fill:
         j = red_keys.index(rkey)
-        s_off[j] = s_off[j].at[slots].add(-(bq[r1][u] @ _t(blocks[r2][v])))
+        s_off[j] = s_off[j] - gram_sum(fill, qbt[r1], bt[r2])
     free = [jnp.asarray(red.pair_free[key]) for key in red_keys]
     s_off = [jnp.where(f[:, None, None], o, 0.0) for f, o in zip(free, s_off)]
     x_kept = solve_system(red, method, tuple(s_diag), tuple(s_off), tuple(s_rhs), **options)
     back = b_e
     for r, (_, _, inst, point, _) in plan.links.items():
         back = back - jax.ops.segment_sum(
-            jnp.einsum("kba,kb->ka", blocks[r], x_kept[new[r]][inst]), point, n_e
+            jnp.einsum("kab,kb->ka", bt[r], x_kept[new[r]][inst]), point, n_e
         )
     x_e = jnp.einsum("kab,kb->ka", q, back)
     x = [None] * len(layout.dims)

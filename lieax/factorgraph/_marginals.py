@@ -10,8 +10,8 @@ multifrontal `CholeskyPlan` and solve for the unit right-hand sides of the reque
 
 import numpy as np
 
-from ._sparse import dense_matrix
 from ._linear import to_padded
+from ._sparse import dense_matrix
 
 _DENSE_LIMIT = 2000
 
