@@ -414,3 +414,23 @@ def test_float32_trees_keep_their_dtype():
     for mode in ("fwd", "rev"):
         jac = jax.eval_shape(lieax.jacobian(f, mode=mode), tree)
         assert jac["pose"].dtype == jnp.float32 and jac["v"].dtype == jnp.float32
+
+
+@pytest.mark.parametrize("mode", ["fwd", "rev"])
+def test_jacobian_of_a_function_that_changes_dtype(mode):
+    """A float32 input with a float64 output (issue 17: JAX's internal "tangent values
+    inconsistent with the primal" error before): each leaf is seeded and read in its own dtype."""
+    rotation = lieax.SO3.exp(jnp.array([0.1, -0.2, 0.3], jnp.float32))
+
+    def widened_log(r, v):
+        return lieax.SO3(r.parameters().astype(jnp.float64)).log() + v.astype(jnp.float64)
+
+    J_r, J_v = lieax.jacobian(widened_log, argnums=(0, 1), mode=mode)(
+        rotation, jnp.ones(3, jnp.float32)
+    )
+    assert J_r.dtype == J_v.dtype == jnp.float64
+    reference = lieax.jacobian(lambda r: r.log(), mode=mode)(
+        lieax.SO3(rotation.parameters().astype(jnp.float64))
+    )
+    np.testing.assert_allclose(J_r, reference, atol=1e-6)
+    np.testing.assert_allclose(J_v, np.eye(3), atol=0)

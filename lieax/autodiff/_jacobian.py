@@ -62,6 +62,8 @@ def value_and_jacobian(f, argnums=0, *, has_aux=False, mode="auto"):
         out_shapes = [leaf_tangent_shape(leaf) for leaf in out_leaves]
         in_size = sum(math.prod(s) for s in in_shapes)
         out_size = sum(math.prod(s) for s in out_shapes)
+        # seeds and read-outs in each leaf's own dtype (a float32 input may give a float64
+        # output), the Jacobian in the widest
         dtype = jnp.result_type(*primals, *(leaf_array(leaf) for leaf in out_leaves))
 
         use_reverse = mode == "rev" or (mode == "auto" and out_size < in_size)
@@ -70,11 +72,14 @@ def value_and_jacobian(f, argnums=0, *, has_aux=False, mode="auto"):
 
             def pull(cotangent):
                 pieces = _split(cotangent, out_shapes)
-                seeds = [_transpose_local_from_tangent(y, c) for y, c in zip(out_leaves, pieces)]
+                seeds = [
+                    _transpose_local_from_tangent(y, c.astype(leaf_array(y).dtype))
+                    for y, c in zip(out_leaves, pieces)
+                ]
                 pulled = transposed(seeds)
                 return jnp.concatenate(
                     [
-                        jnp.ravel(_transpose_tangent_from_local(x, a))
+                        jnp.ravel(_transpose_tangent_from_local(x, a)).astype(dtype)
                         for x, a in zip(in_leaves, pulled)
                     ]
                 )
@@ -85,7 +90,10 @@ def value_and_jacobian(f, argnums=0, *, has_aux=False, mode="auto"):
 
             def push(direction):
                 pieces = _split(direction, in_shapes)
-                seeds = [leaf_tangent_from_local(x, d) for x, d in zip(in_leaves, pieces)]
+                seeds = [
+                    leaf_tangent_from_local(x, d.astype(leaf_array(x).dtype))
+                    for x, d in zip(in_leaves, pieces)
+                ]
                 pushed = linear(*seeds)
                 # one array per output leaf, never concatenated: a leaf sharded along its rows
                 # (lieax.sharding.shard_residuals) keeps its sharding, and none is copied
