@@ -40,7 +40,7 @@ from .autodiff import (
     with_inverse_derivative,
     zero_tangents,
 )
-from .groups import S2, SE2, SE3, SO2, SO3, AbstractGroup, AbstractManifold, Sim3
+from .groups import S2, SE2, SE3, SE23, SO2, SO3, AbstractGroup, AbstractManifold, Sim3
 from .io import read_pcd, read_ply, read_point_cloud, write_pcd, write_ply
 
 __version__ = _version("lieax")
@@ -51,6 +51,7 @@ __all__ = [
     "S2",
     "SE2",
     "SE3",
+    "SE23",
     "SO2",
     "SO3",
     "Sim3",

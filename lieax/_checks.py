@@ -1,5 +1,6 @@
 """Trace-time checks of shapes and dtypes, with errors that name what was expected."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -43,3 +44,64 @@ def broadcast_batch(what: str, *shapes) -> tuple:
     except ValueError:
         listed = " and ".join(str(tuple(s)) for s in shapes)
         raise ValueError(f"{what}: batch shapes {listed} do not broadcast.") from None
+
+
+def states_dtype(x) -> bool:
+    """Whether `x` fixes a dtype: JAX arrays and NumPy arrays do; Python numbers and sequences,
+    NumPy scalars, 0-d NumPy arrays and weakly typed JAX values (a Python number passed through
+    `jit`) do not."""
+    if isinstance(x, np.ndarray):
+        return x.ndim > 0
+    if isinstance(x, jax.Array):  # tracers included
+        return not jax.typeof(x).weak_type
+    return False
+
+
+def match_dtype(x, dtype, what: str, owner: str) -> jnp.ndarray:
+    """`x` as a float array of `dtype` (the dtype of `owner`, a group or array named in errors): a
+    value that states no dtype (`states_dtype`) takes it; an array of another float dtype is a
+    `TypeError` naming both dtypes (JAX would promote it, and differentiating the promoted result
+    with respect to the narrower input fails inside JAX)."""
+    array = as_float_array(x, what)
+    if array.dtype == dtype:
+        return array
+    if not states_dtype(x):
+        return array.astype(dtype)
+    raise TypeError(
+        f"{what} has dtype {array.dtype} but {owner} has dtype {jnp.dtype(dtype)}; "
+        f"cast one of them (for example `jnp.asarray(x, {jnp.dtype(dtype)})`)."
+    )
+
+
+def common_float_arrays(what: str, *values) -> list:
+    """`values` as float arrays of one dtype: that of the arguments that state a dtype
+    (`states_dtype`; they must agree, else a `TypeError` naming the dtypes), the others taking it;
+    the default float when none does."""
+    stated = sorted({str(as_float_array(v, what).dtype) for v in values if states_dtype(v)})
+    if len(stated) > 1:
+        raise TypeError(f"{what}: arguments of different dtypes {' and '.join(stated)}.")
+    dtype = stated[0] if stated else jnp.result_type(float)
+    return [as_float_array(v, what).astype(dtype) for v in values]
+
+
+def check_positive(x, what: str) -> None:
+    """A `ValueError` naming `what` if a concrete `x` has an entry that is not positive and finite
+    (nonpositive, infinite or NaN); traced values are not checked (see the caller's docstring)."""
+    if isinstance(x, jax.core.Tracer):
+        return
+    values = np.asarray(x)
+    bad = ~(np.isfinite(values) & (values > 0))
+    if np.any(bad):
+        raise ValueError(
+            f"{what} must be positive and finite, got {values[bad].ravel()[0]!r}"
+            f"{f' (and {int(bad.sum()) - 1} more)' if bad.sum() > 1 else ''}."
+        )
+
+
+def check_same_dtype(what: str, dtype, other_dtype) -> None:
+    """A `TypeError` naming `what` and both dtypes unless they are the same."""
+    if jnp.dtype(dtype) != jnp.dtype(other_dtype):
+        raise TypeError(
+            f"{what}: dtypes {jnp.dtype(dtype)} and {jnp.dtype(other_dtype)} differ; cast one of "
+            f"them (for example with `type(X)(X.parameters().astype(...))`)."
+        )

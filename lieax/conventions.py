@@ -1,21 +1,23 @@
-"""Converters between lieax's conventions and those of GTSAM, Ceres, ROS and SciPy.
+r"""Converters between lieax's conventions and those of GTSAM, Ceres, ROS and SciPy.
 
-lieax (see the README's "Conventions"): right perturbation $X \\oplus \\xi = X\\,\\mathrm{Exp}(\\xi)$;
-quaternions wxyz; tangents translation first: SE3 $(v, \\omega)$, Sim3 $(v, \\omega, \\sigma)$ with
-$T = [e^\\sigma R, t; 0, 1]$; S2 tangents in the smooth basis of `lieax.S2.basis`.
+lieax (see the README's "Conventions"): right perturbation $X \oplus \xi = X\,\mathrm{Exp}(\xi)$;
+quaternions wxyz; tangents translation first: SE3 $(v, \omega)$, Sim3 $(v, \omega, \sigma)$ with
+$T = [e^\sigma R, t; 0, 1]$; S2 tangents in the smooth basis of `lieax.S2.basis`.
 
 | other library | what differs | converters here |
 |---|---|---|
-| GTSAM `Pose3` | tangent $(\\omega, v)$, rotation first (Jacobians `H` permuted alike) | `se3_tangent_to_gtsam`, `se3_tangent_from_gtsam`, `se3_jacobian_to_gtsam`, `se3_jacobian_from_gtsam` |
-| GTSAM `Similarity3` | tangent $(\\omega, v, \\lambda)$; matrix $[R, t_g; 0, 1/s]$, i.e. $t_g = t / s$ | `sim3_tangent_*`, `sim3_jacobian_*`, `sim3_to_gtsam`, `sim3_from_gtsam` |
+| GTSAM `Pose3` | tangent $(\omega, v)$, rotation first (Jacobians `H` permuted alike) | `se3_tangent_to_gtsam`, `se3_tangent_from_gtsam`, `se3_jacobian_to_gtsam`, `se3_jacobian_from_gtsam` |
+| GTSAM `Similarity3` | tangent $(\omega, v, \lambda)$; matrix $[R, t_g; 0, 1/s]$, i.e. $t_g = t / s$ | `sim3_tangent_*`, `sim3_jacobian_*`, `sim3_to_gtsam`, `sim3_from_gtsam` |
+| GTSAM `NavState` (SE23) | tangent $(\delta R, \delta p, \delta v)$, rotation first; lieax's is $(\rho_p, \omega, \rho_v)$ (manif's `SE_2_3`) | `se23_tangent_to_gtsam`, `se23_tangent_from_gtsam`, `se23_jacobian_to_gtsam`, `se23_jacobian_from_gtsam` |
 | GTSAM `Unit3` | tangent basis from the axis of the smallest component (and an exponential-map retraction) | `s2_gtsam_basis`, `s2_tangent_to_gtsam`, `s2_tangent_from_gtsam`, `s2_jacobian_to_gtsam` |
-| GTSAM `localCoordinates` | `X.localCoordinates(Y)` is $Y \\ominus X$ | `gtsam_local_coordinates` |
-| left perturbation (e.g. Barfoot, Ceres' quaternions) | $\\mathrm{Exp}(\\xi_L) X = X \\mathrm{Exp}(\\xi_R)$, so $\\xi_L = \\mathrm{Ad}_X \\xi_R$ | `left_from_right_tangent`, `right_from_left_tangent`, `left_from_right_jacobian`, `right_from_left_jacobian` |
-| Ceres `QuaternionManifold` | $x \\boxplus \\delta = [\\cos|\\delta|, \\tfrac{\\sin|\\delta|}{|\\delta|}\\delta] \\otimes x$: left, half angle ($\\omega_L = 2\\delta$), wxyz; `EigenQuaternionManifold` the same in xyzw | `ceres_quaternion_plus`, `ceres_quaternion_minus`, `ceres_quaternion_plus_jacobian`, `tangent_from_ceres_delta`, `tangent_to_ceres_delta`, `jacobian_from_ceres_delta`, `jacobian_to_ceres_delta` |
+| GTSAM `localCoordinates` | `X.localCoordinates(Y)` is $Y \ominus X$ | `gtsam_local_coordinates` |
+| GTSAM `PreintegratedImuMeasurements`, `ImuFactor` (`lieax.imu`) | none in the preintegrated vector, `preintMeasCov`, the bias Jacobians and the factor's residual: all $(\theta, \Delta p, \Delta v)$, biases $(b_a, b_g)$ as `ConstantBias.vector()`; the residual is `ImuFactorErrorMode.ComponentWise`'s (`Logmap`, the 4.3 default for fresh parameters, is $\mathrm{Log}_{SE_2(3)}(x_j^{-1}\hat x_j)$); the pose Jacobians' columns are Pose3's $(\omega, v)$ | `se3_jacobian_from_gtsam(H, rows=False)` for `H1`, `H3`; `H2`, `H4`, `H5` as they are |
+| left perturbation (e.g. Barfoot, Ceres' quaternions) | $\mathrm{Exp}(\xi_L) X = X \mathrm{Exp}(\xi_R)$, so $\xi_L = \mathrm{Ad}_X \xi_R$ | `left_from_right_tangent`, `right_from_left_tangent`, `left_from_right_jacobian`, `right_from_left_jacobian` |
+| Ceres `QuaternionManifold` | $x \boxplus \delta = [\cos|\delta|, \tfrac{\sin|\delta|}{|\delta|}\delta] \otimes x$: left, half angle ($\omega_L = 2\delta$), wxyz; `EigenQuaternionManifold` the same in xyzw | `ceres_quaternion_plus`, `ceres_quaternion_minus`, `ceres_quaternion_plus_jacobian`, `tangent_from_ceres_delta`, `tangent_to_ceres_delta`, `jacobian_from_ceres_delta`, `jacobian_to_ceres_delta` |
 | SciPy, ROS, Eigen `coeffs()` | quaternion xyzw; ROS/TUM poses `(x, y, z, qx, qy, qz, qw)` | `wxyz_to_xyzw`, `xyzw_to_wxyz`, `se3_from_xyz_xyzw`, `se3_to_xyz_xyzw` |
 
 Jacobians follow lieax's layout: `J` of shape `(out_dim, in_dim)` (or batched `(*batch, out, in)`),
-with $f(X \\oplus \\delta) \\ominus f(X) \\approx J \\delta$.
+with $f(X \oplus \delta) \ominus f(X) \approx J \delta$.
 """
 
 import jax.numpy as jnp
@@ -44,6 +46,10 @@ __all__ = [
     "s2_jacobian_to_gtsam",
     "s2_tangent_from_gtsam",
     "s2_tangent_to_gtsam",
+    "se23_jacobian_from_gtsam",
+    "se23_jacobian_to_gtsam",
+    "se23_tangent_from_gtsam",
+    "se23_tangent_to_gtsam",
     "se3_from_xyz_xyzw",
     "se3_jacobian_from_gtsam",
     "se3_jacobian_to_gtsam",
@@ -66,6 +72,7 @@ __all__ = [
 
 _SE3_TO_GTSAM = np.array([3, 4, 5, 0, 1, 2])  # gtsam (ω, v)[i] = lieax (v, ω)[_SE3_TO_GTSAM[i]]
 _SIM3_TO_GTSAM = np.array([3, 4, 5, 0, 1, 2, 6])  # gtsam (ω, v, λ) from lieax (v, ω, σ)
+_SE23_TO_GTSAM = np.array([3, 4, 5, 0, 1, 2, 6, 7, 8])  # gtsam (ω, p, v) from lieax (p, ω, v)
 _SE3_FROM_GTSAM = np.argsort(_SE3_TO_GTSAM)
 _SIM3_FROM_GTSAM = np.argsort(_SIM3_TO_GTSAM)
 
@@ -88,18 +95,18 @@ def _permute_jacobian(jacobian, order, rows, cols, size):
 
 
 def se3_tangent_to_gtsam(xi):
-    """lieax SE3 tangent $(v, \\omega)$ to GTSAM's `Pose3` tangent $(\\omega, v)$; shape `(*batch, 6)`."""
+    r"""lieax SE3 tangent $(v, \omega)$ to GTSAM's `Pose3` tangent $(\omega, v)$; shape `(*batch, 6)`."""
     return check_last_axis(xi, 6, "SE3 tangent")[..., _SE3_TO_GTSAM]
 
 
 def se3_tangent_from_gtsam(xi_gtsam):
-    """GTSAM `Pose3` tangent $(\\omega, v)$ to lieax's $(v, \\omega)$."""
+    r"""GTSAM `Pose3` tangent $(\omega, v)$ to lieax's $(v, \omega)$."""
     return check_last_axis(xi_gtsam, 6, "GTSAM Pose3 tangent")[..., _SE3_FROM_GTSAM]
 
 
 def se3_jacobian_to_gtsam(jacobian, *, rows=True, cols=True):
-    """A lieax Jacobian to GTSAM's `H`: rows permuted when the output is an SE3 tangent, columns
-    when the input is ($H = P J P^\\top$, $P$ the block swap). Set `rows=False` for vector outputs
+    r"""A lieax Jacobian to GTSAM's `H`: rows permuted when the output is an SE3 tangent, columns
+    when the input is ($H = P J P^\top$, $P$ the block swap). Set `rows=False` for vector outputs
     (e.g. `transformFrom`'s `Hself` is `J` with permuted columns only)."""
     return _permute_jacobian(jacobian, _SE3_TO_GTSAM, rows, cols, 6)
 
@@ -110,14 +117,14 @@ def se3_jacobian_from_gtsam(jacobian, *, rows=True, cols=True):
 
 
 def sim3_tangent_to_gtsam(xi):
-    """lieax Sim3 tangent $(v, \\omega, \\sigma)$ to GTSAM's `Similarity3` tangent $(\\omega, v, \\lambda)$
-    ($\\lambda = \\sigma$: GTSAM's algebra element $[[\\omega]_\\times, v; 0, -\\lambda]$ is lieax's
-    $[[\\omega]_\\times + \\sigma I, v; 0, 0]$ minus $\\sigma I_4$, the same projective transform)."""
+    r"""lieax Sim3 tangent $(v, \omega, \sigma)$ to GTSAM's `Similarity3` tangent $(\omega, v, \lambda)$
+    ($\lambda = \sigma$: GTSAM's algebra element $[[\omega]_\times, v; 0, -\lambda]$ is lieax's
+    $[[\omega]_\times + \sigma I, v; 0, 0]$ minus $\sigma I_4$, the same projective transform)."""
     return check_last_axis(xi, 7, "Sim3 tangent")[..., _SIM3_TO_GTSAM]
 
 
 def sim3_tangent_from_gtsam(xi_gtsam):
-    """GTSAM `Similarity3` tangent $(\\omega, v, \\lambda)$ to lieax's $(v, \\omega, \\sigma)$."""
+    r"""GTSAM `Similarity3` tangent $(\omega, v, \lambda)$ to lieax's $(v, \omega, \sigma)$."""
     return check_last_axis(xi_gtsam, 7, "GTSAM Similarity3 tangent")[..., _SIM3_FROM_GTSAM]
 
 
@@ -131,9 +138,32 @@ def sim3_jacobian_from_gtsam(jacobian, *, rows=True, cols=True):
     return _permute_jacobian(jacobian, _SIM3_FROM_GTSAM, rows, cols, 7)
 
 
+def se23_tangent_to_gtsam(xi):
+    r"""lieax SE23 tangent $(\rho_p, \omega, \rho_v)$ to GTSAM's `NavState` tangent
+    $(\delta R, \delta p, \delta v)$; shape `(*batch, 9)`."""
+    return check_last_axis(xi, 9, "SE23 tangent")[..., _SE23_TO_GTSAM]
+
+
+def se23_tangent_from_gtsam(xi_gtsam):
+    r"""GTSAM `NavState` tangent $(\delta R, \delta p, \delta v)$ to lieax's $(\rho_p, \omega, \rho_v)$
+    (the permutation is its own inverse)."""
+    return check_last_axis(xi_gtsam, 9, "GTSAM NavState tangent")[..., _SE23_TO_GTSAM]
+
+
+def se23_jacobian_to_gtsam(jacobian, *, rows=True, cols=True):
+    """A lieax Jacobian with SE23 tangents to GTSAM's `NavState` ordering (see
+    `se3_jacobian_to_gtsam`)."""
+    return _permute_jacobian(jacobian, _SE23_TO_GTSAM, rows, cols, 9)
+
+
+def se23_jacobian_from_gtsam(jacobian, *, rows=True, cols=True):
+    """GTSAM's `NavState` Jacobian ordering to lieax's."""
+    return _permute_jacobian(jacobian, _SE23_TO_GTSAM, rows, cols, 9)
+
+
 def sim3_to_gtsam(transform: Sim3):
-    """`(R, t_gtsam, s)` for `gtsam.Similarity3(R, t_gtsam, s)`: GTSAM stores
-    $[R, t_g; 0, 1/s]$ and maps $p \\mapsto s(Rp + t_g)$, so $t_g = t / s$."""
+    r"""`(R, t_gtsam, s)` for `gtsam.Similarity3(R, t_gtsam, s)`: GTSAM stores
+    $[R, t_g; 0, 1/s]$ and maps $p \mapsto s(Rp + t_g)$, so $t_g = t / s$."""
     if not isinstance(transform, Sim3):
         raise TypeError(f"sim3_to_gtsam needs a Sim3, got {type(transform).__name__}.")
     scale = transform.scale()
@@ -141,8 +171,8 @@ def sim3_to_gtsam(transform: Sim3):
 
 
 def sim3_from_gtsam(rotation_matrix, translation_gtsam, scale):
-    """The Sim3 of GTSAM's `Similarity3(R, t_gtsam, s)` (`.rotation().matrix()`, `.translation()`,
-    `.scale()`): $t = s\\,t_g$."""
+    r"""The Sim3 of GTSAM's `Similarity3(R, t_gtsam, s)` (`.rotation().matrix()`, `.translation()`,
+    `.scale()`): $t = s\,t_g$."""
     scale = as_float_array(scale, "scale")
     rotation = SO3.from_matrix(rotation_matrix)
     translation = scale[..., None] * check_last_axis(translation_gtsam, 3, "GTSAM translation")
@@ -150,7 +180,7 @@ def sim3_from_gtsam(rotation_matrix, translation_gtsam, scale):
 
 
 def gtsam_local_coordinates(x, y):
-    """GTSAM's `x.localCoordinates(y)`, that is $y \\ominus x$ = `y.rminus(x)` in lieax's order (in
+    r"""GTSAM's `x.localCoordinates(y)`, that is $y \ominus x$ = `y.rminus(x)` in lieax's order (in
     lieax's tangent ordering; convert with the `*_tangent_to_gtsam` functions)."""
     return y.rminus(x)
 
@@ -159,7 +189,7 @@ def gtsam_local_coordinates(x, y):
 
 
 def s2_gtsam_basis(p):
-    """GTSAM's `Unit3::basis()`: $b_1 = p \\times a / |p \\times a|$, $b_2 = p \\times b_1 / |p \\times b_1|$,
+    r"""GTSAM's `Unit3::basis()`: $b_1 = p \times a / |p \times a|$, $b_2 = p \times b_1 / |p \times b_1|$,
     with $a$ the axis of the smallest $|p_i|$ (x on ties, then y); shape `(*batch, 3, 2)`.
     Deterministic, smooth inside each region, discontinuous where the smallest component changes."""
     p = check_last_axis(p, 3, "S2 direction")
@@ -177,28 +207,28 @@ def s2_gtsam_basis(p):
 
 
 def _s2_rotation(p):
-    """$C_p = B_{p,\\mathrm{lieax}}^\\top B_{p,\\mathrm{gtsam}}$ (2×2, orthogonal): $\\xi_{lieax} = C_p \\xi_{gtsam}$."""
+    r"""$C_p = B_{p,\mathrm{lieax}}^\top B_{p,\mathrm{gtsam}}$ (2×2, orthogonal): $\xi_{lieax} = C_p \xi_{gtsam}$."""
     return jnp.swapaxes(s2.basis(p), -1, -2) @ s2_gtsam_basis(p)
 
 
 def s2_tangent_to_gtsam(direction, xi):
-    """lieax S2 tangent coordinates at `direction` (an `S2` or unit vectors) to GTSAM `Unit3`'s:
-    $\\xi_g = C_p^\\top \\xi$ (both bases span the tangent plane, so they differ by a 2×2 rotation
+    r"""lieax S2 tangent coordinates at `direction` (an `S2` or unit vectors) to GTSAM `Unit3`'s:
+    $\xi_g = C_p^\top \xi$ (both bases span the tangent plane, so they differ by a 2×2 rotation
     or reflection $C_p$)."""
     p = direction.parameters() if isinstance(direction, s2.S2) else direction
     return matvec(jnp.swapaxes(_s2_rotation(p), -1, -2), check_last_axis(xi, 2, "S2 tangent"))
 
 
 def s2_tangent_from_gtsam(direction, xi_gtsam):
-    """GTSAM `Unit3` tangent coordinates at `direction` to lieax's: $\\xi = C_p \\xi_g$."""
+    r"""GTSAM `Unit3` tangent coordinates at `direction` to lieax's: $\xi = C_p \xi_g$."""
     p = direction.parameters() if isinstance(direction, s2.S2) else direction
     return matvec(_s2_rotation(p), check_last_axis(xi_gtsam, 2, "Unit3 tangent"))
 
 
 def s2_jacobian_to_gtsam(jacobian, *, row_direction=None, col_direction=None):
-    """A lieax Jacobian with S2 output tangent at `row_direction` and/or S2 input tangent at
+    r"""A lieax Jacobian with S2 output tangent at `row_direction` and/or S2 input tangent at
     `col_direction` (each an `S2` or `None` when that side is not an S2) to GTSAM's `Unit3`
-    bases: $H = C_{out}^\\top J C_{in}$. Valid at the linearization point, where GTSAM's
+    bases: $H = C_{out}^\top J C_{in}$. Valid at the linearization point, where GTSAM's
     exponential retraction and lieax's normalizing one agree to first order."""
     jacobian = as_float_array(jacobian, "jacobian")
     if row_direction is not None:
@@ -212,18 +242,18 @@ def s2_jacobian_to_gtsam(jacobian, *, row_direction=None, col_direction=None):
 
 
 def left_from_right_tangent(element, xi_right):
-    """$\\xi_L = \\mathrm{Ad}_X \\xi_R$, so that $\\mathrm{Exp}(\\xi_L)\\,X = X\\,\\mathrm{Exp}(\\xi_R)$."""
+    r"""$\xi_L = \mathrm{Ad}_X \xi_R$, so that $\mathrm{Exp}(\xi_L)\,X = X\,\mathrm{Exp}(\xi_R)$."""
     return matvec(element.adjoint(), xi_right)
 
 
 def right_from_left_tangent(element, xi_left):
-    """$\\xi_R = \\mathrm{Ad}_X^{-1} \\xi_L = \\mathrm{Ad}_{X^{-1}} \\xi_L$."""
+    r"""$\xi_R = \mathrm{Ad}_X^{-1} \xi_L = \mathrm{Ad}_{X^{-1}} \xi_L$."""
     return matvec(element.inverse().adjoint(), xi_left)
 
 
 def left_from_right_jacobian(jacobian, *, at=None, value=None):
-    """The Jacobian for left perturbations, $f(\\mathrm{Exp}(\\delta) X) \\approx \\mathrm{Exp}(J_L\\delta) f(X)$,
-    from lieax's right one: $J_L = \\mathrm{Ad}_{f(X)}\\,J_R\\,\\mathrm{Ad}_X^{-1}$. `at` is $X$ (a group
+    r"""The Jacobian for left perturbations, $f(\mathrm{Exp}(\delta) X) \approx \mathrm{Exp}(J_L\delta) f(X)$,
+    from lieax's right one: $J_L = \mathrm{Ad}_{f(X)}\,J_R\,\mathrm{Ad}_X^{-1}$. `at` is $X$ (a group
     element, or `None` for a vector input) and `value` is $f(X)$ (`None` for a vector output)."""
     jacobian = as_float_array(jacobian, "jacobian")
     if value is not None:
@@ -234,7 +264,7 @@ def left_from_right_jacobian(jacobian, *, at=None, value=None):
 
 
 def right_from_left_jacobian(jacobian, *, at=None, value=None):
-    """lieax's (right) Jacobian from a left one: $J_R = \\mathrm{Ad}_{f(X)}^{-1}\\,J_L\\,\\mathrm{Ad}_X$."""
+    r"""lieax's (right) Jacobian from a left one: $J_R = \mathrm{Ad}_{f(X)}^{-1}\,J_L\,\mathrm{Ad}_X$."""
     jacobian = as_float_array(jacobian, "jacobian")
     if value is not None:
         jacobian = value.inverse().adjoint() @ jacobian
@@ -247,8 +277,8 @@ def right_from_left_jacobian(jacobian, *, at=None, value=None):
 
 
 def ceres_quaternion_plus(q, delta):
-    """Ceres' `QuaternionManifold::Plus` on wxyz arrays: $[\\cos|\\delta|, \\tfrac{\\sin|\\delta|}{|\\delta|}\\delta]
-    \\otimes q$ (rotation vector $2\\delta$ applied on the left; $q$ itself at $\\delta = 0$)."""
+    r"""Ceres' `QuaternionManifold::Plus` on wxyz arrays: $[\cos|\delta|, \tfrac{\sin|\delta|}{|\delta|}\delta]
+    \otimes q$ (rotation vector $2\delta$ applied on the left; $q$ itself at $\delta = 0$)."""
     q = check_last_axis(q, 4, "quaternion", "wxyz")
     delta = check_last_axis(delta, 3, "Ceres quaternion delta")
     # (cos|δ|, sin|δ|/|δ| δ), NaN-free at 0; to_parameters: raw derivatives, not SO3's carrier
@@ -257,8 +287,8 @@ def ceres_quaternion_plus(q, delta):
 
 
 def ceres_quaternion_minus(y, x):
-    """Ceres' `QuaternionManifold::Minus` on wxyz arrays: with $(w, u) = y \\otimes \\bar x$,
-    $\\mathrm{atan2}(|u|, w)\\,u / |u|$ (0 where $u = 0$); `ceres_quaternion_plus(x, minus(y, x)) == y`."""
+    r"""Ceres' `QuaternionManifold::Minus` on wxyz arrays: with $(w, u) = y \otimes \bar x$,
+    $\mathrm{atan2}(|u|, w)\,u / |u|$ (0 where $u = 0$); `ceres_quaternion_plus(x, minus(y, x)) == y`."""
     y = check_last_axis(y, 4, "quaternion y", "wxyz")
     x = check_last_axis(x, 4, "quaternion x", "wxyz")
     ambient = quat_multiply(y, quat_conjugate(x))
@@ -270,8 +300,8 @@ def ceres_quaternion_minus(y, x):
 
 
 def ceres_quaternion_plus_jacobian(q):
-    """Ceres' `PlusJacobian`: $\\partial (x \\boxplus \\delta) / \\partial \\delta$ at 0, shape `(*batch, 4, 3)`
-    (wxyz rows): column $i$ is $(0, e_i) \\otimes q$."""
+    r"""Ceres' `PlusJacobian`: $\partial (x \boxplus \delta) / \partial \delta$ at 0, shape `(*batch, 4, 3)`
+    (wxyz rows): column $i$ is $(0, e_i) \otimes q$."""
     q = check_last_axis(q, 4, "quaternion", "wxyz")
     eye = jnp.eye(3, dtype=q.dtype)
     pure = jnp.concatenate([jnp.zeros((3, 1), dtype=q.dtype), eye], axis=-1)  # (0, e_i)
@@ -280,25 +310,25 @@ def ceres_quaternion_plus_jacobian(q):
 
 
 def tangent_from_ceres_delta(rotation: SO3, delta):
-    """The lieax (right) tangent of a Ceres quaternion increment at $R$:
-    $x \\boxplus \\delta = \\mathrm{Exp}(2\\delta) R = R\\,\\mathrm{Exp}(2 R^\\top \\delta)$, so $\\omega = 2R^\\top\\delta$."""
+    r"""The lieax (right) tangent of a Ceres quaternion increment at $R$:
+    $x \boxplus \delta = \mathrm{Exp}(2\delta) R = R\,\mathrm{Exp}(2 R^\top \delta)$, so $\omega = 2R^\top\delta$."""
     return 2.0 * rotate_back(rotation.as_matrix(), check_last_axis(delta, 3, "Ceres delta"))
 
 
 def tangent_to_ceres_delta(rotation: SO3, omega):
-    """The Ceres increment of a lieax tangent at $R$: $\\delta = \\tfrac12 R\\omega$."""
+    r"""The Ceres increment of a lieax tangent at $R$: $\delta = \tfrac12 R\omega$."""
     return 0.5 * matvec(rotation.as_matrix(), check_last_axis(omega, 3, "SO3 tangent"))
 
 
 def jacobian_to_ceres_delta(jacobian, rotation: SO3):
-    """A lieax Jacobian with respect to an SO3 input (columns: right tangent) to the Jacobian with
-    respect to Ceres' $\\delta$ at that rotation: $J_\\delta = J \\cdot 2R^\\top$ (Ceres multiplies the
+    r"""A lieax Jacobian with respect to an SO3 input (columns: right tangent) to the Jacobian with
+    respect to Ceres' $\delta$ at that rotation: $J_\delta = J \cdot 2R^\top$ (Ceres multiplies the
     ambient Jacobian by `PlusJacobian`, which is this for the quaternion)."""
     return as_float_array(jacobian, "jacobian") @ (2.0 * jnp.swapaxes(rotation.as_matrix(), -1, -2))
 
 
 def jacobian_from_ceres_delta(jacobian, rotation: SO3):
-    """Jacobian columns with respect to Ceres' $\\delta$ to lieax's right tangent: $J = J_\\delta \\cdot \\tfrac12 R$."""
+    r"""Jacobian columns with respect to Ceres' $\delta$ to lieax's right tangent: $J = J_\delta \cdot \tfrac12 R$."""
     return as_float_array(jacobian, "jacobian") @ (0.5 * rotation.as_matrix())
 
 

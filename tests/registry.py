@@ -1,15 +1,19 @@
 """The one registry that drives the group tests.
 
 Adding a group means adding one `GroupSpec` to `GROUPS`: every test in `test_groups.py`,
-`test_jacobians.py` and `test_errors.py` is parametrized over it (SO2, SE2, SO3, SE3 and Sim3 are
-registered; S2, a manifold and not a matrix group, has its own tests in `test_sim3_s2.py`). Each spec
+`test_jacobians.py`, `test_second_order.py`, `test_properties.py` and `test_errors.py` is
+parametrized over it (SO2, SE2, SO3, SE3 and Sim3 are registered). `MANIFOLDS` adds the manifolds
+that are not groups (S2, a `ManifoldSpec`): the properties every manifold has (`rplus` / `rminus`
+round trips, their Jacobians, finite gradients, dtypes, broadcasting) run over it
+(`test_properties.py`); S2's own operations are tested in `test_sim3_s2.py`. Each spec
 carries NumPy reference formulas (`hat`, `vee`, the action on points) written from the conventions in
 `shared/DESIGN.md`, independently of lieax, so that values and finite differences are computed on
 matrices: `X ⊕ δ = X · expm(hat(δ))` and `Y ⊖ X = vee(logm(X⁻¹ Y))`.
 
 Also here: the regimes of test points (identity, 1e-9 from it, pure translation, translation and
-scale (Sim3), ~1e-4 rad, near π, random), the operations checked for every group (with their
-matrix formulas), and the documented tolerances (float64 finite differences, float32 accuracy).
+scale (Sim3), pure scale, ~1e-4 rad, near π, random), the edge regimes of the property suite (as
+hypothesis examples), the operations checked for every group (with their matrix formulas), and
+the documented tolerances (float64 finite differences, float32 accuracy).
 """
 
 import dataclasses
@@ -19,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
-from lieax import SE2, SE3, SO2, SO3, Sim3
+from lieax import S2, SE2, SE3, SE23, SO2, SO3, Sim3
 
 # ---- NumPy reference formulas ------------------------------------------------------------------
 
@@ -48,9 +52,36 @@ class GroupSpec:
     vee: Callable  # Lie algebra matrix -> tangent
     rotation_parameters: int  # leading parameters that `normalize` rescales to unit norm
     scale_index: tuple = ()  # tangent coordinate of the log-scale σ (Sim3), empty for rigid groups
+    # the group's own constructors (besides identity, exp, from_matrix, sample_uniform), called
+    # with float32 or float64 arrays and Python numbers: dtype -> {name: element}
+    constructors: Callable = lambda dtype: {}
+
+    is_group = True
 
     def __repr__(self):
         return self.name
+
+    def tangent(self, angle, axis, translation, log_scale) -> np.ndarray:
+        """The tangent `(d,)` with rotation angle `angle` about `axis` (its first coordinate's sign
+        for planar groups), the coordinates of `translation` and the log-scale."""
+        xi = np.zeros(self.dim)
+        axis = np.asarray(axis, dtype=float)[: len(self.rotation_index)]
+        if len(self.rotation_index) == 1:
+            xi[list(self.rotation_index)] = angle if axis[0] >= 0 else -angle
+        else:
+            xi[list(self.rotation_index)] = angle * axis / np.linalg.norm(axis)
+        # the translation's coordinates, repeated where a group has more (SE23's velocity)
+        xi[list(self.translation_index)] = np.resize(translation, len(self.translation_index))
+        xi[list(self.scale_index)] = log_scale
+        return xi
+
+    def random_base(self, seed: int) -> np.ndarray:
+        """What `base` makes a random element from: a random tangent (deterministic per seed)."""
+        return random_tangents(self, 1, seed)[0]
+
+    def base(self, array):
+        """The element of `random_base`'s array: `Exp(η)`."""
+        return self.cls.exp(array)
 
     @property
     def dim(self) -> int:
@@ -107,7 +138,7 @@ class GroupSpec:
         augmented[:k, :k], augmented[:k, k:] = linear, np.eye(k)
         phi = scipy.linalg.expm(augmented)[:k, k:]
         algebra = np.zeros_like(matrix)
-        algebra[:k, :k], algebra[:k, k] = linear, np.linalg.solve(phi, matrix[:k, k])
+        algebra[:k, :k], algebra[:k, k:] = linear, np.linalg.solve(phi, matrix[:k, k:])
         return self.vee(algebra)
 
     def act(self, matrix, p):
@@ -144,6 +175,18 @@ def _se3_vee(m):
     return np.concatenate([m[:3, 3], unskew3(m[:3, :3])])
 
 
+def se23_hat(xi):
+    """`[[ω]×, ρp, ρv; 0, 0, 0]` for the tangent `(ρp, ω, ρv)` (5×5)."""
+    m = np.zeros((5, 5))
+    m[:3, :3] = skew3(xi[3:6])
+    m[:3, 3], m[:3, 4] = xi[:3], xi[6:]
+    return m
+
+
+def se23_vee(m):
+    return np.concatenate([m[:3, 3], unskew3(m[:3, :3]), m[:3, 4]])
+
+
 def sim3_hat(xi):
     """`[[ω]× + σI, v; 0, 0]` for the tangent `(v, ω, σ)`."""
     m = np.zeros((4, 4))
@@ -157,6 +200,57 @@ def sim3_vee(m):
     return np.concatenate([m[:3, 3], unskew3(m[:3, :3]), [np.trace(m[:3, :3]) / 3.0]])
 
 
+def _so2_constructors(dtype):
+    return {"from_angle": SO2.from_angle(jnp.asarray([0.3, -2.0], dtype))}
+
+
+def _se2_constructors(dtype):
+    x, y = jnp.asarray(1.0, dtype), jnp.asarray([0.5, -2.0], dtype)
+    return {
+        "from_xy_theta numbers": SE2.from_xy_theta(x, y, 0.5),
+        "from_xy_theta arrays": SE2.from_xy_theta(x, y, jnp.asarray(0.5, dtype)),
+        "from_rotation_and_translation": SE2.from_rotation_and_translation(
+            SO2.from_angle(jnp.asarray(0.3, dtype)), jnp.asarray([1.0, 2.0], dtype)
+        ),
+    }
+
+
+def _so3_constructors(dtype):
+    rotvec = jnp.asarray([0.1, -0.4, 0.3], dtype)
+    return {
+        "from_rpy numbers": SO3.from_rpy(jnp.asarray(0.1, dtype), jnp.asarray(0.2, dtype), 0.5),
+        "from_rpy one array": SO3.from_rpy(0.1, jnp.asarray([0.2, 0.4], dtype), 0),
+        "from_rotvec": SO3.from_rotvec(rotvec),
+        "from_xyzw": SO3.from_xyzw(jnp.asarray([0.0, 0.6, 0.0, 0.8], dtype)),
+    }
+
+
+def _se3_constructors(dtype):
+    rotation, t = SO3.exp(jnp.asarray([0.1, -0.4, 0.3], dtype)), jnp.asarray([1.0, 2.0, 3.0], dtype)
+    return {
+        "from_rotation_and_translation": SE3.from_rotation_and_translation(rotation, t),
+        "from_rotation": SE3.from_rotation(rotation),
+        "from_translation": SE3.from_translation(t),
+    }
+
+
+def _sim3_constructors(dtype):
+    rotation, t = SO3.exp(jnp.asarray([0.1, -0.4, 0.3], dtype)), jnp.asarray([1.0, 2.0, 3.0], dtype)
+    return {
+        "from_rotation_translation_scale number": Sim3.from_rotation_translation_scale(
+            rotation, t, 2.0
+        ),
+        "from_rotation_translation_scale default": Sim3.from_rotation_translation_scale(
+            rotation, t
+        ),
+        "from_rotation_translation_scale array": Sim3.from_rotation_translation_scale(
+            rotation, t, jnp.asarray(2.0, dtype)
+        ),
+        "from_se3 number": Sim3.from_se3(SE3.from_rotation_and_translation(rotation, t), 3.0),
+        "from_scale": Sim3.from_scale(jnp.asarray([0.5, 2.0], dtype)),
+    }
+
+
 GROUPS = [
     GroupSpec(
         "SO2",
@@ -166,10 +260,38 @@ GROUPS = [
         hat=lambda xi: skew2(xi[0]),
         vee=lambda m: np.array([0.5 * (m[1, 0] - m[0, 1])]),
         rotation_parameters=2,
+        constructors=_so2_constructors,
     ),
-    GroupSpec("SE2", SE2, (2,), (0, 1), hat=_se2_hat, vee=_se2_vee, rotation_parameters=2),
-    GroupSpec("SO3", SO3, (0, 1, 2), (), hat=skew3, vee=unskew3, rotation_parameters=4),
-    GroupSpec("SE3", SE3, (3, 4, 5), (0, 1, 2), hat=_se3_hat, vee=_se3_vee, rotation_parameters=4),
+    GroupSpec(
+        "SE2",
+        SE2,
+        (2,),
+        (0, 1),
+        hat=_se2_hat,
+        vee=_se2_vee,
+        rotation_parameters=2,
+        constructors=_se2_constructors,
+    ),
+    GroupSpec(
+        "SO3",
+        SO3,
+        (0, 1, 2),
+        (),
+        hat=skew3,
+        vee=unskew3,
+        rotation_parameters=4,
+        constructors=_so3_constructors,
+    ),
+    GroupSpec(
+        "SE3",
+        SE3,
+        (3, 4, 5),
+        (0, 1, 2),
+        hat=_se3_hat,
+        vee=_se3_vee,
+        rotation_parameters=4,
+        constructors=_se3_constructors,
+    ),
     GroupSpec(
         "Sim3",
         Sim3,
@@ -179,8 +301,26 @@ GROUPS = [
         vee=sim3_vee,
         rotation_parameters=4,
         scale_index=(6,),
+        constructors=_sim3_constructors,
     ),
 ]
+GROUPS.append(
+    GroupSpec(
+        "SE23",
+        SE23,
+        (3, 4, 5),
+        (0, 1, 2, 6, 7, 8),
+        hat=se23_hat,
+        vee=se23_vee,
+        rotation_parameters=4,
+        constructors=lambda dtype: {
+            "from_pose_and_velocity": SE23.from_pose_and_velocity(
+                SE3.exp(jnp.asarray([1.0, 2.0, 3.0, 0.1, -0.4, 0.3], dtype)),
+                jnp.asarray([0.5, -1.0, 2.0], dtype),
+            )
+        },
+    )
+)
 GROUP_IDS = [spec.name for spec in GROUPS]
 
 
@@ -199,7 +339,10 @@ REGIMES = (
     "random_3",
     "random_large",
     "scale",  # groups with a scale only: translation and log-scale, no rotation
+    "pure_scale",  # groups with a scale only: log-scale below 1, no rotation or translation
+    "translation_scale",  # groups with a scale only: translation and a log-scale below 1
 )
+SCALE_REGIMES = ("scale", "pure_scale", "translation_scale")
 
 
 def regimes_for(spec: GroupSpec) -> tuple:
@@ -208,7 +351,8 @@ def regimes_for(spec: GroupSpec) -> tuple:
     return tuple(
         r
         for r in REGIMES
-        if (spec.has_translation or r != "translation") and (spec.has_scale or r != "scale")
+        if (spec.has_translation or r != "translation")
+        and (spec.has_scale or r not in SCALE_REGIMES)
     )
 
 
@@ -226,6 +370,10 @@ def _log_scale(regime: str, rng) -> float:
         return 0.0
     if regime == "scale":
         return 1.3 * rng.choice([-1.0, 1.0])
+    if regime == "pure_scale":
+        return 0.7
+    if regime == "translation_scale":
+        return -0.6
     if regime == "small_rotation":
         return 1e-4 * rng.uniform(-1.0, 1.0)
     if regime == "near_pi":
@@ -256,11 +404,27 @@ def regime_tangent(spec: GroupSpec, regime: str, seed: int = 0) -> np.ndarray:
     elif regime == "random_large":  # large translation, angle close to (but not near) π
         xi[trans] = 5.0 * translation
         xi[rot] = _rotation_tangent(spec, rng, rng.uniform(2.5, 3.0))
-    elif regime not in ("translation", "scale"):
+    elif regime == "pure_scale":
+        xi[trans] = 0.0
+    elif regime not in ("translation", "scale", "translation_scale"):
         raise ValueError(regime)
     if spec.has_scale:
         xi[list(spec.scale_index)] = _log_scale(regime, rng)
     return xi
+
+
+# The edge regimes of the property suite (`test_properties.py`), each a hypothesis example of its
+# draws: a rotation angle (a tangent's length for S2) about a fixed axis, a translation and a
+# log-scale, used by every entry through its `tangent` method.
+EDGE_AXIS = (0.3, -0.5, 0.81)
+EDGE_EXAMPLES = {
+    "identity": (0.0, (0.0, 0.0, 0.0), 0.0),
+    "tiny": (1e-9, (1e-9, -2e-9, 0.5e-9), 1e-9),
+    "small_rotation": (1e-4, (0.3, -1.2, 0.7), 1e-4),
+    "translation": (0.0, (1.5, -0.4, 2.0), 0.0),
+    "pi_minus_1e-4": (np.pi - 1e-4, (0.8, 0.1, -1.1), 0.4),
+    "pi_minus_1e-6": (NEAR_PI, (-0.2, 1.4, 0.3), -0.7),
+}
 
 
 def regime_tangents(spec: GroupSpec, seed: int = 0) -> np.ndarray:
@@ -360,6 +524,66 @@ OPERATIONS = [
     ),
 ]
 OPERATION_IDS = [op.name for op in OPERATIONS]
+
+
+# ---- manifolds that are not groups ---------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class ManifoldSpec:
+    """A manifold under test that is not a group: only `rplus`, `rminus`, `parameters()` and the
+    constructors are assumed. `operations` are its own functions checked by finite differences in
+    local coordinates (`Operation`s whose argument kinds are "Y" a random point, "YX" the point
+    `Y ⊕ ξ`, "xi" the tangent ξ, "R" a random SO3 rotation; no NumPy reference)."""
+
+    name: str
+    cls: type
+    base: Callable  # array from `random_base` -> a point
+    random_base: Callable  # seed -> NumPy array
+    operations: tuple
+    constructors: Callable = lambda dtype: {}
+
+    is_group = False
+    has_translation = has_scale = False
+
+    def __repr__(self):
+        return self.name
+
+    @property
+    def dim(self) -> int:
+        return self.cls.tangent_dim
+
+    def tangent(self, angle, axis, translation, log_scale) -> np.ndarray:
+        """A tangent of length `angle` in the direction of `axis`'s first two coordinates."""
+        direction = np.asarray(axis, dtype=float)[: self.dim]
+        norm = np.linalg.norm(direction)
+        direction = direction / norm if norm > 0 else np.eye(self.dim)[0]
+        return angle * direction
+
+
+def _s2_operation(name, kinds, apply):
+    return Operation(name, kinds, tuple(range(len(kinds))), "element", apply, None)
+
+
+S2_SPEC = ManifoldSpec(
+    "S2",
+    S2,
+    base=S2.from_vector,
+    random_base=lambda seed: np.random.default_rng([seed, 3000]).normal(size=3),
+    operations=(
+        _s2_operation("rplus", ("Y", "xi"), lambda M, p, xi: p.rplus(xi)),
+        _s2_operation("rminus", ("YX", "Y"), lambda M, q, p: q.rminus(p)),
+        _s2_operation("error", ("Y", "YX"), lambda M, p, q: p.error(q)),
+        _s2_operation("distance", ("Y", "YX"), lambda M, p, q: p.distance(q)),
+        _s2_operation("rotate", ("R", "Y"), lambda M, r, p: p.rotate(r)),
+        _s2_operation("unit_vector", ("Y",), lambda M, p: p.unit_vector()),
+    ),
+    constructors=lambda dtype: {
+        "from_vector": S2.from_vector(jnp.asarray([[0.0, 3.0, 4.0], [1.0, 0.0, 0.0]], dtype))
+    },
+)
+MANIFOLDS = [*GROUPS, S2_SPEC]
+MANIFOLD_IDS = [spec.name for spec in MANIFOLDS]
 
 
 def build_arguments(spec: GroupSpec, op: Operation, xis, seed: int = 1):

@@ -32,6 +32,7 @@ def padded(points, rows=ROWS):
 
 def pose_error(estimate: SE3, truth: SE3):
     """(rotation error in radians, translation error) between two poses."""
+    estimate = SE3(estimate.parameters().astype(truth.dtype))  # a float32 estimate, float64 truth
     xi = np.asarray(truth.inverse().compose(estimate).log())
     translation = np.asarray(estimate.translation() - truth.translation())
     return float(np.linalg.norm(xi[3:])), float(np.linalg.norm(translation))
@@ -107,8 +108,8 @@ def random_covariances(rng, n):
 
 @pytest.mark.parametrize("at_the_solution", [False, True])
 def test_normal_equations_match_autodiff_of_the_cost(at_the_solution):
-    """$g = \\tfrac12 \\nabla f$ and $H = J^\\top M J$ with $J$ by autodiff of the residuals
-    through `rplus`; at a zero-residual pose $H$ is also the Hessian $\\tfrac12 \\nabla^2 f$."""
+    r"""$g = \tfrac12 \nabla f$ and $H = J^\top M J$ with $J$ by autodiff of the residuals
+    through `rplus`; at a zero-residual pose $H$ is also the Hessian $\tfrac12 \nabla^2 f$."""
     rng = np.random.default_rng(1)
     n = 50
     pose = SE3.exp(jnp.asarray(rng.normal(size=6) * [0.3, 0.3, 0.3, 1.0, 1.0, 1.0]))

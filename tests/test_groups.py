@@ -522,3 +522,66 @@ def test_se_rotation_and_translation():
         # a pure translation moves points by t
         pure = G.from_rotation_and_translation(R.identity(), translation[0])
         np.testing.assert_allclose(pure @ translation, translation + translation[0], atol=1e-15)
+
+
+def test_sim3_translation_block_by_quadrature():
+    """The translation block of `Sim3.exp((v, ω, σ))` is `W v` with `W = ∫₀¹ e^(στ) R(τω) dτ`
+    (by quadrature) over a grid of σ in [-30, 12] and θ in [0, 14] that crosses every branch of W's
+    coefficients (the joint series, |σ| near 1, θ near 1, large |σ| or θ): the columns of W from
+    `v = e_k`."""
+    sigmas, thetas = np.meshgrid(
+        [0.0, 1e-7, -0.9, 1.0, 3.0, -4.0, -30.0, 12.0], [0.0, 1e-6, 0.99, 1.01, 3.1, 8.0, 14.0]
+    )
+    axis = np.array([0.3, -0.5, 0.81]) / np.linalg.norm([0.3, -0.5, 0.81])
+    cases = [(s, t * axis) for s, t in zip(sigmas.ravel(), thetas.ravel())]
+    xis = np.stack(
+        [np.concatenate([e, omega, [sigma]]) for sigma, omega in cases for e in np.eye(3)]
+    )
+    translations = np.asarray(jax.jit(lambda xi: Sim3.exp(xi).translation())(xis))
+    for index, (sigma, omega) in enumerate(cases):
+        w = translations[3 * index : 3 * index + 3].T
+        expected = _w_by_quadrature(sigma, omega)
+        np.testing.assert_allclose(
+            w,
+            expected,
+            rtol=0,
+            atol=1e-13 * max(1.0, np.abs(expected).max()) + 1e-15 * np.exp(max(sigma, 0.0)),
+            err_msg=f"W at σ={sigma}, θ={np.linalg.norm(omega)}",
+        )
+
+
+def test_sim3_constructors_and_broadcasting():
+    cloud = np.random.default_rng(0).normal(size=(5, 3))
+
+    @jax.jit
+    def evaluate(omega, t, scale, cloud):
+        rotation = SO3.exp(omega)
+        x = Sim3.from_rotation_translation_scale(rotation, t, scale)
+        se3 = SE3.from_rotation_and_translation(rotation, t)
+        batch = Sim3.sample_uniform(jax.random.PRNGKey(0), (4, 2))
+        return {
+            "scale": x.scale(),
+            "translation": x.translation(),
+            "rotation": x.rotation().as_matrix(),
+            "expected_rotation": rotation.as_matrix(),
+            "moved": x @ cloud,
+            "from_se3": Sim3.from_se3(se3).as_matrix(),
+            "se3": se3.as_matrix(),
+            "from_scale": Sim3.from_scale(scale) @ t,
+            "batch_params": batch.parameters(),
+            "composed": (batch @ x).parameters(),
+            "scale_jacobian": lieax.jacobian(lambda y: y.scale())(x),
+        }
+
+    omega, t = jnp.array([0.1, -0.4, 0.3]), jnp.array([1.0, 2.0, -0.5])
+    out = evaluate(omega, t, jnp.array(2.5), jnp.asarray(cloud))
+    np.testing.assert_allclose(out["scale"], 2.5, rtol=1e-15)
+    np.testing.assert_allclose(out["translation"], t)
+    np.testing.assert_allclose(out["rotation"], out["expected_rotation"])
+    np.testing.assert_allclose(
+        out["moved"], 2.5 * cloud @ np.asarray(out["rotation"]).T + t, atol=1e-14
+    )
+    np.testing.assert_allclose(out["from_se3"], out["se3"], atol=1e-15)
+    np.testing.assert_allclose(out["from_scale"], 2.5 * t, atol=1e-15)
+    assert out["batch_params"].shape == (4, 2, 8) and out["composed"].shape == (4, 2, 8)
+    np.testing.assert_allclose(out["scale_jacobian"], np.r_[np.zeros(6), 2.5], atol=1e-14)

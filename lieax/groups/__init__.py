@@ -1,16 +1,17 @@
-"""The Lie groups and manifolds: SO2, SE2, SO3, SE3, Sim3 and the sphere S2.
+"""The Lie groups and manifolds: SO2, SE2, SO3, SE3, SE23, Sim3 and the sphere S2.
 
 Each group module holds its kernels (module-level functions on parameter arrays, each with a
-closed-form `custom_jvp` rule) and its class; `_base` holds what every group shares, `_rules` the
-rule shapes that recur, `_series` the series coefficients of Exp, Log and their Jacobians near zero.
+closed-form `custom_jvp` rule) and its class; `_base` holds what every group shares (the kernel
+protocol), `_generic` the rules written once for every group, `_rules` the rule shapes that recur, `_series` the series coefficients of Exp, Log and their Jacobians near zero.
 """
 
 from ._base import AbstractGroup, AbstractManifold
 from ._s2 import S2
 from ._se2 import SE2
 from ._se3 import SE3
+from ._se23 import SE23
 from ._sim3 import Sim3
 from ._so2 import SO2
 from ._so3 import SO3
 
-__all__ = ["AbstractGroup", "AbstractManifold", "S2", "SE2", "SE3", "SO2", "SO3", "Sim3"]
+__all__ = ["AbstractGroup", "AbstractManifold", "S2", "SE2", "SE3", "SE23", "SO2", "SO3", "Sim3"]

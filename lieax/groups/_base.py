@@ -1,33 +1,70 @@
-"""The shared base of every lieax group: a frozen pytree around one parameter array.
+r"""The shared base of every lieax group: a frozen pytree around one parameter array.
 
 Conventions (fixed for the whole library, see the README's "Conventions"):
-right perturbation $X \\oplus \\xi = X\\,\\mathrm{Exp}(\\xi)$, $X \\ominus Y = \\mathrm{Log}(Y^{-1} X)$,
-adjoint $X\\,\\mathrm{Exp}(\\xi)\\,X^{-1} = \\mathrm{Exp}(\\mathrm{Ad}_X \\xi)$, and
-$\\mathrm{Exp}(\\xi + \\delta) \\approx \\mathrm{Exp}(\\xi)\\,\\mathrm{Exp}(J_r(\\xi)\\,\\delta)$.
+right perturbation $X \oplus \xi = X\,\mathrm{Exp}(\xi)$, $X \ominus Y = \mathrm{Log}(Y^{-1} X)$,
+adjoint $X\,\mathrm{Exp}(\xi)\,X^{-1} = \mathrm{Exp}(\mathrm{Ad}_X \xi)$, and
+$\mathrm{Exp}(\xi + \delta) \approx \mathrm{Exp}(\xi)\,\mathrm{Exp}(J_r(\xi)\,\delta)$.
 
-A concrete group supplies its array kernels (each a `jax.custom_jvp` function with a closed-form
-rule) as static methods; this base class validates inputs once, at trace time, and implements
-`between`, `rplus`, `rminus`, `interpolate` and the operators from those kernels, so their
-derivatives compose from the kernels' closed-form blocks.
+The group protocol. A concrete group's kernel namespace is the module that defines its class:
+array functions on parameters and tangents named as in `KERNELS` (each operation a
+`jax.custom_jvp` function with a closed-form rule), bound to the class when it is created, so a
+missing kernel is a `TypeError` at import. The rules that are the same for every group
+(`compose`, `inverse`, `exp`, `log`, `adjoint`, `as_matrix`, `from_matrix`, `normalize`) are
+written once in `lieax.groups._generic` from a group's `ad`, `adjoint`, `right_jacobian`,
+`right_jacobian_inverse`, `hat` and `vee`; a group keeps a hand-written rule where its closed form
+is cheaper (SO3's and SE3's compose, inverse and act, which `benchmarks/chain.py` times). This
+base class validates inputs once, at trace time, and implements `between`, `rplus`, `rminus`,
+`interpolate` and the operators from the kernels, so their derivatives compose from the kernels'
+closed-form blocks.
+
+The tangent carrier. JAX gives the parameter leaf a tangent of the leaf's shape; what fills it
+is the group's carrier, mapped to and from the right-local tangent by `to_local(params, carrier)`
+and `from_local(params, local)`. Two conventions exist:
+- the local carrier (SO3, SE3, Sim3, SE23): the carrier holds the local tangent itself (and the
+  quaternion's radial part), so kernels read and write local tangents and no rule converts
+  anything; `to_parameters` / `from_parameters` (identity on values, custom derivatives) convert
+  to the raw parameter derivative only where raw arrays cross the API (`G(params)`,
+  `parameters()`). This is the convention of new groups: every generic rule assumes it.
+- the raw carrier (SO2, SE2, and the manifold S2): the carrier is the derivative of the raw
+  parameters, `to_parameters` / `from_parameters` are the identity, and each rule converts with
+  `to_local` / `from_local` (cheap for unit complex numbers; not yet migrated).
 """
 
+import sys
 from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
 
-from .._checks import as_float_array, broadcast_batch, check_last_axis, check_matrix
+from .._checks import (
+    broadcast_batch,
+    check_last_axis,
+    check_matrix,
+    check_same_dtype,
+    match_dtype,
+)
+
+# The kernel namespace of a group: these names, bound to the class as `_exp`, `_log`, ...
+# (`to_local` as `_local_from_tangent`, `from_local` as `_tangent_from_local`); `to_parameters` and
+# `from_parameters` are optional (the raw carrier by default).
+KERNELS = (
+    "exp", "log", "compose", "inverse", "act", "adjoint", "as_matrix", "from_matrix", "normalize",
+    "hat", "vee", "right_jacobian", "right_jacobian_inverse", "to_local", "from_local",
+    "sample_uniform",
+)  # fmt: skip
+_OPTIONAL_KERNELS = ("to_parameters", "from_parameters")
+_ATTRIBUTES = {"to_local": "_local_from_tangent", "from_local": "_tangent_from_local"}
 
 
 class AbstractManifold:
-    """A batch of points of one manifold, stored as `parameters()` of shape
+    r"""A batch of points of one manifold, stored as `parameters()` of shape
     `(*batch_shape, parameters_dim)`; a JAX pytree with that one array as its leaf.
 
     A concrete manifold supplies `rplus(tangent)`, `rminus(other)` and the carrier maps
     `_local_from_tangent(params, tangent)` / `_tangent_from_local(params, local)` between the JAX
     tangent of the parameter leaf and the local tangent of shape `(*batch_shape, tangent_dim)`;
     that is all `lieax.rplus`, `lieax.jacobian` and the solvers use. Groups (`AbstractGroup`) are
-    manifolds whose $\\oplus$ is $X\\,\\mathrm{Exp}(\\xi)$; `S2` is a manifold that is not a group."""
+    manifolds whose $\oplus$ is $X\,\mathrm{Exp}(\xi)$; `S2` is a manifold that is not a group."""
 
     tangent_dim: ClassVar[int]
     parameters_dim: ClassVar[int]
@@ -88,11 +125,11 @@ class AbstractManifold:
         return self._wrap(self._params[(*index, slice(None))])
 
     def rplus(self, tangent):
-        """$X \\oplus \\xi$ for tangents of shape `(*batch, tangent_dim)`."""
+        r"""$X \oplus \xi$ for tangents of shape `(*batch, tangent_dim)`."""
         raise NotImplementedError
 
     def rminus(self, other) -> jax.Array:
-        """$X \\ominus Y$, so that `Y.rplus(X.rminus(Y)) == X`."""
+        r"""$X \ominus Y$, so that `Y.rplus(X.rminus(Y)) == X`."""
         raise NotImplementedError
 
 
@@ -105,16 +142,24 @@ class AbstractGroup(AbstractManifold):
 
     __slots__ = ()
 
-    # ---- array kernels, supplied by each group -----------------------------------------------
-    # _exp, _log, _compose, _inverse, _act, _adjoint, _as_matrix, _from_matrix, _normalize,
-    # _hat, _vee, _right_jacobian, _right_jacobian_inverse: parameter and tangent arrays in/out.
-    #
-    # The tangent carrier: JAX gives the parameter leaf a tangent of the leaf's shape. A group may
-    # fill it with something cheaper to use than the derivative of the raw parameters (SO3 and
-    # SE3 carry the local tangent itself); then `_from_parameters` / `_to_parameters` (identity on
-    # values) convert derivatives where raw parameters enter and leave, and
-    # `_local_from_tangent(params, carrier)` / `_tangent_from_local(params, local)` map the carrier
-    # to the right-local tangent and back. The defaults: AbstractManifold's (the raw derivative).
+    def __init_subclass__(cls, **kwargs):
+        """Binds the kernel namespace (the class's `kernels` attribute, by default the module that
+        defines the class; see `KERNELS`) to a concrete group; a subclass of a concrete group
+        inherits its kernels. A missing kernel is a `TypeError` here, at class creation."""
+        super().__init_subclass__(**kwargs)
+        inherits = any(hasattr(base, "_exp") for base in cls.__mro__[1:])
+        if cls.__name__.startswith("Abstract") or (inherits and "kernels" not in cls.__dict__):
+            return
+        kernels = cls.__dict__.get("kernels", sys.modules[cls.__module__])
+        missing = [name for name in KERNELS if not callable(getattr(kernels, name, None))]
+        if missing:
+            raise TypeError(
+                f"{cls.__name__} lacks the group kernels {', '.join(missing)}: its kernel "
+                f"namespace ({getattr(kernels, '__name__', kernels)!r}) must define every name of "
+                "lieax.groups._base.KERNELS."
+            )
+        for name in KERNELS + tuple(n for n in _OPTIONAL_KERNELS if hasattr(kernels, n)):
+            setattr(cls, _ATTRIBUTES.get(name, f"_{name}"), staticmethod(getattr(kernels, name)))
 
     # ---- construction ------------------------------------------------------------------------
     @classmethod
@@ -125,7 +170,7 @@ class AbstractGroup(AbstractManifold):
 
     @classmethod
     def exp(cls, tangent):
-        """$\\mathrm{Exp}(\\xi)$ for tangents of shape `(*batch, tangent_dim)`."""
+        r"""$\mathrm{Exp}(\xi)$ for tangents of shape `(*batch, tangent_dim)`."""
         tangent = check_last_axis(tangent, cls.tangent_dim, f"{cls.__name__}.exp tangent")
         return cls._wrap(cls._exp(tangent))
 
@@ -142,7 +187,7 @@ class AbstractGroup(AbstractManifold):
 
     # ---- group operations --------------------------------------------------------------------
     def log(self) -> jax.Array:
-        """$\\mathrm{Log}(X)$, the tangent of shape `(*batch, tangent_dim)`."""
+        r"""$\mathrm{Log}(X)$, the tangent of shape `(*batch, tangent_dim)`."""
         return self._log(self._params)
 
     def inverse(self):
@@ -150,15 +195,16 @@ class AbstractGroup(AbstractManifold):
         return self._wrap(self._inverse(self._params))
 
     def compose(self, other):
-        """$X \\cdot Y$, broadcasting batch shapes."""
+        r"""$X \cdot Y$, broadcasting batch shapes."""
         self._check_same_group(other, "compose")
         broadcast_batch(f"{type(self).__name__} compose", self.batch_shape, other.batch_shape)
         return self._wrap(self._compose(self._params, other._params))
 
     def act(self, points) -> jax.Array:
-        """$X \\cdot p$ for points of shape `(*batch, space_dim)`, broadcasting against the group's
+        r"""$X \cdot p$ for points of shape `(*batch, space_dim)`, broadcasting against the group's
         batch shape (a single element acts on a whole cloud)."""
         name = f"{type(self).__name__} acting on points"
+        points = match_dtype(points, self.dtype, name, f"the {type(self).__name__}")
         points = check_last_axis(points, self.space_dim, name, f"{self.space_dim}D points")
         broadcast_batch(name, self.batch_shape, points.shape[:-1])
         return self._act(self._params, points)
@@ -173,8 +219,8 @@ class AbstractGroup(AbstractManifold):
         return self.inverse().compose(other)
 
     def adjoint(self) -> jax.Array:
-        """$\\mathrm{Ad}_X$, shape `(*batch, tangent_dim, tangent_dim)`, with
-        $X\\,\\mathrm{Exp}(\\xi)\\,X^{-1} = \\mathrm{Exp}(\\mathrm{Ad}_X \\xi)$."""
+        r"""$\mathrm{Ad}_X$, shape `(*batch, tangent_dim, tangent_dim)`, with
+        $X\,\mathrm{Exp}(\xi)\,X^{-1} = \mathrm{Exp}(\mathrm{Ad}_X \xi)$."""
         return self._adjoint(self._params)
 
     def as_matrix(self) -> jax.Array:
@@ -187,17 +233,24 @@ class AbstractGroup(AbstractManifold):
         return self._wrap(self._normalize(self._params))
 
     def rplus(self, tangent):
-        """$X \\oplus \\xi = X\\,\\mathrm{Exp}(\\xi)$."""
+        r"""$X \oplus \xi = X\,\mathrm{Exp}(\xi)$."""
+        name = type(self).__name__
+        tangent = match_dtype(tangent, self.dtype, f"{name}.rplus tangent", f"the {name}")
         return self.compose(type(self).exp(tangent))
 
     def rminus(self, other) -> jax.Array:
-        """$X \\ominus Y = \\mathrm{Log}(Y^{-1} X)$, so that `Y.rplus(X.rminus(Y)) == X`."""
+        r"""$X \ominus Y = \mathrm{Log}(Y^{-1} X)$, so that `Y.rplus(X.rminus(Y)) == X`."""
         self._check_same_group(other, "rminus")
         return other.between(self).log()
 
     def interpolate(self, other, t):
-        """$X \\oplus t\\,(Y \\ominus X)$: `self` at `t = 0`, `other` at `t = 1`, along the geodesic."""
-        t = as_float_array(t, "interpolate t")
+        r"""$X \oplus t\,(Y \ominus X)$: `self` at `t = 0`, `other` at `t = 1`, along the geodesic;
+        `t` of shape `(*batch,)` broadcasts against both batch shapes (a Python or NumPy number
+        takes the group's dtype)."""
+        name = f"{type(self).__name__}.interpolate"
+        self._check_same_group(other, "interpolate")
+        t = match_dtype(t, self.dtype, f"{name} t", f"the {type(self).__name__}")
+        broadcast_batch(name, self.batch_shape, other.batch_shape, t.shape)
         return self.rplus(other.rminus(self) * t[..., None])
 
     # ---- tangent-space maps ------------------------------------------------------------------
@@ -213,23 +266,23 @@ class AbstractGroup(AbstractManifold):
 
     @classmethod
     def right_jacobian(cls, tangent) -> jax.Array:
-        """$J_r(\\xi)$ with $\\mathrm{Exp}(\\xi + \\delta) \\approx \\mathrm{Exp}(\\xi)\\,\\mathrm{Exp}(J_r\\delta)$."""
+        r"""$J_r(\xi)$ with $\mathrm{Exp}(\xi + \delta) \approx \mathrm{Exp}(\xi)\,\mathrm{Exp}(J_r\delta)$."""
         return cls._right_jacobian(cls._check_tangent(tangent))
 
     @classmethod
     def right_jacobian_inverse(cls, tangent) -> jax.Array:
-        """$J_r(\\xi)^{-1}$, the derivative of Log: $\\mathrm{Log}(X\\,\\mathrm{Exp}(\\delta)) \\approx
-        \\mathrm{Log}(X) + J_r^{-1}\\delta$."""
+        r"""$J_r(\xi)^{-1}$, the derivative of Log: $\mathrm{Log}(X\,\mathrm{Exp}(\delta)) \approx
+        \mathrm{Log}(X) + J_r^{-1}\delta$."""
         return cls._right_jacobian_inverse(cls._check_tangent(tangent))
 
     @classmethod
     def left_jacobian(cls, tangent) -> jax.Array:
-        """$J_l(\\xi) = J_r(-\\xi)$, with $\\mathrm{Exp}(\\xi + \\delta) \\approx \\mathrm{Exp}(J_l\\delta)\\,\\mathrm{Exp}(\\xi)$."""
+        r"""$J_l(\xi) = J_r(-\xi)$, with $\mathrm{Exp}(\xi + \delta) \approx \mathrm{Exp}(J_l\delta)\,\mathrm{Exp}(\xi)$."""
         return cls._right_jacobian(-cls._check_tangent(tangent))
 
     @classmethod
     def left_jacobian_inverse(cls, tangent) -> jax.Array:
-        """$J_l(\\xi)^{-1} = J_r(-\\xi)^{-1}$."""
+        r"""$J_l(\xi)^{-1} = J_r(-\xi)^{-1}$."""
         return cls._right_jacobian_inverse(-cls._check_tangent(tangent))
 
     # ---- helpers -----------------------------------------------------------------------------
@@ -243,6 +296,7 @@ class AbstractGroup(AbstractManifold):
                 f"{type(self).__name__}.{operation} needs another {type(self).__name__}, "
                 f"got {type(other).__name__}."
             )
+        check_same_dtype(f"{type(self).__name__}.{operation}", self.dtype, other.dtype)
 
 
 def _flatten(element):

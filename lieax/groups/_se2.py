@@ -1,24 +1,24 @@
-"""SE(2), rigid motions in the plane, stored as $(\\cos\\theta, \\sin\\theta, x, y)$.
+r"""SE(2), rigid motions in the plane, stored as $(\cos\theta, \sin\theta, x, y)$.
 
-Tangent $\\xi = (v_x, v_y, \\omega)$, translation first; right perturbation
-$X \\oplus \\xi = X\\,\\mathrm{Exp}(\\xi)$. The derivative of the parameters along a right-local tangent
-is $\\dot t = R v$, $(\\dot c, \\dot s) = \\omega\\,(-s, c)$, and back $v = R^\\top \\dot t$,
-$\\omega = c\\,\\dot s - s\\,\\dot c$: every kernel's rule converts the incoming parameter tangents to
+Tangent $\xi = (v_x, v_y, \omega)$, translation first; right perturbation
+$X \oplus \xi = X\,\mathrm{Exp}(\xi)$. The derivative of the parameters along a right-local tangent
+is $\dot t = R v$, $(\dot c, \dot s) = \omega\,(-s, c)$, and back $v = R^\top \dot t$,
+$\omega = c\,\dot s - s\,\dot c$: every kernel's rule converts the incoming parameter tangents to
 local tangents once, applies the closed-form block, and converts the result back, so code that
 touches the parameters itself still gets correct derivatives.
 
-Notation: $J = [[0, -1], [1, 0]]$ (the rotation by $+\\pi/2$, `perp`), and the coefficients are the
-$g_n(s)$ of `lieax.groups._series` at $s = \\omega^2$ ($g_1 = \\sin\\omega/\\omega$,
-$g_2 = (1 - \\cos\\omega)/\\omega^2$, $g_3 = (\\omega - \\sin\\omega)/\\omega^3$).
+Notation: $J = [[0, -1], [1, 0]]$ (the rotation by $+\pi/2$, `perp`), and the coefficients are the
+$g_n(s)$ of `lieax.groups._series` at $s = \omega^2$ ($g_1 = \sin\omega/\omega$,
+$g_2 = (1 - \cos\omega)/\omega^2$, $g_3 = (\omega - \sin\omega)/\omega^3$).
 
 Formulas: Solà, Deray, Atchuthan, "A micro Lie theory for state estimation in robotics" (2018),
-App. C, rewritten with $J$ and the $g_n$ so that none divides by $\\omega$.
+App. C, rewritten with $J$ and the $g_n$ so that none divides by $\omega$.
 """
 
 import jax
 import jax.numpy as jnp
 
-from .._checks import as_float_array, broadcast_batch, check_last_axis
+from .._checks import broadcast_batch, check_last_axis, common_float_arrays, match_dtype
 from . import _rules
 from . import _so2 as so2
 from ._base import AbstractGroup
@@ -33,14 +33,14 @@ def stack_matrix(rows):
 
 
 def to_local(params, params_dot):
-    """$v = R^\\top \\dot t$, $\\omega = c\\,\\dot s - s\\,\\dot c$."""
+    r"""$v = R^\top \dot t$, $\omega = c\,\dot s - s\,\dot c$."""
     cs = params[..., :2]
     v = unrotate(cs, params_dot[..., 2:])
     return jnp.concatenate([v, so2.to_local(cs, params_dot[..., :2])], axis=-1)
 
 
 def from_local(params, xi):
-    """$(\\dot c, \\dot s) = \\omega\\,(-s, c)$, $\\dot t = R v$."""
+    r"""$(\dot c, \dot s) = \omega\,(-s, c)$, $\dot t = R v$."""
     cs = params[..., :2]
     cs_dot = so2.from_local(cs, xi[..., 2:])
     return jnp.concatenate([cs_dot, rotate(cs, xi[..., :2])], axis=-1)
@@ -50,15 +50,15 @@ def from_local(params, xi):
 
 
 def log_coefficient(s):
-    """$h = g_1 / (2 g_2) = \\tfrac\\omega2 \\cot\\tfrac\\omega2$ (1 at zero, 0 at $\\omega = \\pi$), with
-    $V^{-1} = h I - \\tfrac\\omega2 J$ since $\\det V = g_1^2 + s g_2^2 = 2 g_2$."""
+    r"""$h = g_1 / (2 g_2) = \tfrac\omega2 \cot\tfrac\omega2$ (1 at zero, 0 at $\omega = \pi$), with
+    $V^{-1} = h I - \tfrac\omega2 J$ since $\det V = g_1^2 + s g_2^2 = 2 g_2$."""
     return g(1, s) / (2.0 * g(2, s))
 
 
 def right_jacobian(xi):
-    """$J_r = [[A, b], [0, 1]]$ with $A = g_1 I - \\omega g_2 J$, $b = (\\omega g_3 I + g_2 J)\\,v$
-    (Solà eq. 163: $A = [[g_1, \\omega g_2], [-\\omega g_2, g_1]]$,
-    $b = (\\omega g_3 v_x - g_2 v_y,\\ g_2 v_x + \\omega g_3 v_y)$)."""
+    r"""$J_r = [[A, b], [0, 1]]$ with $A = g_1 I - \omega g_2 J$, $b = (\omega g_3 I + g_2 J)\,v$
+    (Solà eq. 163: $A = [[g_1, \omega g_2], [-\omega g_2, g_1]]$,
+    $b = (\omega g_3 v_x - g_2 v_y,\ g_2 v_x + \omega g_3 v_y)$)."""
     vx, vy, w = xi[..., 0], xi[..., 1], xi[..., 2]
     s = w * w
     g1, g2, g3 = g(1, s), g(2, s), g(3, s)
@@ -73,8 +73,8 @@ def right_jacobian(xi):
 
 
 def right_jacobian_inverse(xi):
-    """$J_r^{-1} = [[A^{-1}, -A^{-1} b], [0, 1]]$ with $A^{-1} = h I + \\tfrac\\omega2 J$ and
-    $-A^{-1} b = (\\omega D I - \\tfrac12 J)\\,v$, where $h$ is `log_coefficient` and
+    r"""$J_r^{-1} = [[A^{-1}, -A^{-1} b], [0, 1]]$ with $A^{-1} = h I + \tfrac\omega2 J$ and
+    $-A^{-1} b = (\omega D I - \tfrac12 J)\,v$, where $h$ is `log_coefficient` and
     $D = (g_3 - 2 g_4) / (2 g_2)$ is the coefficient of $J_r^{-1}$ of SO(3) (Solà eq. 144)
     (from eq. 163, using $g_1 + s g_3 = 1$ and $g_1 g_3 - g_2^2 = 2 g_4 - g_3$)."""
     vx, vy, w = xi[..., 0], xi[..., 1], xi[..., 2]
@@ -91,7 +91,7 @@ def right_jacobian_inverse(xi):
 
 
 def apply_right_jacobian(xi, delta):
-    """$J_r(\\xi)\\,\\delta = (A\\,\\delta_v + b\\,\\delta_\\omega,\\ \\delta_\\omega)$ without forming the matrix."""
+    r"""$J_r(\xi)\,\delta = (A\,\delta_v + b\,\delta_\omega,\ \delta_\omega)$ without forming the matrix."""
     v, w = xi[..., :2], xi[..., 2:]
     dv, dw = delta[..., :2], delta[..., 2:]
     s = w * w
@@ -101,7 +101,7 @@ def apply_right_jacobian(xi, delta):
 
 
 def apply_right_jacobian_inverse(xi, local):
-    """$J_r^{-1}(\\xi)\\,u = (A^{-1} u_v - A^{-1} b\\,u_\\omega,\\ u_\\omega)$ without forming the matrix."""
+    r"""$J_r^{-1}(\xi)\,u = (A^{-1} u_v - A^{-1} b\,u_\omega,\ u_\omega)$ without forming the matrix."""
     v, w = xi[..., :2], xi[..., 2:]
     uv, uw = local[..., :2], local[..., 2:]
     s = w * w
@@ -114,14 +114,14 @@ def apply_right_jacobian_inverse(xi, local):
 
 
 def adjoint_matrix(params):
-    """$\\mathrm{Ad}_X = [[R, -J t], [0, 1]] = [[c, -s, y], [s, c, -x], [0, 0, 1]]$ (Solà App. C)."""
+    r"""$\mathrm{Ad}_X = [[R, -J t], [0, 1]] = [[c, -s, y], [s, c, -x], [0, 0, 1]]$ (Solà App. C)."""
     c, s, x, y = (params[..., i] for i in range(4))
     zero, one = jnp.zeros_like(c), jnp.ones_like(c)
     return stack_matrix([[c, -s, y], [s, c, -x], [zero, zero, one]])
 
 
 def small_adjoint(xi):
-    """$\\mathrm{ad}_\\xi = [[\\omega J, -J v], [0, 0]]$, the derivative of $\\mathrm{Ad}_{\\mathrm{Exp}(\\xi)}$
+    r"""$\mathrm{ad}_\xi = [[\omega J, -J v], [0, 0]]$, the derivative of $\mathrm{Ad}_{\mathrm{Exp}(\xi)}$
     at zero."""
     vx, vy, w = xi[..., 0], xi[..., 1], xi[..., 2]
     zero = jnp.zeros_like(w)
@@ -133,7 +133,7 @@ def small_adjoint(xi):
 
 @jax.custom_jvp
 def exp(xi):
-    """$\\mathrm{Exp}(v, \\omega) = (\\cos\\omega, \\sin\\omega, V v)$ with $V = g_1 I + \\omega g_2 J$
+    r"""$\mathrm{Exp}(v, \omega) = (\cos\omega, \sin\omega, V v)$ with $V = g_1 I + \omega g_2 J$
     (Solà App. C)."""
     v, w = xi[..., :2], xi[..., 2:]
     s = w * w
@@ -143,7 +143,7 @@ def exp(xi):
 
 @exp.defjvp
 def _exp_jvp(primals, tangents):
-    """Local block: $J_r(\\xi)$."""
+    r"""Local block: $J_r(\xi)$."""
     (xi,), (xi_dot,) = primals, tangents
     params = exp(xi)
     return params, from_local(params, apply_right_jacobian(xi, xi_dot))
@@ -151,8 +151,8 @@ def _exp_jvp(primals, tangents):
 
 @jax.custom_jvp
 def log(params):
-    """$\\mathrm{Log}(X) = (V^{-1} t, \\omega)$ with $\\omega = \\mathrm{atan2}(s, c) \\in (-\\pi, \\pi]$ and
-    $V^{-1} = h I - \\tfrac\\omega2 J$, $h$ of `log_coefficient` (Solà App. C)."""
+    r"""$\mathrm{Log}(X) = (V^{-1} t, \omega)$ with $\omega = \mathrm{atan2}(s, c) \in (-\pi, \pi]$ and
+    $V^{-1} = h I - \tfrac\omega2 J$, $h$ of `log_coefficient` (Solà App. C)."""
     cs, t = params[..., :2], params[..., 2:]
     w = jnp.arctan2(cs[..., 1:], cs[..., :1])
     v = log_coefficient(w * w) * t - 0.5 * w * perp(t)
@@ -161,7 +161,7 @@ def log(params):
 
 @log.defjvp
 def _log_jvp(primals, tangents):
-    """Local block: $J_r^{-1}(\\xi)$."""
+    r"""Local block: $J_r^{-1}(\xi)$."""
     (params,), (params_dot,) = primals, tangents
     xi = log(params)
     return xi, apply_right_jacobian_inverse(xi, to_local(params, params_dot))
@@ -169,7 +169,7 @@ def _log_jvp(primals, tangents):
 
 @jax.custom_jvp
 def compose(params1, params2):
-    """$(R_1 R_2,\\ R_1 t_2 + t_1)$."""
+    r"""$(R_1 R_2,\ R_1 t_2 + t_1)$."""
     cs1, t1 = params1[..., :2], params1[..., 2:]
     cs2, t2 = params2[..., :2], params2[..., 2:]
     return jnp.concatenate([rotate(cs1, cs2), rotate(cs1, t2) + t1], axis=-1)
@@ -177,8 +177,8 @@ def compose(params1, params2):
 
 @_rules.defjvp(compose)
 def _compose_jvp(primals, tangents):
-    """Local block: $\\xi = \\mathrm{Ad}_{X_2^{-1}} \\xi_1 + \\xi_2$, i.e.
-    $v = R_2^\\top (v_1 + \\omega_1 J t_2) + v_2$, $\\omega = \\omega_1 + \\omega_2$ (Solà App. C)."""
+    r"""Local block: $\xi = \mathrm{Ad}_{X_2^{-1}} \xi_1 + \xi_2$, i.e.
+    $v = R_2^\top (v_1 + \omega_1 J t_2) + v_2$, $\omega = \omega_1 + \omega_2$ (Solà App. C)."""
     (params1, params2), (params1_dot, params2_dot) = primals, tangents
     params = compose(params1, params2)
     xi1 = _rules.local_tangent(to_local, params1, params1_dot)
@@ -195,14 +195,14 @@ def _compose_jvp(primals, tangents):
 
 @jax.custom_jvp
 def inverse(params):
-    """$(R^\\top, -R^\\top t)$."""
+    r"""$(R^\top, -R^\top t)$."""
     cs, t = params[..., :2], params[..., 2:]
     return jnp.concatenate([so2.inverse(cs), -unrotate(cs, t)], axis=-1)
 
 
 @inverse.defjvp
 def _inverse_jvp(primals, tangents):
-    """Local block: $-\\mathrm{Ad}_X$, i.e. $v_{out} = \\omega J t - R v$, $\\omega_{out} = -\\omega$."""
+    r"""Local block: $-\mathrm{Ad}_X$, i.e. $v_{out} = \omega J t - R v$, $\omega_{out} = -\omega$."""
     (params,), (params_dot,) = primals, tangents
     params_inv = inverse(params)
     xi = to_local(params, params_dot)
@@ -220,7 +220,7 @@ def act(params, points):
 
 @_rules.defjvp(act)
 def _act_jvp(primals, tangents):
-    """$\\dot y = R(v + \\omega J p + \\dot p)$: blocks $[R,\\ R J p]$ and $R$ (Solà App. C)."""
+    r"""$\dot y = R(v + \omega J p + \dot p)$: blocks $[R,\ R J p]$ and $R$ (Solà App. C)."""
     (params, points), (params_dot, points_dot) = primals, tangents
     moved = act(params, points)
     xi = _rules.local_tangent(to_local, params, params_dot)
@@ -233,14 +233,14 @@ def _act_jvp(primals, tangents):
 
 @jax.custom_jvp
 def adjoint(params):
-    """$\\mathrm{Ad}_X$ of `adjoint_matrix`."""
+    r"""$\mathrm{Ad}_X$ of `adjoint_matrix`."""
     return adjoint_matrix(params)
 
 
 @adjoint.defjvp
 def _adjoint_jvp(primals, tangents):
-    """$\\dot{\\mathrm{Ad}} = \\mathrm{Ad}_X\\,\\mathrm{ad}_\\xi$, from $\\mathrm{Ad}_{X \\mathrm{Exp}(\\xi)} =
-    \\mathrm{Ad}_X \\mathrm{Ad}_{\\mathrm{Exp}(\\xi)}$."""
+    r"""$\dot{\mathrm{Ad}} = \mathrm{Ad}_X\,\mathrm{ad}_\xi$, from $\mathrm{Ad}_{X \mathrm{Exp}(\xi)} =
+    \mathrm{Ad}_X \mathrm{Ad}_{\mathrm{Exp}(\xi)}$."""
     (params,), (params_dot,) = primals, tangents
     matrix = adjoint(params)
     return matrix, matrix @ small_adjoint(to_local(params, params_dot))
@@ -256,7 +256,7 @@ def as_matrix(params):
 
 @as_matrix.defjvp
 def _as_matrix_jvp(primals, tangents):
-    """$\\dot T = T\\,\\mathrm{hat}(\\xi)$."""
+    r"""$\dot T = T\,\mathrm{hat}(\xi)$."""
     (params,), (params_dot,) = primals, tangents
     matrix = as_matrix(params)
     return matrix, matrix @ hat(to_local(params, params_dot))
@@ -271,8 +271,8 @@ def from_matrix(matrix):
 
 @from_matrix.defjvp
 def _from_matrix_jvp(primals, tangents):
-    """$v = R^\\top \\dot t$, $\\omega$ of `lieax.groups._so2.nearest_rotation_tangent` (the skew part of
-    $R^\\top \\dot R$ at a rotation)."""
+    r"""$v = R^\top \dot t$, $\omega$ of `lieax.groups._so2.nearest_rotation_tangent` (the skew part of
+    $R^\top \dot R$ at a rotation)."""
     (matrix,), (matrix_dot,) = primals, tangents
     cs, norm = so2.nearest_rotation(matrix[..., :2, :2])
     params = jnp.concatenate([cs, matrix[..., :2, 2]], axis=-1)
@@ -287,14 +287,14 @@ def normalize(params):
 
 
 def hat(xi):
-    """$\\mathrm{hat}(v, \\omega) = [[\\omega J, v], [0, 0]]$."""
+    r"""$\mathrm{hat}(v, \omega) = [[\omega J, v], [0, 0]]$."""
     vx, vy, w = xi[..., 0], xi[..., 1], xi[..., 2]
     zero = jnp.zeros_like(w)
     return stack_matrix([[zero, -w, vx], [w, zero, vy], [zero, zero, zero]])
 
 
 def vee(matrix):
-    """$(m_{02},\\ m_{12},\\ (m_{10} - m_{01}) / 2)$: the inverse of `hat` on the skew part."""
+    r"""$(m_{02},\ m_{12},\ (m_{10} - m_{01}) / 2)$: the inverse of `hat` on the skew part."""
     return jnp.concatenate([matrix[..., :2, 2], so2.vee(matrix[..., :2, :2])], axis=-1)
 
 
@@ -307,31 +307,14 @@ def sample_uniform(key, batch_shape, dtype):
 
 
 class SE2(AbstractGroup):
-    """Rigid motions in the plane: parameters `(cos, sin, x, y)`, shape `(*batch, 4)`; tangent
-    $(v_x, v_y, \\omega)$, shape `(*batch, 3)`."""
+    r"""Rigid motions in the plane: parameters `(cos, sin, x, y)`, shape `(*batch, 4)`; tangent
+    $(v_x, v_y, \omega)$, shape `(*batch, 3)`."""
 
     tangent_dim = 3
     parameters_dim = 4
     space_dim = 2
     matrix_dim = 3
     parameters_layout = "cos, sin, x, y"
-
-    _exp = staticmethod(exp)
-    _log = staticmethod(log)
-    _compose = staticmethod(compose)
-    _inverse = staticmethod(inverse)
-    _act = staticmethod(act)
-    _adjoint = staticmethod(adjoint)
-    _as_matrix = staticmethod(as_matrix)
-    _from_matrix = staticmethod(from_matrix)
-    _normalize = staticmethod(normalize)
-    _hat = staticmethod(hat)
-    _vee = staticmethod(vee)
-    _right_jacobian = staticmethod(right_jacobian)
-    _right_jacobian_inverse = staticmethod(right_jacobian_inverse)
-    _local_from_tangent = staticmethod(to_local)
-    _tangent_from_local = staticmethod(from_local)
-    _sample_uniform = staticmethod(sample_uniform)
 
     @classmethod
     def from_rotation_and_translation(cls, rotation: SO2, translation):
@@ -342,6 +325,7 @@ class SE2(AbstractGroup):
                 f"SE2.from_rotation_and_translation needs an SO2 rotation, "
                 f"got {type(rotation).__name__}."
             )
+        translation = match_dtype(translation, rotation.dtype, "SE2 translation", "the rotation")
         translation = check_last_axis(translation, 2, "SE2 translation", "x, y")
         batch = broadcast_batch(
             "SE2.from_rotation_and_translation", rotation.batch_shape, translation.shape[:-1]
@@ -351,14 +335,16 @@ class SE2(AbstractGroup):
 
     @classmethod
     def from_xy_theta(cls, x, y, theta):
-        """From positions and headings (radians), each of shape `(*batch,)`, broadcast together."""
-        x, y, theta = (as_float_array(a, "SE2.from_xy_theta argument") for a in (x, y, theta))
-        x, y, theta = jnp.broadcast_arrays(x, y, theta)
+        """From positions and headings (radians), each of shape `(*batch,)`, broadcast together; the
+        dtype is that of the arrays among them (Python and NumPy numbers take it)."""
+        x, y, theta = common_float_arrays("SE2.from_xy_theta", x, y, theta)
+        batch = broadcast_batch("SE2.from_xy_theta", x.shape, y.shape, theta.shape)
+        x, y, theta = (jnp.broadcast_to(a, batch) for a in (x, y, theta))
         cs = so2.exp(theta[..., None])
         return cls._wrap(jnp.concatenate([cs, x[..., None], y[..., None]], axis=-1))
 
     def as_xy_theta(self) -> jax.Array:
-        """`(x, y, theta)` on the last axis, theta in $(-\\pi, \\pi]$; inverse of `from_xy_theta`."""
+        r"""`(x, y, theta)` on the last axis, theta in $(-\pi, \pi]$; inverse of `from_xy_theta`."""
         return jnp.concatenate([self.translation(), so2.log(self._params[..., :2])], axis=-1)
 
     def rotation(self) -> SO2:

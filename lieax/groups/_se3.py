@@ -1,11 +1,11 @@
-"""SE(3), rigid motions in 3D, stored as `(w, x, y, z, tx, ty, tz)`: a unit quaternion (wxyz) and
+r"""SE(3), rigid motions in 3D, stored as `(w, x, y, z, tx, ty, tz)`: a unit quaternion (wxyz) and
 a translation, $T = [R(q), t; 0, 1]$.
 
-Tangent $\\xi = (v, \\omega)$, translation first; right perturbation $T \\oplus \\xi = T\\,\\mathrm{Exp}(\\xi)$,
-so $\\dot t = R v$ and $\\dot q = q \\otimes (0, \\omega/2)$.
+Tangent $\xi = (v, \omega)$, translation first; right perturbation $T \oplus \xi = T\,\mathrm{Exp}(\xi)$,
+so $\dot t = R v$ and $\dot q = q \otimes (0, \omega/2)$.
 
 Tangent carrier (see `lieax.groups._so3`): the 7-vector tangent of the parameter leaf holds
-$(\\rho, \\omega, v)$, the local tangent itself (and the quaternion's radial part $\\rho$), so the
+$(\rho, \omega, v)$, the local tangent itself (and the quaternion's radial part $\rho$), so the
 rotation slot carries exactly SO3's carrier and kernels use local tangents without conversion.
 `SE3(wxyz_xyz)`, `parameters()`, `translation()` and `from_rotation_and_translation` convert
 where raw arrays cross the API.
@@ -15,10 +15,12 @@ Sec. IV-D and App. D; the coupling block $Q$ of the Jacobians from Barfoot, "Sta
 Robotics" (2017), eq. 7.86, with coefficients rewritten as the $g_n$ of `lieax.groups._series`.
 """
 
+import sys
+
 import jax
 import jax.numpy as jnp
 
-from .._checks import check_last_axis
+from .._checks import broadcast_batch, check_last_axis, match_dtype
 from .._linalg import (
     cross,
     dot,
@@ -31,10 +33,11 @@ from .._linalg import (
     skew,
     unskew,
 )
-from . import _rules
+from . import _generic, _procrustes, _rules
 from . import _so3 as so3
 from ._base import AbstractGroup
 from ._series import g
+from ._sim3 import Sim3
 from ._so3 import SO3
 
 # ---- parameter and tangent layout ---------------------------------------------------------------
@@ -53,17 +56,13 @@ def _join(q, t):
 
 
 def to_local(params, carrier):
-    """The local tangent $(v, \\omega)$ held by a carrier $(\\rho, \\omega, v)$."""
+    r"""The local tangent $(v, \omega)$ held by a carrier $(\rho, \omega, v)$."""
     return jnp.concatenate([carrier[..., 4:], carrier[..., 1:4]], axis=-1)
 
 
 def from_local(params, xi):
-    """The carrier $(0, \\omega, v)$ of a local tangent $(v, \\omega)$."""
+    r"""The carrier $(0, \omega, v)$ of a local tangent $(v, \omega)$."""
     return jnp.concatenate([jnp.zeros_like(xi[..., :1]), xi[..., 3:], xi[..., :3]], axis=-1)
-
-
-def _unit_rotation(q):
-    return quat_to_matrix(so3.normalize(q))
 
 
 @jax.custom_jvp
@@ -74,12 +73,12 @@ def to_parameters(params):
 
 @to_parameters.defjvp
 def _to_parameters_jvp(primals, tangents):
-    """Carrier to raw derivative: $\\dot q = q \\otimes (\\rho, \\omega/2)$, $\\dot t = R v$."""
+    r"""Carrier to raw derivative: $\dot q = q \otimes (\rho, \omega/2)$, $\dot t = R v$."""
     (params,), (carrier,) = primals, tangents
     raw = to_parameters(params)
     q = raw[..., :4]
     q_dot = so3.quaternion_derivative(q, carrier[..., :4])
-    return raw, jnp.concatenate([q_dot, matvec(_unit_rotation(q), carrier[..., 4:])], axis=-1)
+    return raw, jnp.concatenate([q_dot, matvec(so3.unit_rotation(q), carrier[..., 4:])], axis=-1)
 
 
 @jax.custom_jvp
@@ -90,11 +89,11 @@ def from_parameters(params):
 
 @from_parameters.defjvp
 def _from_parameters_jvp(primals, tangents):
-    """Raw derivative to carrier: $(\\rho, \\omega)$ as in SO3, $v = R^\\top \\dot t$."""
+    r"""Raw derivative to carrier: $(\rho, \omega)$ as in SO3, $v = R^\top \dot t$."""
     (params,), (params_dot,) = primals, tangents
     q = params[..., :4]
     rotational = so3.radial_and_local(q, params_dot[..., :4])
-    v = rotate_back(_unit_rotation(q), params_dot[..., 4:])
+    v = rotate_back(so3.unit_rotation(q), params_dot[..., 4:])
     return from_parameters(params), jnp.concatenate([rotational, v], axis=-1)
 
 
@@ -106,7 +105,7 @@ def join(q, t):
 
 @join.defjvp
 def _join_jvp(primals, tangents):
-    """The rotation's carrier passes through; $v = R^\\top \\dot t$."""
+    r"""The rotation's carrier passes through; $v = R^\top \dot t$."""
     (q, t), (q_carrier, t_dot) = primals, tangents
     params = join(q, t)
     v = rotate_back(so3.as_matrix(q), t_dot)
@@ -122,10 +121,10 @@ def _rotation_and_translation(params):
 
 
 def _coupling(v, omega):
-    """Barfoot's $Q(\\rho, \\phi)$, the upper-right block of $J_l$ (eq. 7.86), with
-    $V = [\\rho]_\\times$, $W = [\\phi]_\\times$:
-    $Q = \\tfrac12 V + g_3 (WV + VW + WVW) + g_4 (WWV + VWW - 3WVW)
-    + \\tfrac12 (g_4 - 3g_5) (WVWW + WWVW)$."""
+    r"""Barfoot's $Q(\rho, \phi)$, the upper-right block of $J_l$ (eq. 7.86), with
+    $V = [\rho]_\times$, $W = [\phi]_\times$:
+    $Q = \tfrac12 V + g_3 (WV + VW + WVW) + g_4 (WWV + VWW - 3WVW)
+    + \tfrac12 (g_4 - 3g_5) (WVWW + WWVW)$."""
     s = dot(omega, omega)[..., None, None]
     V, W = skew(v), skew(omega)
     WV, VW = W @ V, V @ W
@@ -145,13 +144,13 @@ def _block_upper_triangular(diagonal, corner):
 
 
 def right_jacobian(xi):
-    """$J_r(\\xi) = J_l(-\\xi) = [J_r(\\omega), Q(-v, -\\omega); 0, J_r(\\omega)]$ (Solà eq. 179-180)."""
+    r"""$J_r(\xi) = J_l(-\xi) = [J_r(\omega), Q(-v, -\omega); 0, J_r(\omega)]$ (Solà eq. 179-180)."""
     v, omega = xi[..., :3], xi[..., 3:]
     return _block_upper_triangular(so3.right_jacobian(omega), _coupling(-v, -omega))
 
 
 def right_jacobian_inverse(xi):
-    """$J_r^{-1}(\\xi) = [J_r^{-1}, -J_r^{-1} Q J_r^{-1}; 0, J_r^{-1}]$ with $Q = Q(-v, -\\omega)$."""
+    r"""$J_r^{-1}(\xi) = [J_r^{-1}, -J_r^{-1} Q J_r^{-1}; 0, J_r^{-1}]$ with $Q = Q(-v, -\omega)$."""
     v, omega = xi[..., :3], xi[..., 3:]
     inverse = so3.right_jacobian_inverse(omega)
     return _block_upper_triangular(inverse, -inverse @ _coupling(-v, -omega) @ inverse)
@@ -160,10 +159,9 @@ def right_jacobian_inverse(xi):
 # ---- kernels with closed-form rules -------------------------------------------------------------
 
 
-@jax.custom_jvp
-def exp(xi):
-    """$\\mathrm{Exp}(v, \\omega) = (\\mathrm{Exp}(\\omega),\\ J_l(\\omega)\\,v)$ with
-    $J_l(\\omega) v = v + g_2\\,\\omega \\times v + g_3\\,\\omega \\times (\\omega \\times v)$ (Solà eq. 172)."""
+def _exp(xi):
+    r"""$\mathrm{Exp}(v, \omega) = (\mathrm{Exp}(\omega),\ J_l(\omega)\,v)$ with
+    $J_l(\omega) v = v + g_2\,\omega \times v + g_3\,\omega \times (\omega \times v)$ (Solà eq. 172)."""
     v, omega = xi[..., :3], xi[..., 3:]
     s = dot(omega, omega)[..., None]
     wv = cross(omega, v)
@@ -171,17 +169,9 @@ def exp(xi):
     return jnp.concatenate([so3.exp(omega), t], axis=-1)
 
 
-@exp.defjvp
-def _exp_jvp(primals, tangents):
-    (xi,), (xi_dot,) = primals, tangents
-    params = exp(xi)
-    return params, from_local(params, matvec(right_jacobian(xi), xi_dot))
-
-
-@jax.custom_jvp
-def log(params):
-    """$\\mathrm{Log}(T) = (J_l^{-1}(\\omega)\\,t,\\ \\omega)$, $\\omega = \\mathrm{Log}(q)$, with
-    $J_l^{-1}(\\omega) t = t - \\tfrac12 \\omega \\times t + D(\\theta)\\,\\omega \\times (\\omega \\times t)$."""
+def _log(params):
+    r"""$\mathrm{Log}(T) = (J_l^{-1}(\omega)\,t,\ \omega)$, $\omega = \mathrm{Log}(q)$, with
+    $J_l^{-1}(\omega) t = t - \tfrac12 \omega \times t + D(\theta)\,\omega \times (\omega \times t)$."""
     q, t = _split(params)
     omega = so3.log(q)
     s = dot(omega, omega)[..., None]
@@ -190,16 +180,9 @@ def log(params):
     return jnp.concatenate([v, omega], axis=-1)
 
 
-@log.defjvp
-def _log_jvp(primals, tangents):
-    (params,), (params_dot,) = primals, tangents
-    xi = log(params)
-    return xi, matvec(right_jacobian_inverse(xi), to_local(params, params_dot))
-
-
 @jax.custom_jvp
 def compose(params1, params2):
-    """$T_1 T_2 = (q_1 \\otimes q_2,\\ R_1 t_2 + t_1)$."""
+    r"""$T_1 T_2 = (q_1 \otimes q_2,\ R_1 t_2 + t_1)$."""
     q1, t1 = _split(params1)
     q2, t2 = _split(params2)
     return _join(quat_multiply(q1, q2), quat_rotate(q1, t2) + t1)
@@ -207,8 +190,8 @@ def compose(params1, params2):
 
 @_rules.defjvp(compose)
 def _compose_jvp(primals, tangents):
-    """Local block: $\\xi = \\mathrm{Ad}(T_2^{-1})\\,\\xi_1 + \\xi_2$, i.e.
-    $v = R_2^\\top(v_1 + \\omega_1 \\times t_2) + v_2$, $\\omega = R_2^\\top \\omega_1 + \\omega_2$ (Solà eq. 171)."""
+    r"""Local block: $\xi = \mathrm{Ad}(T_2^{-1})\,\xi_1 + \xi_2$, i.e.
+    $v = R_2^\top(v_1 + \omega_1 \times t_2) + v_2$, $\omega = R_2^\top \omega_1 + \omega_2$ (Solà eq. 171)."""
     (params1, params2), (params1_dot, params2_dot) = primals, tangents
     params = compose(params1, params2)
     xi1 = _rules.local_tangent(to_local, params1, params1_dot)
@@ -227,7 +210,7 @@ def _compose_jvp(primals, tangents):
 
 @jax.custom_jvp
 def inverse(params):
-    """$T^{-1} = (\\bar q,\\ -R^\\top t)$."""
+    r"""$T^{-1} = (\bar q,\ -R^\top t)$."""
     q, t = _split(params)
     q_inverse = quat_conjugate(q)
     return jnp.concatenate([q_inverse, -quat_rotate(q_inverse, t)], axis=-1)
@@ -235,7 +218,7 @@ def inverse(params):
 
 @inverse.defjvp
 def _inverse_jvp(primals, tangents):
-    """Local block $-\\mathrm{Ad}(T)$: $\\omega' = -R\\omega$, $v' = -(R v + t \\times R\\omega)$ (Solà eq. 176)."""
+    r"""Local block $-\mathrm{Ad}(T)$: $\omega' = -R\omega$, $v' = -(R v + t \times R\omega)$ (Solà eq. 176)."""
     (params,), (params_dot,) = primals, tangents
     params_inverse = inverse(params)
     rotation, t = _rotation_and_translation(params)
@@ -256,7 +239,7 @@ def act(params, points):
 
 @_rules.defjvp(act)
 def _act_jvp(primals, tangents):
-    """$\\dot y = R(v + \\omega \\times p + \\dot p)$: blocks $[R, -R[p]_\\times]$ and $R$ (Solà eq. 181-182)."""
+    r"""$\dot y = R(v + \omega \times p + \dot p)$: blocks $[R, -R[p]_\times]$ and $R$ (Solà eq. 181-182)."""
     (params, points), (params_dot, points_dot) = primals, tangents
     moved = act(params, points)
     # Read (v, ω) straight from the carrier (ρ, ω, v): no concatenation, so no pads in the transpose.
@@ -271,29 +254,20 @@ def _act_jvp(primals, tangents):
     return _rules.finish(moved, matvec(so3.as_matrix(params[..., :4]), direction))
 
 
-@jax.custom_jvp
-def adjoint(params):
-    """$\\mathrm{Ad}_T = [R, [t]_\\times R; 0, R]$ (translation-first tangents; Solà eq. 178)."""
+def _adjoint(params):
+    r"""$\mathrm{Ad}_T = [R, [t]_\times R; 0, R]$ (translation-first tangents; Solà eq. 178)."""
     q, t = _split(params)
     rotation = quat_to_matrix(q)
     return _block_upper_triangular(rotation, skew(t) @ rotation)
 
 
-def _ad(xi):
-    """$\\mathrm{ad}_\\xi = [[\\omega]_\\times, [v]_\\times; 0, [\\omega]_\\times]$, the derivative of $\\mathrm{Ad}$."""
+def ad(xi):
+    r"""$\mathrm{ad}_\xi = [[\omega]_\times, [v]_\times; 0, [\omega]_\times]$, the derivative of $\mathrm{Ad}$."""
     return _block_upper_triangular(skew(xi[..., 3:]), skew(xi[..., :3]))
 
 
-@adjoint.defjvp
-def _adjoint_jvp(primals, tangents):
-    """$\\dot{\\mathrm{Ad}} = \\mathrm{Ad}_T\\,\\mathrm{ad}_\\xi$, from $\\mathrm{Ad}_{T \\mathrm{Exp}(\\xi)} = \\mathrm{Ad}_T \\mathrm{Ad}_{\\mathrm{Exp}(\\xi)}$."""
-    (params,), (params_dot,) = primals, tangents
-    matrix = adjoint(params)
-    return matrix, matrix @ _ad(to_local(params, params_dot))
-
-
 def hat(xi):
-    """$\\xi^\\wedge = [[\\omega]_\\times, v; 0, 0]$."""
+    r"""$\xi^\wedge = [[\omega]_\times, v; 0, 0]$."""
     top = jnp.concatenate([skew(xi[..., 3:]), xi[..., :3, None]], axis=-1)
     return jnp.concatenate([top, jnp.zeros_like(top[..., :1, :])], axis=-2)
 
@@ -302,8 +276,7 @@ def vee(matrix):
     return jnp.concatenate([matrix[..., :3, 3], unskew(matrix[..., :3, :3])], axis=-1)
 
 
-@jax.custom_jvp
-def as_matrix(params):
+def _as_matrix(params):
     """$T = [R(q), t; 0, 1]$."""
     q, t = _split(params)
     top = jnp.concatenate([quat_to_matrix(q), t[..., None]], axis=-1)
@@ -313,41 +286,25 @@ def as_matrix(params):
     return jnp.concatenate([top, bottom], axis=-2)
 
 
-@as_matrix.defjvp
-def _as_matrix_jvp(primals, tangents):
-    """$\\dot T = T\\,\\xi^\\wedge$."""
-    (params,), (params_dot,) = primals, tangents
-    matrix = as_matrix(params)
-    return matrix, matrix @ hat(to_local(params, params_dot))
-
-
-@jax.custom_jvp
-def from_matrix(matrix):
+def _from_matrix(matrix):
     """Rotation by `SO3.from_matrix` (re-orthogonalized), translation the last column."""
     return _join(so3.from_matrix(matrix[..., :3, :3]), matrix[..., :3, 3])
 
 
-@from_matrix.defjvp
-def _from_matrix_jvp(primals, tangents):
-    """$v = R^\\top \\dot t$, $\\omega = \\mathrm{vee}(\\mathrm{skew}(R^\\top \\dot R))$."""
-    (matrix,), (matrix_dot,) = primals, tangents
-    params = from_matrix(matrix)
-    local = vee(jnp.swapaxes(matrix, -1, -2) @ matrix_dot)
-    return params, from_local(params, local)
-
-
-@jax.custom_jvp
-def normalize(params):
+def _normalize(params):
     """Unit quaternion, translation unchanged."""
     q, t = _split(params)
     return jnp.concatenate([so3.normalize(q), t], axis=-1)
 
 
-@normalize.defjvp
-def _normalize_jvp(primals, tangents):
-    """The radial part of the carrier is dropped; the local part is unchanged."""
-    (params,), (carrier,) = primals, tangents
-    return normalize(params), carrier.at[..., 0].set(0.0)
+# The generic rules (lieax.groups._generic) for all but compose, inverse and act, whose closed
+# forms above avoid the 6×6 adjoint (they are what benchmarks/chain.py times).
+_ops = _generic.local_rules(
+    sys.modules[__name__], exp=_exp, log=_log, compose=compose, inverse=inverse,
+    adjoint=_adjoint, as_matrix=_as_matrix, from_matrix=_from_matrix, normalize=_normalize,
+)  # fmt: skip
+exp, log, adjoint, as_matrix = _ops.exp, _ops.log, _ops.adjoint, _ops.as_matrix
+from_matrix, normalize = _ops.from_matrix, _ops.normalize
 
 
 def sample_uniform(key, batch_shape, dtype):
@@ -370,35 +327,22 @@ class SE3(AbstractGroup):
     matrix_dim = 4
     parameters_layout = "quaternion wxyz, then translation xyz"
 
-    _exp = staticmethod(exp)
-    _log = staticmethod(log)
-    _compose = staticmethod(compose)
-    _inverse = staticmethod(inverse)
-    _act = staticmethod(act)
-    _adjoint = staticmethod(adjoint)
-    _as_matrix = staticmethod(as_matrix)
-    _from_matrix = staticmethod(from_matrix)
-    _normalize = staticmethod(normalize)
-    _hat = staticmethod(hat)
-    _vee = staticmethod(vee)
-    _right_jacobian = staticmethod(right_jacobian)
-    _right_jacobian_inverse = staticmethod(right_jacobian_inverse)
-    _local_from_tangent = staticmethod(to_local)
-    _tangent_from_local = staticmethod(from_local)
-    _to_parameters = staticmethod(to_parameters)
-    _from_parameters = staticmethod(from_parameters)
-    _sample_uniform = staticmethod(sample_uniform)
-
     @property
     def wxyz_xyz(self) -> jax.Array:
         return self.parameters()
 
     @classmethod
     def from_rotation_and_translation(cls, rotation: SO3, translation):
-        """$T = [R, t; 0, 1]$, broadcasting batch shapes."""
+        """$T = [R, t; 0, 1]$, broadcasting batch shapes (a translation that states no dtype takes
+        the rotation's)."""
+        name = "SE3.from_rotation_and_translation"
         if not isinstance(rotation, SO3):
             raise TypeError(f"rotation must be an SO3, got {type(rotation).__name__}.")
-        translation = check_last_axis(translation, 3, "SE3 translation")
+        translation = match_dtype(
+            translation, rotation.dtype, f"{name} translation", "the rotation"
+        )
+        translation = check_last_axis(translation, 3, f"{name} translation")
+        broadcast_batch(name, rotation.batch_shape, translation.shape[:-1])
         return cls._wrap(join(rotation._params, translation))
 
     @classmethod
@@ -414,12 +358,13 @@ class SE3(AbstractGroup):
 
     @classmethod
     def align(cls, points_a, points_b, weights=None, *, with_scale=False):
-        """The least-squares $T_{ab}$ with $a_i \\approx T_{ab} b_i$ (SVD of the correlation matrix,
+        r"""The least-squares $T_{ab}$ with $a_i \approx T_{ab} b_i$ (SVD of the correlation matrix,
         proper rotation; Umeyama scale and a `Sim3` result with `with_scale`), differentiable with
-        respect to the points and weights; see `lieax.align`."""
-        from .._align import align
-
-        return align(points_a, points_b, weights, with_scale=with_scale)
+        respect to the points and weights; see `lieax.align` and `lieax.groups._procrustes`."""
+        if with_scale:
+            return Sim3.align(points_a, points_b, weights)
+        q, t, _ = _procrustes.solve(points_a, points_b, weights, with_scale=False, what="SE3.align")
+        return cls._wrap(join(q, t))
 
     def rotation(self) -> SO3:
         return SO3._wrap(self._params[..., :4])

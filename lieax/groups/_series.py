@@ -1,20 +1,20 @@
-"""The trigonometric coefficients of every closed form in lieax, safe at zero angle.
+r"""The trigonometric coefficients of every closed form in lieax, safe at zero angle.
 
-All of SO2, SE2, SO3 and SE3 are written with one family of functions of $s = \\theta^2$:
+All of SO2, SE2, SO3 and SE3 are written with one family of functions of $s = \theta^2$:
 
-$$g_n(s) = \\sum_{k \\ge 0} \\frac{(-1)^k s^k}{(2k + n)!},$$
+$$g_n(s) = \sum_{k \ge 0} \frac{(-1)^k s^k}{(2k + n)!},$$
 
-so that $g_0 = \\cos\\theta$, $g_1 = \\sin\\theta / \\theta$, $g_2 = (1 - \\cos\\theta) / \\theta^2$,
-$g_3 = (\\theta - \\sin\\theta) / \\theta^3$, and in general $g_{n+2} = (1/n! - g_n) / s$.
+so that $g_0 = \cos\theta$, $g_1 = \sin\theta / \theta$, $g_2 = (1 - \cos\theta) / \theta^2$,
+$g_3 = (\theta - \sin\theta) / \theta^3$, and in general $g_{n+2} = (1/n! - g_n) / s$.
 (These are the coefficients of Solà et al., "A micro Lie theory", eqs. 77, 143, 180, rewritten
-so that none divides by $\\theta$.)
+so that none divides by $\theta$.)
 
-Below $\\theta = 2$ the series is summed (16 terms reach the float64 rounding error there); above,
-the recurrence runs from $\\cos$ and $\\sin$ (it divides by $s \\ge 4$, so errors do not grow).
+Below $\theta = 2$ the series is summed (16 terms reach the float64 rounding error there); above,
+the recurrence runs from $\cos$ and $\sin$ (it divides by $s \ge 4$, so errors do not grow).
 Both branches are evaluated on safe inputs and the other one is masked (the "double where"), so
 neither values nor derivatives of any order are NaN.
 
-The derivative is closed-form as well, $g_n'(s) = -(g_{n+1}(s) - n\\,g_{n+2}(s)) / 2$ (differentiate
+The derivative is closed-form as well, $g_n'(s) = -(g_{n+1}(s) - n\,g_{n+2}(s)) / 2$ (differentiate
 the series term by term), and is injected with `jax.custom_jvp`: no derivative of any lieax
 Jacobian ever goes through `sin`, `cos` or `sqrt`.
 """
@@ -31,7 +31,7 @@ _SERIES_TERMS = 16
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
 def g(n: int, s: jax.Array) -> jax.Array:
-    """$g_n(s) = \\sum_k (-1)^k s^k / (2k + n)!$ with $s = \\theta^2 \\ge 0$ (see the module docstring)."""
+    r"""$g_n(s) = \sum_k (-1)^k s^k / (2k + n)!$ with $s = \theta^2 \ge 0$ (see the module docstring)."""
     use_series = s < _SERIES_LIMIT
     s_series = jnp.where(use_series, s, 0.0)
     s_closed = jnp.where(use_series, _SERIES_LIMIT, s)

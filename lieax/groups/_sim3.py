@@ -1,39 +1,39 @@
-"""Sim(3), similarity transforms in 3D, stored as `(w, x, y, z, tx, ty, tz, σ)`: a unit quaternion
-(wxyz), a translation and the log-scale $\\sigma$, $T = [e^\\sigma R(q), t; 0, 1]$, so that
-$T p = s R p + t$ with $s = e^\\sigma$.
+r"""Sim(3), similarity transforms in 3D, stored as `(w, x, y, z, tx, ty, tz, σ)`: a unit quaternion
+(wxyz), a translation and the log-scale $\sigma$, $T = [e^\sigma R(q), t; 0, 1]$, so that
+$T p = s R p + t$ with $s = e^\sigma$.
 
-Tangent $\\xi = (v, \\omega, \\sigma)$ (translation, rotation, log-scale), with
-$\\xi^\\wedge = [[\\omega]_\\times + \\sigma I, v; 0, 0]$; right perturbation
-$T \\oplus \\xi = T\\,\\mathrm{Exp}(\\xi)$, so $\\dot t = s R v$, $\\dot q = q \\otimes (0, \\omega/2)$ and
-$\\dot\\sigma = \\sigma_\\xi$.
+Tangent $\xi = (v, \omega, \sigma)$ (translation, rotation, log-scale), with
+$\xi^\wedge = [[\omega]_\times + \sigma I, v; 0, 0]$; right perturbation
+$T \oplus \xi = T\,\mathrm{Exp}(\xi)$, so $\dot t = s R v$, $\dot q = q \otimes (0, \omega/2)$ and
+$\dot\sigma = \sigma_\xi$.
 
 Tangent carrier (see `lieax.groups._so3` and `lieax.groups._se3`): the 8-vector tangent of the parameter leaf holds
-$(\\rho, \\omega, v, \\sigma)$, aligned with the parameter slots: SO3's carrier in the quaternion slot,
-the local translation $v$ in the translation slot and $\\dot\\sigma$ in the scale slot. Kernels use
+$(\rho, \omega, v, \sigma)$, aligned with the parameter slots: SO3's carrier in the quaternion slot,
+the local translation $v$ in the translation slot and $\dot\sigma$ in the scale slot. Kernels use
 local tangents without conversion; `Sim3(params)`, `parameters()`, `translation()`, `log_scale()`
 and `from_rotation_translation_scale` convert where raw arrays cross the API.
 
 Formulas.
-- $\\mathrm{Exp}(v, \\omega, \\sigma) = (\\mathrm{Exp}(\\omega), W v, \\sigma)$ with
-  $W = \\int_0^1 e^{\\sigma\\tau} R(\\tau\\omega)\\,d\\tau = A I + B [\\omega]_\\times + C [\\omega]_\\times^2$
-  (Eade, "Lie groups for 2D and 3D transformations", Sim(3) section), where, with $s = \\theta^2$,
-  $A = (e^\\sigma - 1)/\\sigma$,
-  $B = \\int_0^1 e^{\\sigma\\tau} \\sin(\\tau\\theta)/\\theta\\,d\\tau = (e^\\sigma(\\sigma g_1 - g_0) + 1)/(\\sigma^2 + s)$,
-  $C = \\int_0^1 e^{\\sigma\\tau} (1 - \\cos\\tau\\theta)/\\theta^2\\,d\\tau$
-  $= (A - (e^\\sigma(\\sigma g_0 + s g_1) - \\sigma)/(\\sigma^2 + s))/s$
-  $= (e^\\sigma(\\sigma^2 g_2 + 1 - \\sigma g_1) - 1)/(\\sigma(\\sigma^2 + s))$
+- $\mathrm{Exp}(v, \omega, \sigma) = (\mathrm{Exp}(\omega), W v, \sigma)$ with
+  $W = \int_0^1 e^{\sigma\tau} R(\tau\omega)\,d\tau = A I + B [\omega]_\times + C [\omega]_\times^2$
+  (Eade, "Lie groups for 2D and 3D transformations", Sim(3) section), where, with $s = \theta^2$,
+  $A = (e^\sigma - 1)/\sigma$,
+  $B = \int_0^1 e^{\sigma\tau} \sin(\tau\theta)/\theta\,d\tau = (e^\sigma(\sigma g_1 - g_0) + 1)/(\sigma^2 + s)$,
+  $C = \int_0^1 e^{\sigma\tau} (1 - \cos\tau\theta)/\theta^2\,d\tau$
+  $= (A - (e^\sigma(\sigma g_0 + s g_1) - \sigma)/(\sigma^2 + s))/s$
+  $= (e^\sigma(\sigma^2 g_2 + 1 - \sigma g_1) - 1)/(\sigma(\sigma^2 + s))$
   ($g_n$ the coefficients of `lieax.groups._series`). Each closed form is used only where its divisor
-  is at least 1 and dominant (for $C$: the division by $\\sigma$ where $\\sigma^2 \\ge \\max(1, s)$,
-  by $s$ where $s \\ge \\max(1, \\sigma^2)$); near $\\sigma = \\theta = 0$ the double series
-  $\\sum_{k,m} (-s)^k \\sigma^m / (m!\\,n_k!\\,(m + n_k + 1))$ of the integrals is summed (both branches
+  is at least 1 and dominant (for $C$: the division by $\sigma$ where $\sigma^2 \ge \max(1, s)$,
+  by $s$ where $s \ge \max(1, \sigma^2)$); near $\sigma = \theta = 0$ the double series
+  $\sum_{k,m} (-s)^k \sigma^m / (m!\,n_k!\,(m + n_k + 1))$ of the integrals is summed (both branches
   evaluated on safe inputs and masked, so no NaN in values or derivatives).
-- $\\mathrm{Ad}_T = [[sR, [t]_\\times R, -t], [0, R, 0], [0, 0, 1]]$,
-  $\\mathrm{ad}_\\xi = [[[\\omega]_\\times + \\sigma I, [v]_\\times, -v], [0, [\\omega]_\\times, 0], [0, 0, 0]]$.
-- $J_r(\\xi) = \\varphi_1(-\\mathrm{ad}_\\xi) = \\sum_k (-\\mathrm{ad}_\\xi)^k / (k + 1)!$. Its
-  translation/rotation coupling block has no short closed form in $(\\sigma, \\theta)$ (it is a
-  double integral of $e^{\\sigma u} R(u\\omega)[v]_\\times R(w\\omega)$, whose $\\sigma = 0$ case is
+- $\mathrm{Ad}_T = [[sR, [t]_\times R, -t], [0, R, 0], [0, 0, 1]]$,
+  $\mathrm{ad}_\xi = [[[\omega]_\times + \sigma I, [v]_\times, -v], [0, [\omega]_\times, 0], [0, 0, 0]]$.
+- $J_r(\xi) = \varphi_1(-\mathrm{ad}_\xi) = \sum_k (-\mathrm{ad}_\xi)^k / (k + 1)!$. Its
+  translation/rotation coupling block has no short closed form in $(\sigma, \theta)$ (it is a
+  double integral of $e^{\sigma u} R(u\omega)[v]_\times R(w\omega)$, whose $\sigma = 0$ case is
   Barfoot's $Q$; written out it needs about ten two-variable coefficients, each with its own
-  cancellations), so $\\varphi_1$ of the 7×7 matrix is evaluated numerically by scaling and
+  cancellations), so $\varphi_1$ of the 7×7 matrix is evaluated numerically by scaling and
   doubling (`phi1_matrix`): accurate to rounding for any tangent of practical size, NaN-free at 0,
   and differentiable in every mode (so second derivatives of the rules work). It gives the same
   values (to 3e-14) as the top-right block of the 14×14 `expm([[-ad, I], [0, 0]])`, which was
@@ -43,12 +43,13 @@ Formulas.
 """
 
 import math
+import sys
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import as_float_array, check_last_axis
+from .._checks import as_float_array, broadcast_batch, check_last_axis, check_positive, match_dtype
 from .._linalg import (
     cross,
     dot,
@@ -61,7 +62,7 @@ from .._linalg import (
     skew,
     unskew,
 )
-from . import _rules
+from . import _generic, _procrustes, _rules
 from . import _so3 as so3
 from ._base import AbstractGroup
 from ._series import g
@@ -75,8 +76,8 @@ _ANGLE_TERMS = 11  # 1/(2·10 + 1)! < 1e-19: the θ² series for θ² < 1
 
 
 def _double_series_table(offset: int) -> np.ndarray:
-    """Coefficients $T_{km} = (-1)^k / (m!\\,n!\\,(m + n + 1))$ with $n = 2k + \\text{offset}$ of
-    $\\sum_{k,m} T_{km} s^k \\sigma^m = \\sum_k (-s)^k \\int_0^1 e^{\\sigma\\tau} \\tau^n / n!\\,d\\tau$."""
+    r"""Coefficients $T_{km} = (-1)^k / (m!\,n!\,(m + n + 1))$ with $n = 2k + \text{offset}$ of
+    $\sum_{k,m} T_{km} s^k \sigma^m = \sum_k (-s)^k \int_0^1 e^{\sigma\tau} \tau^n / n!\,d\tau$."""
     table = np.zeros((_ANGLE_TERMS, _SIGMA_TERMS))
     for k in range(_ANGLE_TERMS):
         n = 2 * k + offset
@@ -97,7 +98,7 @@ def _horner(coefficients, x):
 
 
 def _powers(x, count):
-    """$(1, x, \\dots, x^{count-1})$ on a new last axis (products only: derivatives NaN-free at 0)."""
+    r"""$(1, x, \dots, x^{count-1})$ on a new last axis (products only: derivatives NaN-free at 0)."""
     powers = [jnp.ones_like(x)]
     for _ in range(count - 1):
         powers.append(powers[-1] * x)
@@ -105,7 +106,7 @@ def _powers(x, count):
 
 
 def _double_series(table, sigma, s):
-    """$\\sum_{k,m} T_{km} s^k \\sigma^m$."""
+    r"""$\sum_{k,m} T_{km} s^k \sigma^m$."""
     table = jnp.asarray(table, dtype=sigma.dtype)
     return jnp.einsum(
         "...k,km,...m->...", _powers(s, table.shape[0]), table, _powers(sigma, table.shape[1])
@@ -113,7 +114,7 @@ def _double_series(table, sigma, s):
 
 
 def phi1(sigma):
-    """$A(\\sigma) = (e^\\sigma - 1)/\\sigma = \\sum_m \\sigma^m / (m + 1)!$ (1 at zero)."""
+    r"""$A(\sigma) = (e^\sigma - 1)/\sigma = \sum_m \sigma^m / (m + 1)!$ (1 at zero)."""
     small = jnp.abs(sigma) < 1.0
     sigma_series = jnp.where(small, sigma, 0.0)
     sigma_closed = jnp.where(small, 1.0, sigma)
@@ -122,8 +123,8 @@ def phi1(sigma):
 
 
 def w_coefficients(sigma, s):
-    """$(A, B, C)$ of $W(\\sigma, \\omega) = A I + B [\\omega]_\\times + C [\\omega]_\\times^2$, with
-    $s = \\theta^2$ (module docstring); finite with finite derivatives of any order everywhere."""
+    r"""$(A, B, C)$ of $W(\sigma, \omega) = A I + B [\omega]_\times + C [\omega]_\times^2$, with
+    $s = \theta^2$ (module docstring); finite with finite derivatives of any order everywhere."""
     sigma2 = sigma * sigma
     a = phi1(sigma)
     in_series = (sigma2 < _CLOSED_LIMIT) & (s < _CLOSED_LIMIT)
@@ -160,22 +161,22 @@ def w_coefficients(sigma, s):
 
 
 def apply_w(sigma, omega, x):
-    """$W(\\sigma, \\omega)\\,x = A x + B\\,\\omega \\times x + C\\,\\omega \\times (\\omega \\times x)$."""
+    r"""$W(\sigma, \omega)\,x = A x + B\,\omega \times x + C\,\omega \times (\omega \times x)$."""
     a, b, c = w_coefficients(sigma[..., None], dot(omega, omega)[..., None])
     wx = cross(omega, x)
     return a * x + b * wx + c * cross(omega, wx)
 
 
 def w_matrix(sigma, omega):
-    """$W(\\sigma, \\omega)$ as a matrix, shape `(*batch, 3, 3)`."""
+    r"""$W(\sigma, \omega)$ as a matrix, shape `(*batch, 3, 3)`."""
     a, b, c = w_coefficients(sigma[..., None, None], dot(omega, omega)[..., None, None])
     w = skew(omega)
     return a * jnp.eye(3, dtype=omega.dtype) + b * w + c * (w @ w)
 
 
 def _solve3(matrix, x):
-    """$M^{-1} x$ for 3×3 matrices by the adjugate: rows $r_i$, $M^{-1} = [r_1 \\times r_2, r_2 \\times r_0,
-    r_0 \\times r_1] / \\det M$."""
+    r"""$M^{-1} x$ for 3×3 matrices by the adjugate: rows $r_i$, $M^{-1} = [r_1 \times r_2, r_2 \times r_0,
+    r_0 \times r_1] / \det M$."""
     r0, r1, r2 = matrix[..., 0, :], matrix[..., 1, :], matrix[..., 2, :]
     c0, c1, c2 = cross(r1, r2), cross(r2, r0), cross(r0, r1)
     det = dot(r0, c0)[..., None]
@@ -203,19 +204,15 @@ def _join(q, t, sigma):
 
 
 def to_local(params, carrier):
-    """The local tangent $(v, \\omega, \\sigma)$ held by a carrier $(\\rho, \\omega, v, \\sigma)$."""
+    r"""The local tangent $(v, \omega, \sigma)$ held by a carrier $(\rho, \omega, v, \sigma)$."""
     return jnp.concatenate([carrier[..., 4:7], carrier[..., 1:4], carrier[..., 7:]], axis=-1)
 
 
 def from_local(params, xi):
-    """The carrier $(0, \\omega, v, \\sigma)$ of a local tangent $(v, \\omega, \\sigma)$."""
+    r"""The carrier $(0, \omega, v, \sigma)$ of a local tangent $(v, \omega, \sigma)$."""
     return jnp.concatenate(
         [jnp.zeros_like(xi[..., :1]), xi[..., 3:6], xi[..., :3], xi[..., 6:]], axis=-1
     )
-
-
-def _unit_rotation(q):
-    return quat_to_matrix(so3.normalize(q))
 
 
 @jax.custom_jvp
@@ -226,13 +223,13 @@ def to_parameters(params):
 
 @to_parameters.defjvp
 def _to_parameters_jvp(primals, tangents):
-    """Carrier to raw derivative: $\\dot q = q \\otimes (\\rho, \\omega/2)$, $\\dot t = s R v$,
-    $\\dot\\sigma = \\sigma_\\xi$."""
+    r"""Carrier to raw derivative: $\dot q = q \otimes (\rho, \omega/2)$, $\dot t = s R v$,
+    $\dot\sigma = \sigma_\xi$."""
     (params,), (carrier,) = primals, tangents
     raw = to_parameters(params)
     q, sigma = raw[..., :4], raw[..., 7:]
     q_dot = so3.quaternion_derivative(q, carrier[..., :4])
-    t_dot = jnp.exp(sigma) * matvec(_unit_rotation(q), carrier[..., 4:7])
+    t_dot = jnp.exp(sigma) * matvec(so3.unit_rotation(q), carrier[..., 4:7])
     return raw, jnp.concatenate([q_dot, t_dot, carrier[..., 7:]], axis=-1)
 
 
@@ -244,11 +241,11 @@ def from_parameters(params):
 
 @from_parameters.defjvp
 def _from_parameters_jvp(primals, tangents):
-    """Raw derivative to carrier: $(\\rho, \\omega)$ as in SO3, $v = R^\\top \\dot t / s$, $\\dot\\sigma$."""
+    r"""Raw derivative to carrier: $(\rho, \omega)$ as in SO3, $v = R^\top \dot t / s$, $\dot\sigma$."""
     (params,), (params_dot,) = primals, tangents
     q, sigma = params[..., :4], params[..., 7:]
     rotational = so3.radial_and_local(q, params_dot[..., :4])
-    v = rotate_back(_unit_rotation(q), params_dot[..., 4:7]) * jnp.exp(-sigma)
+    v = rotate_back(so3.unit_rotation(q), params_dot[..., 4:7]) * jnp.exp(-sigma)
     return from_parameters(params), jnp.concatenate([rotational, v, params_dot[..., 7:]], axis=-1)
 
 
@@ -260,7 +257,7 @@ def join(q, t, sigma):
 
 @join.defjvp
 def _join_jvp(primals, tangents):
-    """The rotation's carrier passes through; $v = R^\\top \\dot t / s$; $\\dot\\sigma$ passes through."""
+    r"""The rotation's carrier passes through; $v = R^\top \dot t / s$; $\dot\sigma$ passes through."""
     (q, t, sigma), (q_carrier, t_dot, sigma_dot) = primals, tangents
     params = join(q, t, sigma)
     v = rotate_back(so3.as_matrix(q), t_dot) * jnp.exp(-sigma)
@@ -277,19 +274,17 @@ def _components(params):
 
 
 def hat(xi):
-    """$\\xi^\\wedge = [[\\omega]_\\times + \\sigma I, v; 0, 0]$."""
+    r"""$\xi^\wedge = [[\omega]_\times + \sigma I, v; 0, 0]$."""
     linear = skew(xi[..., 3:6]) + xi[..., 6:, None] * jnp.eye(3, dtype=xi.dtype)
     top = jnp.concatenate([linear, xi[..., :3, None]], axis=-1)
     return jnp.concatenate([top, jnp.zeros_like(top[..., :1, :])], axis=-2)
 
 
 def vee(matrix):
-    """$(v, \\omega, \\sigma)$ of an algebra matrix: $\\sigma$ is a third of the trace of the linear block."""
+    r"""$(v, \omega, \sigma)$ of an algebra matrix: $\sigma$ is a third of the trace of the linear block."""
     linear = matrix[..., :3, :3]
     trace = linear[..., 0, 0] + linear[..., 1, 1] + linear[..., 2, 2]
-    return jnp.concatenate(
-        [matrix[..., :3, 3], unskew(linear), trace[..., None] / 3.0], axis=-1
-    )
+    return jnp.concatenate([matrix[..., :3, 3], unskew(linear), trace[..., None] / 3.0], axis=-1)
 
 
 def _blocks(rows):
@@ -297,8 +292,8 @@ def _blocks(rows):
 
 
 def ad(xi):
-    """$\\mathrm{ad}_\\xi = [[[\\omega]_\\times + \\sigma I, [v]_\\times, -v], [0, [\\omega]_\\times, 0],
-    [0, 0, 0]]$, with $[\\xi^\\wedge, \\eta^\\wedge] = (\\mathrm{ad}_\\xi \\eta)^\\wedge$."""
+    r"""$\mathrm{ad}_\xi = [[[\omega]_\times + \sigma I, [v]_\times, -v], [0, [\omega]_\times, 0],
+    [0, 0, 0]]$, with $[\xi^\wedge, \eta^\wedge] = (\mathrm{ad}_\xi \eta)^\wedge$."""
     v, omega, sigma = xi[..., :3], xi[..., 3:6], xi[..., 6:]
     w = skew(omega)
     eye = jnp.eye(3, dtype=xi.dtype)
@@ -319,10 +314,10 @@ _MAX_DOUBLINGS = 12  # accurate for ‖ad_ξ‖∞ up to 2¹¹ (e.g. translation
 
 
 def phi1_matrix(matrix):
-    """$\\varphi_1(X) = \\sum_k X^k / (k + 1)!$ by scaling and doubling: $Y = X / 2^j$ with
-    $\\|Y\\|_\\infty \\le 1/2$, the Taylor polynomial of $\\varphi_1(Y)$, then $j$ times
-    $\\varphi_1(2Y) = \\tfrac12 \\varphi_1(Y)(e^Y + I) = \\varphi_1(Y) + \\tfrac12 \\varphi_1(Y)\\,Y\\,\\varphi_1(Y)$
-    (from $e^Y = I + Y\\varphi_1(Y)$). The number of doublings depends on the data but the loop is
+    r"""$\varphi_1(X) = \sum_k X^k / (k + 1)!$ by scaling and doubling: $Y = X / 2^j$ with
+    $\|Y\|_\infty \le 1/2$, the Taylor polynomial of $\varphi_1(Y)$, then $j$ times
+    $\varphi_1(2Y) = \tfrac12 \varphi_1(Y)(e^Y + I) = \varphi_1(Y) + \tfrac12 \varphi_1(Y)\,Y\,\varphi_1(Y)$
+    (from $e^Y = I + Y\varphi_1(Y)$). The number of doublings depends on the data but the loop is
     unrolled to `_MAX_DOUBLINGS` masked steps, so the function is differentiable in every mode
     (no `cond`, no `while_loop`) and NaN-free at $X = 0$."""
     n = matrix.shape[-1]
@@ -342,51 +337,35 @@ def phi1_matrix(matrix):
 
 
 def right_jacobian(xi):
-    """$J_r(\\xi) = \\varphi_1(-\\mathrm{ad}_\\xi)$ (see the module docstring and `phi1_matrix`)."""
+    r"""$J_r(\xi) = \varphi_1(-\mathrm{ad}_\xi)$ (see the module docstring and `phi1_matrix`)."""
     return phi1_matrix(-ad(xi))
 
 
 def right_jacobian_inverse(xi):
-    """$J_r(\\xi)^{-1}$ (the inverse of `right_jacobian`)."""
+    r"""$J_r(\xi)^{-1}$ (the inverse of `right_jacobian`)."""
     return jnp.linalg.inv(right_jacobian(xi))
 
 
 # ---- kernels with closed-form rules -------------------------------------------------------------
 
 
-@jax.custom_jvp
-def exp(xi):
-    """$\\mathrm{Exp}(v, \\omega, \\sigma) = (\\mathrm{Exp}(\\omega),\\ W(\\sigma, \\omega)\\,v,\\ \\sigma)$."""
+def _exp(xi):
+    r"""$\mathrm{Exp}(v, \omega, \sigma) = (\mathrm{Exp}(\omega),\ W(\sigma, \omega)\,v,\ \sigma)$."""
     v, omega, sigma = xi[..., :3], xi[..., 3:6], xi[..., 6:]
     return jnp.concatenate([so3.exp(omega), apply_w(sigma[..., 0], omega, v), sigma], axis=-1)
 
 
-@exp.defjvp
-def _exp_jvp(primals, tangents):
-    (xi,), (xi_dot,) = primals, tangents
-    params = exp(xi)
-    return params, from_local(params, matvec(right_jacobian(xi), xi_dot))
-
-
-@jax.custom_jvp
-def log(params):
-    """$\\mathrm{Log}(T) = (W(\\sigma, \\omega)^{-1} t,\\ \\omega,\\ \\sigma)$, $\\omega = \\mathrm{Log}(q)$."""
+def _log(params):
+    r"""$\mathrm{Log}(T) = (W(\sigma, \omega)^{-1} t,\ \omega,\ \sigma)$, $\omega = \mathrm{Log}(q)$."""
     q, t, sigma = _split(params)
     omega = so3.log(q)
     v = _solve3(w_matrix(sigma[..., 0], omega), t)
     return jnp.concatenate([v, omega, sigma], axis=-1)
 
 
-@log.defjvp
-def _log_jvp(primals, tangents):
-    (params,), (params_dot,) = primals, tangents
-    xi = log(params)
-    return xi, matvec(right_jacobian_inverse(xi), to_local(params, params_dot))
-
-
 @jax.custom_jvp
 def compose(params1, params2):
-    """$T_1 T_2 = (q_1 \\otimes q_2,\\ s_1 R_1 t_2 + t_1,\\ \\sigma_1 + \\sigma_2)$."""
+    r"""$T_1 T_2 = (q_1 \otimes q_2,\ s_1 R_1 t_2 + t_1,\ \sigma_1 + \sigma_2)$."""
     q1, t1, sigma1 = _split(params1)
     q2, t2, sigma2 = _split(params2)
     t = jnp.exp(sigma1) * quat_rotate(q1, t2) + t1
@@ -395,9 +374,9 @@ def compose(params1, params2):
 
 @_rules.defjvp(compose)
 def _compose_jvp(primals, tangents):
-    """Local block: $\\xi = \\mathrm{Ad}(T_2^{-1})\\,\\xi_1 + \\xi_2$, i.e.
-    $v = R_2^\\top(v_1 + \\omega_1 \\times t_2 + \\sigma_1 t_2)/s_2 + v_2$,
-    $\\omega = R_2^\\top \\omega_1 + \\omega_2$, $\\sigma = \\sigma_1 + \\sigma_2$."""
+    r"""Local block: $\xi = \mathrm{Ad}(T_2^{-1})\,\xi_1 + \xi_2$, i.e.
+    $v = R_2^\top(v_1 + \omega_1 \times t_2 + \sigma_1 t_2)/s_2 + v_2$,
+    $\omega = R_2^\top \omega_1 + \omega_2$, $\sigma = \sigma_1 + \sigma_2$."""
     (params1, params2), (params1_dot, params2_dot) = primals, tangents
     params = compose(params1, params2)
     xi1 = _rules.local_tangent(to_local, params1, params1_dot)
@@ -416,7 +395,7 @@ def _compose_jvp(primals, tangents):
 
 @jax.custom_jvp
 def inverse(params):
-    """$T^{-1} = (\\bar q,\\ -R^\\top t / s,\\ -\\sigma)$."""
+    r"""$T^{-1} = (\bar q,\ -R^\top t / s,\ -\sigma)$."""
     q, t, sigma = _split(params)
     q_inverse = quat_conjugate(q)
     return jnp.concatenate(
@@ -426,8 +405,8 @@ def inverse(params):
 
 @inverse.defjvp
 def _inverse_jvp(primals, tangents):
-    """Local block $-\\mathrm{Ad}(T)$: $\\omega' = -R\\omega$, $\\sigma' = -\\sigma$,
-    $v' = -(s R v + t \\times R\\omega - \\sigma t)$."""
+    r"""Local block $-\mathrm{Ad}(T)$: $\omega' = -R\omega$, $\sigma' = -\sigma$,
+    $v' = -(s R v + t \times R\omega - \sigma t)$."""
     (params,), (params_dot,) = primals, tangents
     params_inverse = inverse(params)
     rotation, t, s = _components(params)
@@ -448,8 +427,8 @@ def act(params, points):
 
 @_rules.defjvp(act)
 def _act_jvp(primals, tangents):
-    """$\\dot y = s R (v + \\omega \\times p + \\sigma p + \\dot p)$: blocks
-    $[sR, -sR[p]_\\times, sRp]$ and $sR$."""
+    r"""$\dot y = s R (v + \omega \times p + \sigma p + \dot p)$: blocks
+    $[sR, -sR[p]_\times, sRp]$ and $sR$."""
     (params, points), (params_dot, points_dot) = primals, tangents
     moved = act(params, points)
     xi = _rules.local_tangent(to_local, params, params_dot)
@@ -463,9 +442,8 @@ def _act_jvp(primals, tangents):
     return _rules.finish(moved, s * matvec(rotation, direction))
 
 
-@jax.custom_jvp
-def adjoint(params):
-    """$\\mathrm{Ad}_T = [[sR, [t]_\\times R, -t], [0, R, 0], [0, 0, 1]]$ (tangent $(v, \\omega, \\sigma)$)."""
+def _adjoint(params):
+    r"""$\mathrm{Ad}_T = [[sR, [t]_\times R, -t], [0, R, 0], [0, 0, 1]]$ (tangent $(v, \omega, \sigma)$)."""
     q, t, sigma = _split(params)
     rotation = quat_to_matrix(q)
     s = jnp.exp(sigma)[..., None]
@@ -482,16 +460,7 @@ def adjoint(params):
     )
 
 
-@adjoint.defjvp
-def _adjoint_jvp(primals, tangents):
-    """$\\dot{\\mathrm{Ad}} = \\mathrm{Ad}_T\\,\\mathrm{ad}_\\xi$."""
-    (params,), (params_dot,) = primals, tangents
-    matrix = adjoint(params)
-    return matrix, matrix @ ad(to_local(params, params_dot))
-
-
-@jax.custom_jvp
-def as_matrix(params):
+def _as_matrix(params):
     """$T = [s R(q), t; 0, 1]$."""
     q, t, sigma = _split(params)
     linear = jnp.exp(sigma)[..., None] * quat_to_matrix(q)
@@ -502,22 +471,13 @@ def as_matrix(params):
     return jnp.concatenate([top, bottom], axis=-2)
 
 
-@as_matrix.defjvp
-def _as_matrix_jvp(primals, tangents):
-    """$\\dot T = T\\,\\xi^\\wedge$."""
-    (params,), (params_dot,) = primals, tangents
-    matrix = as_matrix(params)
-    return matrix, matrix @ hat(to_local(params, params_dot))
-
-
 def _scale_of(linear):
-    """$s = \\det(sR)^{1/3}$."""
+    r"""$s = \det(sR)^{1/3}$."""
     return jnp.cbrt(jnp.linalg.det(linear))
 
 
-@jax.custom_jvp
-def from_matrix(matrix):
-    """$s = \\det(M_{3\\times3})^{1/3}$, the rotation by `SO3.from_matrix(M/s)` (re-orthogonalized),
+def _from_matrix(matrix):
+    r"""$s = \det(M_{3\times3})^{1/3}$, the rotation by `SO3.from_matrix(M/s)` (re-orthogonalized),
     the translation the last column."""
     linear = matrix[..., :3, :3]
     s = _scale_of(linear)
@@ -525,34 +485,20 @@ def from_matrix(matrix):
     return _join(q, matrix[..., :3, 3], jnp.log(s)[..., None])
 
 
-@from_matrix.defjvp
-def _from_matrix_jvp(primals, tangents):
-    """$\\mathrm{vee}(T^{-1}\\dot T)$ with $T^{-1} = [M^\\top / s^2, \\cdot; 0, 1]$: $v = M^\\top \\dot t / s^2$,
-    $\\omega$ the skew part and $\\sigma$ a third of the trace of $M^\\top \\dot M / s^2$."""
-    (matrix,), (matrix_dot,) = primals, tangents
-    params = from_matrix(matrix)
-    linear = matrix[..., :3, :3]
-    inverse_scale2 = (1.0 / _scale_of(linear) ** 2)[..., None, None]
-    transposed = jnp.swapaxes(linear, -1, -2) * inverse_scale2
-    top = jnp.concatenate(
-        [transposed @ matrix_dot[..., :3, :3], transposed @ matrix_dot[..., :3, 3:]], axis=-1
-    )
-    local = vee(jnp.concatenate([top, jnp.zeros_like(top[..., :1, :])], axis=-2))
-    return params, from_local(params, local)
-
-
-@jax.custom_jvp
-def normalize(params):
+def _normalize(params):
     """Unit quaternion; translation and log-scale unchanged."""
     q, t, sigma = _split(params)
     return jnp.concatenate([so3.normalize(q), t, sigma], axis=-1)
 
 
-@normalize.defjvp
-def _normalize_jvp(primals, tangents):
-    """The radial part of the carrier is dropped; the local part is unchanged."""
-    (params,), (carrier,) = primals, tangents
-    return normalize(params), carrier.at[..., 0].set(0.0)
+# The generic rules (lieax.groups._generic) for all but compose, inverse and act, whose closed
+# forms above avoid the 7×7 adjoint.
+_ops = _generic.local_rules(
+    sys.modules[__name__], exp=_exp, log=_log, compose=compose, inverse=inverse,
+    adjoint=_adjoint, as_matrix=_as_matrix, from_matrix=_from_matrix, normalize=_normalize,
+)  # fmt: skip
+exp, log, adjoint, as_matrix = _ops.exp, _ops.log, _ops.adjoint, _ops.as_matrix
+from_matrix, normalize = _ops.from_matrix, _ops.normalize
 
 
 def sample_uniform(key, batch_shape, dtype):
@@ -567,8 +513,8 @@ def sample_uniform(key, batch_shape, dtype):
 
 
 class Sim3(AbstractGroup):
-    """Similarity transforms in 3D: parameters `(w, x, y, z, tx, ty, tz, σ)`, shape `(*batch, 8)`,
-    with scale $s = e^\\sigma$; tangent `(vx, vy, vz, ωx, ωy, ωz, σ)`, shape `(*batch, 7)`;
+    r"""Similarity transforms in 3D: parameters `(w, x, y, z, tx, ty, tz, σ)`, shape `(*batch, 8)`,
+    with scale $s = e^\sigma$; tangent `(vx, vy, vz, ωx, ωy, ωz, σ)`, shape `(*batch, 7)`;
     $T p = s R p + t$."""
 
     tangent_dim = 7
@@ -577,37 +523,29 @@ class Sim3(AbstractGroup):
     matrix_dim = 4
     parameters_layout = "quaternion wxyz, then translation xyz, then log-scale σ"
 
-    _exp = staticmethod(exp)
-    _log = staticmethod(log)
-    _compose = staticmethod(compose)
-    _inverse = staticmethod(inverse)
-    _act = staticmethod(act)
-    _adjoint = staticmethod(adjoint)
-    _as_matrix = staticmethod(as_matrix)
-    _from_matrix = staticmethod(from_matrix)
-    _normalize = staticmethod(normalize)
-    _hat = staticmethod(hat)
-    _vee = staticmethod(vee)
-    _right_jacobian = staticmethod(right_jacobian)
-    _right_jacobian_inverse = staticmethod(right_jacobian_inverse)
-    _local_from_tangent = staticmethod(to_local)
-    _tangent_from_local = staticmethod(from_local)
-    _to_parameters = staticmethod(to_parameters)
-    _from_parameters = staticmethod(from_parameters)
-    _sample_uniform = staticmethod(sample_uniform)
-
     @property
     def wxyz_xyz_log_scale(self) -> jax.Array:
         return self.parameters()
 
     @classmethod
     def from_rotation_translation_scale(cls, rotation: SO3, translation, scale=1.0):
-        """$T = [sR, t; 0, 1]$ from an `SO3`, a translation `(*batch, 3)` and a positive scale
-        `(*batch)`, broadcasting batch shapes (stored as $\\sigma = \\log s$)."""
+        r"""$T = [sR, t; 0, 1]$ from an `SO3`, a translation `(*batch, 3)` and a positive scale
+        `(*batch)`, broadcasting batch shapes (stored as $\sigma = \log s$); a translation or scale
+        that states no dtype (a Python or NumPy number) takes the rotation's.
+
+        A concrete scale that is not positive and finite is a `ValueError`; a traced one (under
+        `jit`) cannot be checked, and a nonpositive value there gives a NaN (or $-\infty$)
+        log-scale that propagates to every result."""
+        name = "Sim3.from_rotation_translation_scale"
         if not isinstance(rotation, SO3):
             raise TypeError(f"rotation must be an SO3, got {type(rotation).__name__}.")
-        translation = check_last_axis(translation, 3, "Sim3 translation")
-        scale = as_float_array(scale, "Sim3 scale")
+        translation = match_dtype(
+            translation, rotation.dtype, f"{name} translation", "the rotation"
+        )
+        translation = check_last_axis(translation, 3, f"{name} translation")
+        scale = match_dtype(scale, rotation.dtype, f"{name} scale", "the rotation")
+        check_positive(scale, f"{name} scale")
+        broadcast_batch(name, rotation.batch_shape, translation.shape[:-1], scale.shape)
         return cls._wrap(join(rotation._params, translation, jnp.log(scale)[..., None]))
 
     @classmethod
@@ -617,8 +555,10 @@ class Sim3(AbstractGroup):
 
     @classmethod
     def from_scale(cls, scale):
-        """A pure scaling about the origin."""
-        scale = as_float_array(scale, "Sim3 scale")
+        """A pure scaling about the origin by positive scales of shape `(*batch)` (checked as in
+        `from_rotation_translation_scale`)."""
+        scale = as_float_array(scale, "Sim3.from_scale scale")
+        check_positive(scale, "Sim3.from_scale scale")
         return cls.from_rotation_translation_scale(
             SO3.identity(scale.shape, dtype=scale.dtype),
             jnp.zeros((*scale.shape, 3), scale.dtype),
@@ -627,11 +567,12 @@ class Sim3(AbstractGroup):
 
     @classmethod
     def align(cls, points_a, points_b, weights=None):
-        """The similarity $T_{ab}$ minimizing $\\sum_i w_i |a_i - T_{ab} b_i|^2$ (Umeyama); see
-        `lieax.align`."""
-        from .._align import align
-
-        return align(points_a, points_b, weights, with_scale=True)
+        r"""The similarity $T_{ab}$ minimizing $\sum_i w_i |a_i - T_{ab} b_i|^2$ (Umeyama); see
+        `lieax.align` and `lieax.groups._procrustes`."""
+        q, t, sigma = _procrustes.solve(
+            points_a, points_b, weights, with_scale=True, what="Sim3.align"
+        )
+        return cls._wrap(join(q, t, sigma[..., None]))
 
     def rotation(self) -> SO3:
         return SO3._wrap(self._params[..., :4])
@@ -640,9 +581,9 @@ class Sim3(AbstractGroup):
         return self.parameters()[..., 4:7]
 
     def log_scale(self) -> jax.Array:
-        """$\\sigma$, shape `(*batch)`."""
+        r"""$\sigma$, shape `(*batch)`."""
         return self.parameters()[..., 7]
 
     def scale(self) -> jax.Array:
-        """$s = e^\\sigma$, shape `(*batch)`."""
+        r"""$s = e^\sigma$, shape `(*batch)`."""
         return jnp.exp(self.log_scale())

@@ -1,10 +1,10 @@
-"""SO(2), rotations in the plane, stored as unit complex numbers $(\\cos\\theta, \\sin\\theta)$.
+r"""SO(2), rotations in the plane, stored as unit complex numbers $(\cos\theta, \sin\theta)$.
 
-Tangent $\\theta \\in \\mathbb{R}^1$, right perturbation $X \\oplus \\theta = X\\,\\mathrm{Exp}(\\theta)$.
+Tangent $\theta \in \mathbb{R}^1$, right perturbation $X \oplus \theta = X\,\mathrm{Exp}(\theta)$.
 The derivative of the parameters along a right-local tangent is
-$(\\dot c, \\dot s) = \\dot\\theta\\,(-s, c)$, and back $\\dot\\theta = c\\,\\dot s - s\\,\\dot c$: every
+$(\dot c, \dot s) = \dot\theta\,(-s, c)$, and back $\dot\theta = c\,\dot s - s\,\dot c$: every
 kernel's rule converts the incoming parameter tangents to local tangents once, applies the
-closed-form block, and converts the result back, so code that touches $(\\cos, \\sin)$ itself still
+closed-form block, and converts the result back, so code that touches $(\cos, \sin)$ itself still
 gets correct derivatives. SO(2) is commutative: its adjoint and Jacobians of Exp are $[1]$.
 
 Formulas: Solà, Deray, Atchuthan, "A micro Lie theory for state estimation in robotics" (2018),
@@ -23,7 +23,7 @@ from ._series import g
 
 
 def perp(p):
-    """$J p = (-p_y, p_x)$, the rotation by $+\\pi/2$, with $J = [[0, -1], [1, 0]] = \\mathrm{hat}(1)$."""
+    r"""$J p = (-p_y, p_x)$, the rotation by $+\pi/2$, with $J = [[0, -1], [1, 0]] = \mathrm{hat}(1)$."""
     return jnp.stack([-p[..., 1], p[..., 0]], axis=-1)
 
 
@@ -32,12 +32,12 @@ def dot(a, b):
 
 
 def rotate(cs, p):
-    """$R\\,p = c\\,p + s\\,J p$ for $R = R(c, s)$; also the complex product $(c + is)(p_x + ip_y)$."""
+    r"""$R\,p = c\,p + s\,J p$ for $R = R(c, s)$; also the complex product $(c + is)(p_x + ip_y)$."""
     return cs[..., :1] * p + cs[..., 1:] * perp(p)
 
 
 def unrotate(cs, p):
-    """$R^\\top p = c\\,p - s\\,J p$."""
+    r"""$R^\top p = c\,p - s\,J p$."""
     return cs[..., :1] * p - cs[..., 1:] * perp(p)
 
 
@@ -48,8 +48,8 @@ def rotation_matrix(cs):
 
 
 def rotation_part(m):
-    """$(m_{00} + m_{11},\\ m_{10} - m_{01})$: its direction is the $(c, s)$ maximizing
-    $\\mathrm{tr}(R^\\top m)$, the rotation nearest to the 2×2 matrix $m$ in the Frobenius norm."""
+    r"""$(m_{00} + m_{11},\ m_{10} - m_{01})$: its direction is the $(c, s)$ maximizing
+    $\mathrm{tr}(R^\top m)$, the rotation nearest to the 2×2 matrix $m$ in the Frobenius norm."""
     return jnp.stack([m[..., 0, 0] + m[..., 1, 1], m[..., 1, 0] - m[..., 0, 1]], axis=-1)
 
 
@@ -65,19 +65,19 @@ def nearest_rotation(m):
 
 
 def nearest_rotation_tangent(cs, norm, m_dot):
-    """The local derivative of `nearest_rotation`: with $(a, b)$ = `rotation_part(m)`,
-    $\\theta = \\mathrm{atan2}(b, a)$ gives $\\dot\\theta = (c\\,\\dot b - s\\,\\dot a) / |(a, b)|$
-    (for a rotation matrix, the skew part of $R^\\top \\dot R$)."""
+    r"""The local derivative of `nearest_rotation`: with $(a, b)$ = `rotation_part(m)`,
+    $\theta = \mathrm{atan2}(b, a)$ gives $\dot\theta = (c\,\dot b - s\,\dot a) / |(a, b)|$
+    (for a rotation matrix, the skew part of $R^\top \dot R$)."""
     return to_local(cs, rotation_part(m_dot)) / norm
 
 
 def to_local(cs, cs_dot):
-    """$\\dot\\theta = c\\,\\dot s - s\\,\\dot c = (J\\,(c, s)) \\cdot (\\dot c, \\dot s)$, shape `(*batch, 1)`."""
+    r"""$\dot\theta = c\,\dot s - s\,\dot c = (J\,(c, s)) \cdot (\dot c, \dot s)$, shape `(*batch, 1)`."""
     return dot(perp(cs), cs_dot)[..., None]
 
 
 def from_local(cs, theta):
-    """$(\\dot c, \\dot s) = \\dot\\theta\\,(-s, c) = \\dot\\theta\\,J\\,(c, s)$."""
+    r"""$(\dot c, \dot s) = \dot\theta\,(-s, c) = \dot\theta\,J\,(c, s)$."""
     return theta * perp(cs)
 
 
@@ -86,7 +86,7 @@ def from_local(cs, theta):
 
 @jax.custom_jvp
 def exp(theta):
-    """$\\mathrm{Exp}(\\theta) = (\\cos\\theta, \\sin\\theta) = (g_0(s),\\ \\theta\\,g_1(s))$, $s = \\theta^2$
+    r"""$\mathrm{Exp}(\theta) = (\cos\theta, \sin\theta) = (g_0(s),\ \theta\,g_1(s))$, $s = \theta^2$
     (Solà App. A)."""
     s = theta * theta
     return jnp.concatenate([g(0, s), theta * g(1, s)], axis=-1)
@@ -102,7 +102,7 @@ def _exp_jvp(primals, tangents):
 
 @jax.custom_jvp
 def log(cs):
-    """$\\mathrm{Log}(c, s) = \\mathrm{atan2}(s, c) \\in (-\\pi, \\pi]$ (Solà App. A)."""
+    r"""$\mathrm{Log}(c, s) = \mathrm{atan2}(s, c) \in (-\pi, \pi]$ (Solà App. A)."""
     return jnp.arctan2(cs[..., 1:], cs[..., :1])
 
 
@@ -115,13 +115,13 @@ def _log_jvp(primals, tangents):
 
 @jax.custom_jvp
 def compose(cs1, cs2):
-    """$R_1 R_2$: the complex product $(c_1 c_2 - s_1 s_2,\\ s_1 c_2 + c_1 s_2)$."""
+    r"""$R_1 R_2$: the complex product $(c_1 c_2 - s_1 s_2,\ s_1 c_2 + c_1 s_2)$."""
     return rotate(cs1, cs2)
 
 
 @_rules.defjvp(compose)
 def _compose_jvp(primals, tangents):
-    """Local block: $\\dot\\theta = \\dot\\theta_1 + \\dot\\theta_2$ (Solà App. A: SO(2) is commutative)."""
+    r"""Local block: $\dot\theta = \dot\theta_1 + \dot\theta_2$ (Solà App. A: SO(2) is commutative)."""
     (cs1, cs2), (cs1_dot, cs2_dot) = primals, tangents
     cs = compose(cs1, cs2)
     theta = _rules.add(
@@ -132,13 +132,13 @@ def _compose_jvp(primals, tangents):
 
 @jax.custom_jvp
 def inverse(cs):
-    """$R^\\top = (c, -s)$."""
+    r"""$R^\top = (c, -s)$."""
     return cs * jnp.array([1.0, -1.0], dtype=cs.dtype)
 
 
 @inverse.defjvp
 def _inverse_jvp(primals, tangents):
-    """Local block: $\\dot\\theta_{out} = -\\dot\\theta$ (Solà App. A)."""
+    r"""Local block: $\dot\theta_{out} = -\dot\theta$ (Solà App. A)."""
     (cs,), (cs_dot,) = primals, tangents
     cs_inv = inverse(cs)
     return cs_inv, from_local(cs_inv, -to_local(cs, cs_dot))
@@ -146,13 +146,13 @@ def _inverse_jvp(primals, tangents):
 
 @jax.custom_jvp
 def act(cs, points):
-    """$R\\,p$."""
+    r"""$R\,p$."""
     return rotate(cs, points)
 
 
 @_rules.defjvp(act)
 def _act_jvp(primals, tangents):
-    """$\\dot y = R(\\dot\\theta\\,J p + \\dot p)$: blocks $R J p$ and $R$ (Solà App. A)."""
+    r"""$\dot y = R(\dot\theta\,J p + \dot p)$: blocks $R J p$ and $R$ (Solà App. A)."""
     (cs, points), (cs_dot, points_dot) = primals, tangents
     moved = act(cs, points)
     theta = _rules.local_tangent(to_local, cs, cs_dot)
@@ -164,7 +164,7 @@ def _act_jvp(primals, tangents):
 
 
 def adjoint(cs):
-    """$\\mathrm{Ad} = [1]$ (Solà App. A), shape `(*batch, 1, 1)`."""
+    r"""$\mathrm{Ad} = [1]$ (Solà App. A), shape `(*batch, 1, 1)`."""
     return jnp.ones_like(cs[..., :1, None])
 
 
@@ -176,7 +176,7 @@ def as_matrix(cs):
 
 @as_matrix.defjvp
 def _as_matrix_jvp(primals, tangents):
-    """$\\dot R = R\\,\\mathrm{hat}(\\dot\\theta) = \\dot\\theta\\,R J$."""
+    r"""$\dot R = R\,\mathrm{hat}(\dot\theta) = \dot\theta\,R J$."""
     (cs,), (cs_dot,) = primals, tangents
     rotation = as_matrix(cs)
     return rotation, rotation @ hat(to_local(cs, cs_dot))
@@ -184,7 +184,7 @@ def _as_matrix_jvp(primals, tangents):
 
 @jax.custom_jvp
 def from_matrix(rotation):
-    """The nearest rotation: $(c, s)$ along $(m_{00} + m_{11},\\ m_{10} - m_{01})$ (exact for a
+    r"""The nearest rotation: $(c, s)$ along $(m_{00} + m_{11},\ m_{10} - m_{01})$ (exact for a
     rotation matrix; the identity for a reflection, where no rotation is nearest)."""
     cs, _ = nearest_rotation(rotation)
     return cs
@@ -192,7 +192,7 @@ def from_matrix(rotation):
 
 @from_matrix.defjvp
 def _from_matrix_jvp(primals, tangents):
-    """$\\dot\\theta$ of `nearest_rotation_tangent` (the skew part of $R^\\top \\dot R$ at a rotation)."""
+    r"""$\dot\theta$ of `nearest_rotation_tangent` (the skew part of $R^\top \dot R$ at a rotation)."""
     (rotation,), (rotation_dot,) = primals, tangents
     cs, norm = nearest_rotation(rotation)
     return cs, from_local(cs, nearest_rotation_tangent(cs, norm, rotation_dot))
@@ -203,14 +203,14 @@ def normalize(cs):
 
 
 def hat(theta):
-    """$\\mathrm{hat}(\\theta) = \\theta J = [[0, -\\theta], [\\theta, 0]]$."""
+    r"""$\mathrm{hat}(\theta) = \theta J = [[0, -\theta], [\theta, 0]]$."""
     zero = jnp.zeros_like(theta[..., 0])
     t = theta[..., 0]
     return jnp.stack([jnp.stack([zero, -t], axis=-1), jnp.stack([t, zero], axis=-1)], axis=-2)
 
 
 def vee(matrix):
-    """$\\theta$ of the skew part of `matrix`: $(m_{10} - m_{01}) / 2$."""
+    r"""$\theta$ of the skew part of `matrix`: $(m_{10} - m_{01}) / 2$."""
     return 0.5 * (matrix[..., 1, 0] - matrix[..., 0, 1])[..., None]
 
 
@@ -219,13 +219,16 @@ def right_jacobian(theta):
     return jnp.ones_like(theta[..., None])
 
 
+right_jacobian_inverse = right_jacobian  # [1] as well
+
+
 def sample_uniform(key, batch_shape, dtype):
     """Uniform rotations: a normalized standard normal 2-vector."""
     return normalize(jax.random.normal(key, (*batch_shape, 2), dtype=dtype))
 
 
 class SO2(AbstractGroup):
-    """Rotations in the plane: parameters `(cos, sin)`, shape `(*batch, 2)`; tangent $\\theta$,
+    r"""Rotations in the plane: parameters `(cos, sin)`, shape `(*batch, 2)`; tangent $\theta$,
     shape `(*batch, 1)`."""
 
     tangent_dim = 1
@@ -234,23 +237,6 @@ class SO2(AbstractGroup):
     matrix_dim = 2
     parameters_layout = "cos, sin"
 
-    _exp = staticmethod(exp)
-    _log = staticmethod(log)
-    _compose = staticmethod(compose)
-    _inverse = staticmethod(inverse)
-    _act = staticmethod(act)
-    _adjoint = staticmethod(adjoint)
-    _as_matrix = staticmethod(as_matrix)
-    _from_matrix = staticmethod(from_matrix)
-    _normalize = staticmethod(normalize)
-    _hat = staticmethod(hat)
-    _vee = staticmethod(vee)
-    _right_jacobian = staticmethod(right_jacobian)
-    _right_jacobian_inverse = staticmethod(right_jacobian)
-    _local_from_tangent = staticmethod(to_local)
-    _tangent_from_local = staticmethod(from_local)
-    _sample_uniform = staticmethod(sample_uniform)
-
     @classmethod
     def from_angle(cls, theta):
         """From angles of shape `(*batch,)` (radians, counter-clockwise)."""
@@ -258,5 +244,5 @@ class SO2(AbstractGroup):
         return cls._wrap(exp(theta[..., None]))
 
     def as_angle(self) -> jax.Array:
-        """The angle in $(-\\pi, \\pi]$, shape `(*batch,)` (`log()` without its last axis)."""
+        r"""The angle in $(-\pi, \pi]$, shape `(*batch,)` (`log()` without its last axis)."""
         return log(self._params)[..., 0]

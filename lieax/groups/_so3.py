@@ -1,9 +1,9 @@
-"""SO(3), rotations in 3D, stored as unit quaternions $q = (w, x, y, z)$ (Hamilton, wxyz).
+r"""SO(3), rotations in 3D, stored as unit quaternions $q = (w, x, y, z)$ (Hamilton, wxyz).
 
-Tangent $\\omega \\in \\mathbb{R}^3$, right perturbation $q \\oplus \\omega = q \\otimes \\mathrm{Exp}(\\omega)$.
+Tangent $\omega \in \mathbb{R}^3$, right perturbation $q \oplus \omega = q \otimes \mathrm{Exp}(\omega)$.
 
 Tangent carrier. JAX gives the quaternion leaf a 4-vector tangent; lieax fills it with the local
-coordinates themselves, $(\\rho, \\omega)$ with $\\dot q = q \\otimes (\\rho, \\omega/2)$ ($\\rho$ the radial
+coordinates themselves, $(\rho, \omega)$ with $\dot q = q \otimes (\rho, \omega/2)$ ($\rho$ the radial
 part, zero on the manifold). Kernels therefore read and write local tangents directly and no rule
 converts anything; the conversion to and from the derivative of the raw quaternion happens only
 where raw parameters cross the API: `SO3(wxyz)` (`from_parameters`) and `X.parameters()`
@@ -15,10 +15,12 @@ Formulas: Solà, Deray, Atchuthan, "A micro Lie theory for state estimation in r
 Sec. IV-B and App. B; the coefficients are the $g_n$ of `lieax.groups._series`.
 """
 
+import sys
+
 import jax
 import jax.numpy as jnp
 
-from .._checks import as_float_array, check_last_axis
+from .._checks import broadcast_batch, check_last_axis, common_float_arrays
 from .._linalg import (
     cross,
     dot,
@@ -30,29 +32,36 @@ from .._linalg import (
     skew,
     unskew,
 )
-from . import _rules
+from . import _generic, _rules
 from ._base import AbstractGroup
 from ._series import g
 
 
 def radial_and_local(q, q_dot):
-    """The carrier of a quaternion derivative: $(\\rho, \\omega) = (\\mathrm{Re}, 2\\,\\mathrm{Im})(q^{-1} \\otimes \\dot q)$."""
+    r"""The carrier of a quaternion derivative: $(\rho, \omega) = (\mathrm{Re}, 2\,\mathrm{Im})(q^{-1} \otimes \dot q)$."""
     product = quat_multiply(quat_conjugate(q), q_dot) / dot(q, q)[..., None]
     return product * jnp.array([1.0, 2.0, 2.0, 2.0], dtype=product.dtype)
 
 
+def unit_rotation(q):
+    """$R(q / |q|)$ of a raw quaternion, by plain array operations: the carrier maps read raw
+    parameters, whose derivatives are raw (the `normalize` and `as_matrix` kernels would read them
+    as carriers, and second derivatives through `parameters()` would be wrong)."""
+    return quat_to_matrix(q / jnp.sqrt(dot(q, q))[..., None])
+
+
 def quaternion_derivative(q, carrier):
-    """$\\dot q = q \\otimes (\\rho, \\omega / 2)$, inverse of `radial_and_local`."""
+    r"""$\dot q = q \otimes (\rho, \omega / 2)$, inverse of `radial_and_local`."""
     return quat_multiply(q, carrier * jnp.array([1.0, 0.5, 0.5, 0.5], dtype=carrier.dtype))
 
 
 def to_local(q, carrier):
-    """The right-local tangent $\\omega$ held by a carrier."""
+    r"""The right-local tangent $\omega$ held by a carrier."""
     return carrier[..., 1:]
 
 
 def from_local(q, omega):
-    """The carrier of a right-local tangent: $(0, \\omega)$."""
+    r"""The carrier of a right-local tangent: $(0, \omega)$."""
     return jnp.concatenate([jnp.zeros_like(omega[..., :1]), omega], axis=-1)
 
 
@@ -64,7 +73,7 @@ def to_parameters(q):
 
 @to_parameters.defjvp
 def _to_parameters_jvp(primals, tangents):
-    """Carrier to raw derivative: $\\dot q = q \\otimes (\\rho, \\omega/2)$."""
+    r"""Carrier to raw derivative: $\dot q = q \otimes (\rho, \omega/2)$."""
     (q,), (carrier,) = primals, tangents
     raw = to_parameters(q)
     return raw, quaternion_derivative(raw, carrier)
@@ -78,7 +87,7 @@ def from_parameters(q):
 
 @from_parameters.defjvp
 def _from_parameters_jvp(primals, tangents):
-    """Raw derivative to carrier: $(\\rho, \\omega) = (\\mathrm{Re}, 2\\,\\mathrm{Im})(q^{-1} \\otimes \\dot q)$."""
+    r"""Raw derivative to carrier: $(\rho, \omega) = (\mathrm{Re}, 2\,\mathrm{Im})(q^{-1} \otimes \dot q)$."""
     (q,), (q_dot,) = primals, tangents
     return from_parameters(q), radial_and_local(q, q_dot)
 
@@ -87,34 +96,34 @@ def _from_parameters_jvp(primals, tangents):
 
 
 def jr_inverse_coefficient(s):
-    """$D(\\theta) = 1/\\theta^2 - (1 + \\cos\\theta) / (2\\theta\\sin\\theta) = (g_3 - 2g_4) / (2g_2)$
-    (finite up to $\\theta < 2\\pi$; $1/12$ at zero)."""
+    r"""$D(\theta) = 1/\theta^2 - (1 + \cos\theta) / (2\theta\sin\theta) = (g_3 - 2g_4) / (2g_2)$
+    (finite up to $\theta < 2\pi$; $1/12$ at zero)."""
     return (g(3, s) - 2.0 * g(4, s)) / (2.0 * g(2, s))
 
 
 def right_jacobian(omega):
-    """$J_r(\\omega) = I - g_2 [\\omega]_\\times + g_3 [\\omega]_\\times^2$ (Solà eq. 143)."""
+    r"""$J_r(\omega) = I - g_2 [\omega]_\times + g_3 [\omega]_\times^2$ (Solà eq. 143)."""
     s = dot(omega, omega)[..., None, None]
     w = skew(omega)
     return jnp.eye(3, dtype=omega.dtype) - g(2, s) * w + g(3, s) * (w @ w)
 
 
 def right_jacobian_inverse(omega):
-    """$J_r^{-1}(\\omega) = I + \\tfrac12 [\\omega]_\\times + D(\\theta) [\\omega]_\\times^2$ (Solà eq. 144)."""
+    r"""$J_r^{-1}(\omega) = I + \tfrac12 [\omega]_\times + D(\theta) [\omega]_\times^2$ (Solà eq. 144)."""
     s = dot(omega, omega)[..., None, None]
     w = skew(omega)
     return jnp.eye(3, dtype=omega.dtype) + 0.5 * w + jr_inverse_coefficient(s) * (w @ w)
 
 
 def apply_right_jacobian(omega, x):
-    """$J_r(\\omega)\\,x$ without forming the matrix."""
+    r"""$J_r(\omega)\,x$ without forming the matrix."""
     s = dot(omega, omega)[..., None]
     wx = cross(omega, x)
     return x - g(2, s) * wx + g(3, s) * cross(omega, wx)
 
 
 def apply_right_jacobian_inverse(omega, x):
-    """$J_r^{-1}(\\omega)\\,x$ without forming the matrix."""
+    r"""$J_r^{-1}(\omega)\,x$ without forming the matrix."""
     s = dot(omega, omega)[..., None]
     wx = cross(omega, x)
     return x + 0.5 * wx + jr_inverse_coefficient(s) * cross(omega, wx)
@@ -125,8 +134,8 @@ def apply_right_jacobian_inverse(omega, x):
 
 @jax.custom_jvp
 def exp(omega):
-    """$\\mathrm{Exp}(\\omega) = (\\cos\\tfrac\\theta2,\\ \\tfrac{\\sin(\\theta/2)}{\\theta}\\,\\omega)
-    = (g_0(s/4),\\ \\tfrac12 g_1(s/4)\\,\\omega)$, $s = \\theta^2$."""
+    r"""$\mathrm{Exp}(\omega) = (\cos\tfrac\theta2,\ \tfrac{\sin(\theta/2)}{\theta}\,\omega)
+    = (g_0(s/4),\ \tfrac12 g_1(s/4)\,\omega)$, $s = \theta^2$."""
     quarter = 0.25 * dot(omega, omega)[..., None]
     return jnp.concatenate([g(0, quarter), 0.5 * g(1, quarter) * omega], axis=-1)
 
@@ -140,7 +149,7 @@ def _exp_jvp(primals, tangents):
 
 @jax.custom_jvp
 def log(q):
-    """$\\mathrm{Log}(q) = 2\\,\\mathrm{sign}(w)\\,\\mathrm{atan2}(|u|, |w|)\\,u / |u|$, $\\theta \\le \\pi$;
+    r"""$\mathrm{Log}(q) = 2\,\mathrm{sign}(w)\,\mathrm{atan2}(|u|, |w|)\,u / |u|$, $\theta \le \pi$;
     $2u/|w|$ where $u = 0$."""
     w, u = q[..., :1], q[..., 1:]
     norm_u = jnp.sqrt(dot(u, u))[..., None]
@@ -160,13 +169,13 @@ def _log_jvp(primals, tangents):
 
 @jax.custom_jvp
 def compose(q1, q2):
-    """$q_1 \\otimes q_2$."""
+    r"""$q_1 \otimes q_2$."""
     return quat_multiply(q1, q2)
 
 
 @_rules.defjvp(compose)
 def _compose_jvp(primals, tangents):
-    """Local block: $\\omega = R_2^\\top \\omega_1 + \\omega_2$ (Solà eq. 171-172)."""
+    r"""Local block: $\omega = R_2^\top \omega_1 + \omega_2$ (Solà eq. 171-172)."""
     (q1, q2), (q1_dot, q2_dot) = primals, tangents
     q = compose(q1, q2)
     omega1 = _rules.local_tangent(to_local, q1, q1_dot)
@@ -178,13 +187,13 @@ def _compose_jvp(primals, tangents):
 
 @jax.custom_jvp
 def inverse(q):
-    """$\\bar q$."""
+    r"""$\bar q$."""
     return quat_conjugate(q)
 
 
 @inverse.defjvp
 def _inverse_jvp(primals, tangents):
-    """Local block: $\\omega_{out} = -R\\,\\omega$ (Solà eq. 140)."""
+    r"""Local block: $\omega_{out} = -R\,\omega$ (Solà eq. 140)."""
     (q,), (q_dot,) = primals, tangents
     q_inv = inverse(q)
     return q_inv, from_local(q_inv, -matvec(as_matrix(q), to_local(q, q_dot)))
@@ -192,13 +201,13 @@ def _inverse_jvp(primals, tangents):
 
 @jax.custom_jvp
 def act(q, points):
-    """$R(q)\\,p$."""
+    r"""$R(q)\,p$."""
     return matvec(quat_to_matrix(q), points)
 
 
 @_rules.defjvp(act)
 def _act_jvp(primals, tangents):
-    """$\\dot y = R(\\omega \\times p + \\dot p)$: blocks $-R[p]_\\times$ and $R$ (Solà eq. 146-147)."""
+    r"""$\dot y = R(\omega \times p + \dot p)$: blocks $-R[p]_\times$ and $R$ (Solà eq. 146-147)."""
     (q, points), (q_dot, points_dot) = primals, tangents
     moved = act(q, points)
     omega = _rules.local_tangent(to_local, q, q_dot)
@@ -211,23 +220,8 @@ def _act_jvp(primals, tangents):
     return _rules.finish(moved, matvec(as_matrix(q), direction))
 
 
-@jax.custom_jvp
-def as_matrix(q):
-    """$R(q)$; also the adjoint matrix of SO(3)."""
-    return quat_to_matrix(q)
-
-
-@as_matrix.defjvp
-def _as_matrix_jvp(primals, tangents):
-    """$\\dot R = R [\\omega]_\\times$."""
-    (q,), (q_dot,) = primals, tangents
-    rotation = as_matrix(q)
-    return rotation, rotation @ skew(to_local(q, q_dot))
-
-
-@jax.custom_jvp
-def from_matrix(rotation):
-    """Shepperd's method: build $q$ from the largest of $1 + \\mathrm{tr} R$ and $1 + 2R_{ii} - \\mathrm{tr} R$,
+def _from_matrix(rotation):
+    r"""Shepperd's method: build $q$ from the largest of $1 + \mathrm{tr} R$ and $1 + 2R_{ii} - \mathrm{tr} R$,
     then normalize (a valid rotation for any input; exact for a rotation matrix)."""
     m = rotation
     m00, m11, m22 = m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]
@@ -281,26 +275,9 @@ def from_matrix(rotation):
     return normalize(q)
 
 
-@from_matrix.defjvp
-def _from_matrix_jvp(primals, tangents):
-    """$\\omega = \\mathrm{vee}(\\mathrm{skew}(R^\\top \\dot R))$, the local part of $\\dot R$."""
-    (rotation,), (rotation_dot,) = primals, tangents
-    q = from_matrix(rotation)
-    omega = unskew(jnp.swapaxes(rotation, -1, -2) @ rotation_dot)
-    return q, from_local(q, omega)
-
-
-@jax.custom_jvp
-def normalize(q):
+def _normalize(q):
     """$q / |q|$."""
     return q / jnp.linalg.norm(q, axis=-1, keepdims=True)
-
-
-@normalize.defjvp
-def _normalize_jvp(primals, tangents):
-    """The radial part of the carrier is dropped; the local part is unchanged."""
-    (q,), (carrier,) = primals, tangents
-    return normalize(q), carrier * jnp.array([0.0, 1.0, 1.0, 1.0], dtype=carrier.dtype)
 
 
 def hat(omega):
@@ -309,6 +286,21 @@ def hat(omega):
 
 def vee(matrix):
     return unskew(matrix)
+
+
+ad = hat  # ad_ω = [ω]×
+
+
+# The generic rules (lieax.groups._generic) for the matrix ($R(q)$, also $\\mathrm{Ad}_R$),
+# `from_matrix` and `normalize`; exp, log, compose, inverse and act keep the vector closed forms
+# above (no 3×3 Jacobian formed; what benchmarks/chain.py times).
+_ops = _generic.local_rules(
+    sys.modules[__name__], exp=exp, log=log, compose=compose, inverse=inverse,
+    adjoint=quat_to_matrix, as_matrix=quat_to_matrix, from_matrix=_from_matrix,
+    normalize=_normalize,
+)  # fmt: skip
+as_matrix, from_matrix, normalize = _ops.as_matrix, _ops.from_matrix, _ops.normalize
+adjoint = as_matrix  # Ad_R = R
 
 
 def sample_uniform(key, batch_shape, dtype):
@@ -321,20 +313,20 @@ def sample_uniform(key, batch_shape, dtype):
 
 @jax.custom_jvp
 def cayley_quaternion(omega):
-    """$\\mathrm{cay}(\\omega)$ as a unit quaternion: $q = (2, \\omega) / \\sqrt{4 + |\\omega|^2}$,
-    i.e. $(1, \\omega/2)$ normalized, $\\tan(\\alpha/2) = |\\omega|/2$ for the rotation angle
-    $\\alpha$. Its matrix is GTSAM's `Rot3::CayleyChart::Retract`,
-    $[(4 - |\\omega|^2) I + 2\\omega\\omega^\\top + 4[\\omega]_\\times] / (4 + |\\omega|^2)$."""
+    r"""$\mathrm{cay}(\omega)$ as a unit quaternion: $q = (2, \omega) / \sqrt{4 + |\omega|^2}$,
+    i.e. $(1, \omega/2)$ normalized, $\tan(\alpha/2) = |\omega|/2$ for the rotation angle
+    $\alpha$. Its matrix is GTSAM's `Rot3::CayleyChart::Retract`,
+    $[(4 - |\omega|^2) I + 2\omega\omega^\top + 4[\omega]_\times] / (4 + |\omega|^2)$."""
     n = jnp.sqrt(4.0 + dot(omega, omega))[..., None]
     return jnp.concatenate([2.0 / n, omega / n], axis=-1)
 
 
 @cayley_quaternion.defjvp
 def _cayley_quaternion_jvp(primals, tangents):
-    """Local block (the Cayley map's right Jacobian, $\\mathrm{cay}(\\omega + \\dot\\omega) \\approx
-    \\mathrm{cay}(\\omega)\\,\\mathrm{Exp}(J\\dot\\omega)$): with $q = (a, u)$,
-    $2\\,\\mathrm{Im}(\\bar q \\otimes \\dot q) = 2(a\\dot u - \\dot a u - u \\times \\dot u)$ gives
-    $J = \\frac{4}{4 + |\\omega|^2}\\,(I - \\tfrac12[\\omega]_\\times)$ (the identity at zero)."""
+    r"""Local block (the Cayley map's right Jacobian, $\mathrm{cay}(\omega + \dot\omega) \approx
+    \mathrm{cay}(\omega)\,\mathrm{Exp}(J\dot\omega)$): with $q = (a, u)$,
+    $2\,\mathrm{Im}(\bar q \otimes \dot q) = 2(a\dot u - \dot a u - u \times \dot u)$ gives
+    $J = \frac{4}{4 + |\omega|^2}\,(I - \tfrac12[\omega]_\times)$ (the identity at zero)."""
     (omega,), (omega_dot,) = primals, tangents
     q = cayley_quaternion(omega)
     factor = (4.0 / (4.0 + dot(omega, omega)))[..., None]
@@ -344,18 +336,18 @@ def _cayley_quaternion_jvp(primals, tangents):
 
 @jax.custom_jvp
 def cayley_quaternion_inverse(q):
-    """$\\mathrm{cay}^{-1}(q) = 2\\,u / w$ for $q = (w, u)$: the Gibbs vector of the rotation,
-    $2\\tan(\\alpha/2)$ along the axis; the same for $q$ and $-q$ (no sign to fix), and scale-free
-    (any nonzero multiple of a unit quaternion). Defined for rotation angles below $\\pi$ ($w \\ne 0$);
-    it grows without bound as the angle nears $\\pi$ (GTSAM's `Rot3::CayleyChart::Local`)."""
+    r"""$\mathrm{cay}^{-1}(q) = 2\,u / w$ for $q = (w, u)$: the Gibbs vector of the rotation,
+    $2\tan(\alpha/2)$ along the axis; the same for $q$ and $-q$ (no sign to fix), and scale-free
+    (any nonzero multiple of a unit quaternion). Defined for rotation angles below $\pi$ ($w \ne 0$);
+    it grows without bound as the angle nears $\pi$ (GTSAM's `Rot3::CayleyChart::Local`)."""
     return 2.0 * q[..., 1:] / q[..., :1]
 
 
 @cayley_quaternion_inverse.defjvp
 def _cayley_quaternion_inverse_jvp(primals, tangents):
-    """$\\dot\\omega = J^{-1}\\omega_{local} = \\omega_{local} + \\tfrac12 \\omega \\times \\omega_{local}
-    + \\tfrac14 \\omega\\,(\\omega^\\top \\omega_{local})$, the inverse of `cayley_quaternion`'s block
-    ($(I - \\tfrac12[\\omega]_\\times)^{-1} = I + (2[\\omega]_\\times + [\\omega]_\\times^2)/(4 + |\\omega|^2)$);
+    r"""$\dot\omega = J^{-1}\omega_{local} = \omega_{local} + \tfrac12 \omega \times \omega_{local}
+    + \tfrac14 \omega\,(\omega^\top \omega_{local})$, the inverse of `cayley_quaternion`'s block
+    ($(I - \tfrac12[\omega]_\times)^{-1} = I + (2[\omega]_\times + [\omega]_\times^2)/(4 + |\omega|^2)$);
     the radial part of the carrier does not move $u / w$."""
     (q,), (carrier,) = primals, tangents
     omega = cayley_quaternion_inverse(q)
@@ -365,32 +357,13 @@ def _cayley_quaternion_inverse_jvp(primals, tangents):
 
 
 class SO3(AbstractGroup):
-    """Rotations in 3D: parameters `wxyz`, shape `(*batch, 4)`; tangent $\\omega$, shape `(*batch, 3)`."""
+    r"""Rotations in 3D: parameters `wxyz`, shape `(*batch, 4)`; tangent $\omega$, shape `(*batch, 3)`."""
 
     tangent_dim = 3
     parameters_dim = 4
     space_dim = 3
     matrix_dim = 3
     parameters_layout = "unit quaternion wxyz"
-
-    _exp = staticmethod(exp)
-    _log = staticmethod(log)
-    _compose = staticmethod(compose)
-    _inverse = staticmethod(inverse)
-    _act = staticmethod(act)
-    _adjoint = staticmethod(as_matrix)
-    _as_matrix = staticmethod(as_matrix)
-    _from_matrix = staticmethod(from_matrix)
-    _normalize = staticmethod(normalize)
-    _hat = staticmethod(hat)
-    _vee = staticmethod(vee)
-    _right_jacobian = staticmethod(right_jacobian)
-    _right_jacobian_inverse = staticmethod(right_jacobian_inverse)
-    _local_from_tangent = staticmethod(to_local)
-    _tangent_from_local = staticmethod(from_local)
-    _to_parameters = staticmethod(to_parameters)
-    _from_parameters = staticmethod(from_parameters)
-    _sample_uniform = staticmethod(sample_uniform)
 
     @property
     def wxyz(self) -> jax.Array:
@@ -412,20 +385,23 @@ class SO3(AbstractGroup):
         return cls.exp(rotvec)
 
     def as_rotvec(self) -> jax.Array:
-        """Axis times angle, angle in $[0, \\pi]$ (the same as `log`)."""
+        r"""Axis times angle, angle in $[0, \pi]$ (the same as `log`)."""
         return self.log()
 
     @classmethod
     def from_rpy(cls, roll, pitch, yaw):
-        """$R = R_z(\\text{yaw})\\,R_y(\\text{pitch})\\,R_x(\\text{roll})$ (extrinsic x-y-z, as ROS)."""
-        roll, pitch, yaw = (as_float_array(a, "SO3.from_rpy angle") for a in (roll, pitch, yaw))
-        roll, pitch, yaw = jnp.broadcast_arrays(roll, pitch, yaw)
+        r"""$R = R_z(\text{yaw})\,R_y(\text{pitch})\,R_x(\text{roll})$ (extrinsic x-y-z, as ROS), angles
+        of shapes that broadcast; the dtype is that of the arrays among them (Python and NumPy
+        numbers take it)."""
+        roll, pitch, yaw = common_float_arrays("SO3.from_rpy", roll, pitch, yaw)
+        batch = broadcast_batch("SO3.from_rpy", roll.shape, pitch.shape, yaw.shape)
+        roll, pitch, yaw = (jnp.broadcast_to(a, batch) for a in (roll, pitch, yaw))
         zero = jnp.zeros_like(roll)
         about = lambda a, b, c: cls.exp(jnp.stack([a, b, c], axis=-1))  # noqa: E731
         return about(zero, zero, yaw) @ about(zero, pitch, zero) @ about(roll, zero, zero)
 
     def as_rpy(self) -> jax.Array:
-        """`(roll, pitch, yaw)` on the last axis, inverse of `from_rpy` (pitch in $[-\\pi/2, \\pi/2]$)."""
+        r"""`(roll, pitch, yaw)` on the last axis, inverse of `from_rpy` (pitch in $[-\pi/2, \pi/2]$)."""
         r = self.as_matrix()
         roll = jnp.arctan2(r[..., 2, 1], r[..., 2, 2])
         pitch = jnp.arcsin(jnp.clip(-r[..., 2, 0], -1.0, 1.0))
