@@ -1,4 +1,4 @@
-"""Bundle adjustment on a BAL problem: Ceres (pyceres), GTSAM 4.3 and `lieax.factorgraph` from the
+r"""Bundle adjustment on a BAL problem: Ceres (pyceres), GTSAM 4.3 and `lieax.factorgraph` from the
 same start, with the same iteration cap and loss.
 
 Needs the `bench` extra (pyceres, GTSAM 4.3). The problem is a generated one at the size of a BAL
@@ -10,8 +10,8 @@ problem (`lieax.ba.SYNTHETIC_PRESETS`: `ladybug-49`, `trafalgar-138`) or a real
                             [--solvers ceres,ceres-colmap,gtsam,gtsam-schur,lieax]
                             [--lieax-damping identity|marquardt]
 
-Every solver minimizes $\\tfrac12\\sum_i \\rho(\\|u_i - u_{obs,i}\\|^2)$ over Snavely's camera
-(`lieax.ba.project`; Huber $\\rho$ as Ceres' `HuberLoss(δ)` and GTSAM's `mEstimator.Huber(δ)`),
+Every solver minimizes $\tfrac12\sum_i \rho(\|u_i - u_{obs,i}\|^2)$ over Snavely's camera
+(`lieax.ba.project`; Huber $\rho$ as Ceres' `HuberLoss(δ)` and GTSAM's `mEstimator.Huber(δ)`),
 without a gauge prior (both damp the 7 gauge directions). The table's costs are recomputed here
 with one NumPy function from each solver's final cameras and points, so they compare; the last
 column is the solver's own figure. They differ where GTSAM moved points behind a camera:
@@ -29,8 +29,8 @@ them mirrored.
 - **Ceres (C++ cost via pycolmap)** (`ceres-colmap`, needs `pip install pycolmap`, 4.2.1 here,
   which links Ceres 2.2): COLMAP's C++ autodiff `ReprojErrorCost` for its `RADIAL` camera
   $(f, c_x, c_y, k_1, k_2)$, $u = f(1 + k_1|q|^2 + k_2|q|^4)q + c$ with $q = Q_{xy}/Q_z$. Snavely's
-  camera is that one with $c = 0$ (held constant) after $R_x(\\pi)$: $Q = R_x(\\pi)P$ has
-  $Q_{xy}/Q_z = (p_x, -p_y)$, so the pose is $(R_x(\\pi)R, R_x(\\pi)t)$ and the observation
+  camera is that one with $c = 0$ (held constant) after $R_x(\pi)$: $Q = R_x(\pi)P$ has
+  $Q_{xy}/Q_z = (p_x, -p_y)$, so the pose is $(R_x(\pi)R, R_x(\pi)t)$ and the observation
   $(u_x, -u_y)$. The problem is a `pycolmap.Reconstruction` (one camera, trivial rig and frame per
   BAL camera) whose Ceres problem COLMAP's `create_default_ceres_bundle_adjuster` builds (pose a
   quaternion and translation on COLMAP's product manifold, intrinsics with $c$ constant, no gauge
@@ -50,7 +50,7 @@ them mirrored.
   default parameters raise an empty `RuntimeError` on these problems).
 - **lieax**: `lieax.factorgraph` with `lieax.ba.camera_residual` and the closed-form
   `lieax.ba.camera_jacobians`, points eliminated by the Schur complement, LM damped by the clipped
-  diagonal of $J^\\top J$ as Ceres (`--lieax-damping identity` for GTSAM's $\\lambda I$, which
+  diagonal of $J^\top J$ as Ceres (`--lieax-damping identity` for GTSAM's $\lambda I$, which
   stalls on Trafalgar-size problems as GTSAM's own LM does); a warm solve is timed, the first call
   (analysis and compilation) is in the notes.
 
@@ -114,8 +114,8 @@ def load_problem(spec, *, outliers=0.0, seed=0):
 
 
 def cost(problem, cameras, points, loss="trivial", delta=1.0):
-    """$\\tfrac12\\sum\\rho(\\|r\\|^2)$ with Ceres' convention for $\\rho$ (trivial: $s$; Huber:
-    $s$ below $\\delta^2$, $2\\delta\\sqrt s - \\delta^2$ above)."""
+    r"""$\tfrac12\sum\rho(\|r\|^2)$ with Ceres' convention for $\rho$ (trivial: $s$; Huber:
+    $s$ below $\delta^2$, $2\delta\sqrt s - \delta^2$ above)."""
     u, _ = ba.project_numpy(cameras[problem.camera_indices], points[problem.point_indices])
     s = np.sum((u - problem.observations) ** 2, axis=1)
     if loss == "huber":
@@ -130,9 +130,9 @@ def _snavely_cost_class():
     import pyceres
 
     class SnavelyCost(pyceres.CostFunction):
-        """Snavely's residual for a BAL 9-vector camera (additive angle-axis) and a point, with
-        closed-form Jacobians: $\\partial P/\\partial\\omega = -R[X]_\\times J_r(\\omega)$,
-        $\\partial P/\\partial t = I$, $\\partial P/\\partial X = R$, then the chain of
+        r"""Snavely's residual for a BAL 9-vector camera (additive angle-axis) and a point, with
+        closed-form Jacobians: $\partial P/\partial\omega = -R[X]_\times J_r(\omega)$,
+        $\partial P/\partial t = I$, $\partial P/\partial X = R$, then the chain of
         `lieax.ba.reprojection_jacobians`."""
 
         def __init__(self, observed):
@@ -266,9 +266,9 @@ _COLMAP_FLIP = np.diag([1.0, -1.0, -1.0])  # Rx(π): Snavely's camera looks down
 
 
 def _colmap_problem(problem, loss, delta):
-    """`(reconstruction, bundle_adjuster, point ids)`: a `pycolmap.Reconstruction` of a BAL
+    r"""`(reconstruction, bundle_adjuster, point ids)`: a `pycolmap.Reconstruction` of a BAL
     problem (camera $i$ is COLMAP camera, rig, frame and image $i + 1$, `RADIAL` with
-    $(f, 0, 0, k_1, k_2)$, pose $(R_x(\\pi)R, R_x(\\pi)t)$, observations $(u_x, -u_y)$) and the
+    $(f, 0, 0, k_1, k_2)$, pose $(R_x(\pi)R, R_x(\pi)t)$, observations $(u_x, -u_y)$) and the
     Ceres problem COLMAP's default Ceres bundle adjuster builds on it (principal point constant,
     no gauge fixed; Huber as `ceres::HuberLoss(δ)`)."""
     import pycolmap
@@ -322,7 +322,7 @@ def _colmap_problem(problem, loss, delta):
 
 
 def _colmap_initial_cost(ceres_problem, loss, delta):
-    """$\\tfrac12\\sum\\rho(\\|r\\|^2)$ from the residuals Ceres evaluates (2 per block, without
+    r"""$\tfrac12\sum\rho(\|r\|^2)$ from the residuals Ceres evaluates (2 per block, without
     the loss: Ceres returns corrected residuals where it applies it)."""
     import pyceres
 
@@ -422,8 +422,8 @@ _FLIP = np.diag([1.0, -1.0, -1.0])  # Rx(π): BAL's camera looks down -z, GTSAM'
 
 
 def _gtsam_values(problem):
-    """GTSAM's cameras and points for a BAL problem: $^wR_c = R_{cw}^\\top R_x(\\pi)$,
-    $^wt_c = -R_{cw}^\\top t$ (GTSAM's `openGL2gtsam`), calibration
+    r"""GTSAM's cameras and points for a BAL problem: $^wR_c = R_{cw}^\top R_x(\pi)$,
+    $^wt_c = -R_{cw}^\top t$ (GTSAM's `openGL2gtsam`), calibration
     `Cal3Bundler(f, k1, k2, 0, 0)`."""
     import gtsam
     from scipy.spatial.transform import Rotation
@@ -510,11 +510,11 @@ def run_gtsam(problem, iterations, loss, delta, schur=False):
 
 
 def run_lieax(problem, iterations, loss, delta, damping="identity"):
-    """`lieax.factorgraph` (the general sparse solver) with `lieax.ba.camera_residual` and its
+    r"""`lieax.factorgraph` (the general sparse solver) with `lieax.ba.camera_residual` and its
     closed-form `camera_jacobians`: cameras one `(SE3, intrinsics)` variable kind, points
     another, eliminated by the Schur complement, GTSAM's LM rules with `damping` (`"marquardt"`:
-    $\\lambda\\,\\mathrm{diag}(H)$, as Ceres and GTSAM's `ceresDefaults`; `"identity"`:
-    $\\lambda I$) and the iteration cap, no gauge prior (`check_gauge=False`: the damping handles
+    $\lambda\,\mathrm{diag}(H)$, as Ceres and GTSAM's `ceresDefaults`; `"identity"`:
+    $\lambda I$) and the iteration cap, no gauge prior (`check_gauge=False`: the damping handles
     it, as for the others). `total` is a warm solve; the first one (structure analysis and XLA
     compilation) is in the note."""
     try:

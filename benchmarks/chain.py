@@ -1,12 +1,12 @@
-"""The headline benchmark: block Jacobians of rotation chains (Sommer, Pradalier, Furgale).
+r"""The headline benchmark: block Jacobians of rotation chains (Sommer, Pradalier, Furgale).
 
 Reproduces the first experiment of Sommer, Pradalier and Furgale, "Automatic Differentiation on
-Differentiable Manifolds as a Tool for Robotics": the value of $y = C_N \\cdots C_1 v$ and its local
+Differentiable Manifolds as a Tool for Robotics": the value of $y = C_N \cdots C_1 v$ and its local
 Jacobian with respect to every rotation $C_i$, for N = 1, 2, 5, 10, 20, under `jit` and `vmap` over
-2000 chains, float64, on the CPU. With right perturbations $C_i \\to C_i \\mathrm{Exp}(\\delta_i)$,
+2000 chains, float64, on the CPU. With right perturbations $C_i \to C_i \mathrm{Exp}(\delta_i)$,
 
-$$\\frac{\\partial y}{\\partial \\delta_i} = -(C_N \\cdots C_i)\\,[w_i]_\\times,
-\\qquad w_i = C_{i-1} \\cdots C_1 v.$$
+$$\frac{\partial y}{\partial \delta_i} = -(C_N \cdots C_i)\,[w_i]_\times,
+\qquad w_i = C_{i-1} \cdots C_1 v.$$
 
 Variants, timed in one run, interleaved, after compilation and warm-up (medians over rounds):
 - lieax: `lieax.value_and_jacobian` over a tuple of `lieax.SO3(wxyz)`, with `mode="auto"` (the
@@ -127,7 +127,7 @@ def _stack_blocks(blocks):
 
 
 def so3_chain(rotations, v):
-    """$C_N \\cdots C_1 v$ for a sequence of `lieax.SO3` (or `jaxlie.SO3`), `C_1` first."""
+    r"""$C_N \cdots C_1 v$ for a sequence of `lieax.SO3` (or `jaxlie.SO3`), `C_1` first."""
     y = v
     for rotation in rotations:
         y = rotation @ y
@@ -147,8 +147,8 @@ def so3_chain_lieax(mode="auto"):
 
 
 def so3_chain_hand(quaternions, v):
-    """The closed form: forward pass for $w_i$, backward pass for $P_i = C_N \\cdots C_i$, and
-    $J_i = -P_i [w_i]_\\times$, whose rows are $w_i \\times p_r$ for the rows $p_r$ of $P_i$."""
+    r"""The closed form: forward pass for $w_i$, backward pass for $P_i = C_N \cdots C_i$, and
+    $J_i = -P_i [w_i]_\times$, whose rows are $w_i \times p_r$ for the rows $p_r$ of $P_i$."""
     rotations = quat_to_matrix(quaternions)
     ws = [v]
     for i in range(quaternions.shape[0] - 1):
@@ -197,8 +197,8 @@ def se3_chain_lieax(mode="auto"):
 
 
 def se3_chain_hand(poses, p):
-    """The closed form: $w_{i+1} = R_i w_i + t_i$; with $P_i = R_N \\cdots R_i$,
-    $J_i = [P_i,\\; -P_i [w_i]_\\times]$ (translation block first)."""
+    r"""The closed form: $w_{i+1} = R_i w_i + t_i$; with $P_i = R_N \cdots R_i$,
+    $J_i = [P_i,\; -P_i [w_i]_\times]$ (translation block first)."""
     rotations, translations = quat_to_matrix(poses[:, :4]), poses[:, 4:]
     ws = [p]
     for i in range(poses.shape[0] - 1):
@@ -235,27 +235,27 @@ def se3_chain_jaxlie(jac):
 
 
 def point_to_plane(transform, source, normals, target):
-    """$r = n^\\top (T s - d)$ for every correspondence (`transform` a lieax or jaxlie SE3)."""
+    r"""$r = n^\top (T s - d)$ for every correspondence (`transform` a lieax or jaxlie SE3)."""
     return jnp.sum(normals * (transform @ source - target), axis=-1)
 
 
 def icp_lieax(pose, source, normals, target):
-    """lieax over the whole cloud: one Jacobian of the residual vector. Forward mode (6 < M
+    r"""lieax over the whole cloud: one Jacobian of the residual vector. Forward mode (6 < M
     outputs) pushes 6 tangents through every point, about 4× the work of the closed form, which
-    computes $R^\\top n$ once: per-correspondence reverse mode (`icp_lieax_per_point`) is the way to
+    computes $R^\top n$ once: per-correspondence reverse mode (`icp_lieax_per_point`) is the way to
     write residuals over a batch."""
     return lieax.value_and_jacobian(point_to_plane)(lieax.SE3(pose), source, normals, target)
 
 
 def icp_lieax_per_point(pose, source, normals, target):
-    """lieax per correspondence, as the solvers write residuals: the 1×6 Jacobian of one residual
-    (reverse mode pulls one cotangent, $R^\\top n$, like the closed form), under `vmap`."""
+    r"""lieax per correspondence, as the solvers write residuals: the 1×6 Jacobian of one residual
+    (reverse mode pulls one cotangent, $R^\top n$, like the closed form), under `vmap`."""
     one = lieax.value_and_jacobian(point_to_plane)
     return jax.vmap(one, in_axes=(None, 0, 0, 0))(lieax.SE3(pose), source, normals, target)
 
 
 def icp_hand(pose, source, normals, target):
-    """The closed form: with $m = R^\\top n$, $J = [m^\\top, (s \\times m)^\\top]$."""
+    r"""The closed form: with $m = R^\top n$, $J = [m^\top, (s \times m)^\top]$."""
     rotation, translation = quat_to_matrix(pose[:4]), pose[4:]
     residual = jnp.sum(normals * (source @ rotation.T + translation - target), axis=-1)
     m = normals @ rotation

@@ -488,9 +488,7 @@ def scan_profile(name, clouds, rounds):
     if name == "graph":
         certified = _neighbors.certify(index, slot, d2, radius)
         exact = jax.jit(
-            lambda i, q, sl, e, c: _neighbors.refine_uncertified(
-                i, q, sl, e, c, radius, scan=False
-            )
+            lambda i, q, sl, e, c: _neighbors.refine_uncertified(i, q, sl, e, c, radius, scan=False)
         )
         variants["exact"] = lambda: exact(index, queries, slot, d2, certified)
     timings = time_interleaved(variants, rounds, warmup=1)

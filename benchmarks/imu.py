@@ -1,4 +1,4 @@
-"""IMU preintegration and an IMU + position-fix smoother (`lieax.imu`, `lieax.factorgraph`)
+r"""IMU preintegration and an IMU + position-fix smoother (`lieax.imu`, `lieax.factorgraph`)
 against GTSAM 4.3 (`PreintegratedImuMeasurements.integrateMeasurement` called from Python, and
 `LevenbergMarquardtOptimizer` on the same factors), on the generated drive of
 `examples/inertial_navigation.py` (200 Hz IMU, 1 Hz fixes, one keyframe per fix).
@@ -7,7 +7,7 @@ Table 1: preintegrating all intervals (`jit(vmap(preintegrate))`, the logarithmi
 `preintegrate_associative`, GTSAM's loop), and the largest relative differences: lieax
 sequential vs GTSAM, associative vs sequential. Table 2: the smoother, solved from the same
 start by lieax (warm: structure cached, compiled) and GTSAM (default parameters), iterations and
-final costs ($\\tfrac12\\sum\\|r\\|^2_\\Sigma$, GTSAM's `graph.error`). One pinned core, one thread
+final costs ($\tfrac12\sum\|r\|^2_\Sigma$, GTSAM's `graph.error`). One pinned core, one thread
 each (as `benchmarks/pgo.py`); medians over interleaved rounds in one process.
 
     python benchmarks/imu.py [--keyframes 1001] [--rounds 3]

@@ -33,7 +33,9 @@ def parse_args():
     parser.add_argument("--points", type=int, default=100)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument(
-        "--loop-problems", type=int, default=None,
+        "--loop-problems",
+        type=int,
+        default=None,
         help="problems timed in the Python loops (scaled to --problems); default all",
     )
     parser.add_argument("--float32", action="store_true")
@@ -153,8 +155,19 @@ def jaxlie_solve(source, target):
 
     identity = jaxlie.SE3(jnp.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0], DTYPE))
     zero, zeros6 = jnp.zeros((), DTYPE), jnp.zeros(6, DTYPE)
-    initial = (identity, zero, jnp.zeros((6, 6), DTYPE), zeros6, zero, zero, identity, zeros6,
-               jnp.array(True), jnp.array(0), jnp.array(False))
+    initial = (
+        identity,
+        zero,
+        jnp.zeros((6, 6), DTYPE),
+        zeros6,
+        zero,
+        zero,
+        identity,
+        zeros6,
+        jnp.array(True),
+        jnp.array(0),
+        jnp.array(False),
+    )
     final = jax.lax.while_loop(lambda s: ~s[-1], body, initial)
     return final[0].wxyz_xyz, final[9], final[10]
 

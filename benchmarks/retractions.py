@@ -1,12 +1,12 @@
-"""Retractions on a batch of SO3 / SE3 elements: `lieax.retractions` exp, cayley and first_order.
+r"""Retractions on a batch of SO3 / SE3 elements: `lieax.retractions` exp, cayley and first_order.
 
 For `--count` elements (default 100,000, float64) and one tangent each, three operations are timed
 per group and retraction, each one jitted call over the whole batch:
 
-- `rplus`: $\\mathcal{R}_X(\\delta)$, the parameters of the moved elements;
-- `rminus`: $\\mathcal{R}_X^{-1}(Y)$, the local coordinates of one batch relative to another;
+- `rplus`: $\mathcal{R}_X(\delta)$, the parameters of the moved elements;
+- `rminus`: $\mathcal{R}_X^{-1}(Y)$, the local coordinates of one batch relative to another;
 - `rplus+jvp`: the retraction and its derivative along one tangent direction (`jax.jvp` with
-  respect to $\\delta$; what a solver's unrolled differentiation pays per step).
+  respect to $\delta$; what a solver's unrolled differentiation pays per step).
 
 Variants are timed interleaved (`_timing.time_interleaved`: every variant takes one sample per
 round, in rotated order, so machine noise falls on all alike); the table gives the median time per

@@ -1,4 +1,4 @@
-"""Scale-out with `lieax.sharding`: throughput over 1, 2, 4, 8 devices.
+r"""Scale-out with `lieax.sharding`: throughput over 1, 2, 4, 8 devices.
 
 Two workloads, each run on meshes of the first k devices (every k compiles its own program):
 
@@ -9,10 +9,10 @@ Two workloads, each run on meshes of the first k devices (every k compiles its o
   splits it, but every device runs until the slowest pair of the whole batch is done: one
   all-reduce of the loop condition per iteration).
 - **ICP inner solve** (residual axis): the point-to-plane pose solve of one cloud with its
-  correspondences fixed, $\\min_T \\sum_i (n_i^\\top (T s_i - d_i))^2$ over `--residuals` pairs,
+  correspondences fixed, $\min_T \sum_i (n_i^\top (T s_i - d_i))^2$ over `--residuals` pairs,
   by `lieax.lstsq.least_squares` (Levenberg-Marquardt) with `lieax.sharding.shard_residuals`:
-  each device evaluates its residuals and Jacobian blocks, and the cost, $J^\\top J$ and
-  $J^\\top r$ are summed by one all-reduce per iteration.
+  each device evaluates its residuals and Jacobian blocks, and the cost, $J^\top J$ and
+  $J^\top r$ are summed by one all-reduce per iteration.
 
 Reported per k: the median time per call over interleaved rounds (every k takes one sample per
 round, so machine noise falls on all alike), the throughput, the speedup over one device, the

@@ -1,17 +1,17 @@
-"""Attitude of a diving elephant seal from accelerometer and magnetometer readings, the
+r"""Attitude of a diving elephant seal from accelerometer and magnetometer readings, the
 application of Sommer, Pradalier and Furgale, "Automatic Differentiation on Differentiable
 Manifolds as a Tool for Robotics" (Sec. 4.2).
 
-State at every sample $t$: the attitude $C_t \\in SO(3)$ (`C_world_body`, body x along the animal)
+State at every sample $t$: the attitude $C_t \in SO(3)$ (`C_world_body`, body x along the animal)
 and the propulsion $P_t$ it applies along its body x axis. With $G = (0, 0, 9.81)$ and the
 magnetic field $B$ constant in the world frame (x north, y west, z up), the accelerometer reads
-$a_t = C_t^\\top G + P_t\\,x$ and the magnetometer $b_t = C_t^\\top B$, both noisy. The residuals
+$a_t = C_t^\top G + P_t\,x$ and the magnetometer $b_t = C_t^\top B$, both noisy. The residuals
 (whitened by their standard deviations) are the paper's
 
 - accelerometer $C_t (a_t - P_t x) - G$ and magnetometer $C_t b_t - B$,
-- smoothness $P_t - P_{t-1}$ and $\\mathrm{Log}(C_{t-1}^{-1} C_t)$,
+- smoothness $P_t - P_{t-1}$ and $\mathrm{Log}(C_{t-1}^{-1} C_t)$,
 
-minimized over every $C_t$ (right perturbation $C_t \\oplus \\delta_t$) and $P_t$ by
+minimized over every $C_t$ (right perturbation $C_t \oplus \delta_t$) and $P_t$ by
 `lieax.lstsq.least_squares` (Levenberg-Marquardt), whose Jacobian blocks come from lieax's
 closed-form rules. As in the paper the solve starts at zero propulsion and the attitude each
 sample gives on its own (TRIAD: gravity from the accelerometer, heading from the magnetometer),
@@ -175,7 +175,7 @@ def solve(record, window, overlap, *, verbose=False, max_iterations=50):
 
 
 def angle_errors_deg(C_est, C_true):
-    """Geodesic angle $|\\mathrm{Log}(C_{true}^{-1} C_{est})|$ per sample, degrees."""
+    r"""Geodesic angle $|\mathrm{Log}(C_{true}^{-1} C_{est})|$ per sample, degrees."""
     return np.rad2deg(np.linalg.norm(np.asarray(C_est.rminus(C_true)), axis=-1))
 
 

@@ -1,10 +1,10 @@
-"""Block Jacobians of a chain of rotations, the experiment of Sommer, Pradalier and Furgale.
+r"""Block Jacobians of a chain of rotations, the experiment of Sommer, Pradalier and Furgale.
 
-For rotations $C_1, \\dots, C_N$ and a vector $v$, `lieax.value_and_jacobian` returns
-$y = C_N \\cdots C_1 v$ and, for every $C_i$, the 3×3 block $\\partial y / \\partial \\delta_i$
-of the right perturbation $C_i \\oplus \\delta_i = C_i\\,\\mathrm{Exp}(\\delta_i)$. This script
-checks the blocks against the closed form $-(C_N \\cdots C_i)\\,[w_i]_\\times$ with
-$w_i = C_{i-1} \\cdots C_1 v$, and times both under `jit` and `vmap` over many chains
+For rotations $C_1, \dots, C_N$ and a vector $v$, `lieax.value_and_jacobian` returns
+$y = C_N \cdots C_1 v$ and, for every $C_i$, the 3×3 block $\partial y / \partial \delta_i$
+of the right perturbation $C_i \oplus \delta_i = C_i\,\mathrm{Exp}(\delta_i)$. This script
+checks the blocks against the closed form $-(C_N \cdots C_i)\,[w_i]_\times$ with
+$w_i = C_{i-1} \cdots C_1 v$, and times both under `jit` and `vmap` over many chains
 (`benchmarks/chain.py` is the full benchmark).
 
     python examples/chain_jacobians.py [--chains 500] [--length 10]
@@ -21,7 +21,7 @@ import lieax
 
 
 def chain(rotations, v):
-    """$C_N \\cdots C_1 v$, `rotations[0]` applied first."""
+    r"""$C_N \cdots C_1 v$, `rotations[0]` applied first."""
     for rotation in rotations:
         v = rotation @ v
     return v

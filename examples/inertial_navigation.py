@@ -26,13 +26,13 @@ FIX_SIGMA = 0.5  # m
 
 
 def simulate(keyframes, rng, rate=RATE):
-    """A drive of `keyframes - 1` seconds: returns a dict with the true keyframe states
+    r"""A drive of `keyframes - 1` seconds: returns a dict with the true keyframe states
     (`rotations` (n, 3, 3), `positions`, `velocities` (n, 3), `biases` (n, 6)), the IMU samples
     per interval (`gyro`, `accel` (n - 1, rate, 3)), `dt` and the position `fixes` (n, 3).
 
     The truth is integrated with piecewise constant body rates and accelerations, the model the
-    preintegration assumes: $R^+ = R\\,\\mathrm{Exp}(\\omega\\delta t)$, $v^+ = v + a\\delta t$,
-    $p^+ = p + v\\delta t + \\tfrac12 a \\delta t^2$."""
+    preintegration assumes: $R^+ = R\,\mathrm{Exp}(\omega\delta t)$, $v^+ = v + a\delta t$,
+    $p^+ = p + v\delta t + \tfrac12 a \delta t^2$."""
     dt = 1.0 / rate
     steps = (keyframes - 1) * rate
     t = np.arange(steps) * dt
@@ -77,7 +77,7 @@ def simulate(keyframes, rng, rate=RATE):
 
 
 def _exp(omega):
-    """Rodrigues' $\\mathrm{Exp}(\\omega)$ (NumPy, for the simulation)."""
+    r"""Rodrigues' $\mathrm{Exp}(\omega)$ (NumPy, for the simulation)."""
     theta = np.linalg.norm(omega)
     k = np.array([[0, -omega[2], omega[1]], [omega[2], 0, -omega[0]], [-omega[1], omega[0], 0]])
     if theta < 1e-12:

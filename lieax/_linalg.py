@@ -25,7 +25,7 @@ def matvec(matrix, x):
 
 
 def skew(v):
-    """$[v]_\\times$, with $[v]_\\times x = v \\times x$."""
+    r"""$[v]_\times$, with $[v]_\times x = v \times x$."""
     v0, v1, v2 = v[..., 0], v[..., 1], v[..., 2]
     zero = jnp.zeros_like(v0)
     rows = [[zero, -v2, v1], [v2, zero, -v0], [-v1, v0, zero]]
@@ -33,7 +33,7 @@ def skew(v):
 
 
 def unskew(m):
-    """The vector of the skew part of `m`: $\\mathrm{vee}((m - m^\\top)/2)$."""
+    r"""The vector of the skew part of `m`: $\mathrm{vee}((m - m^\top)/2)$."""
     return 0.5 * jnp.stack(
         [m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]],
         axis=-1,
@@ -41,7 +41,7 @@ def unskew(m):
 
 
 def quat_multiply(a, b):
-    """Hamilton product $a \\otimes b$ of wxyz quaternions."""
+    r"""Hamilton product $a \otimes b$ of wxyz quaternions."""
     aw, ax, ay, az = (a[..., i] for i in range(4))
     bw, bx, by, bz = (b[..., i] for i in range(4))
     return jnp.stack(
@@ -60,14 +60,14 @@ def quat_conjugate(q):
 
 
 def quat_rotate(q, p):
-    """$R(q)\\,p = p + w\\,t + u \\times t$ with $t = 2\\,u \\times p$ (unit $q = (w, u)$)."""
+    r"""$R(q)\,p = p + w\,t + u \times t$ with $t = 2\,u \times p$ (unit $q = (w, u)$)."""
     w, u = q[..., :1], q[..., 1:]
     t = 2.0 * cross(u, p)
     return p + w * t + cross(u, t)
 
 
 def quat_to_matrix(q):
-    """$R(q) = (w^2 - u^\\top u) I + 2 u u^\\top + 2 w [u]_\\times$, written out."""
+    r"""$R(q) = (w^2 - u^\top u) I + 2 u u^\top + 2 w [u]_\times$, written out."""
     w, x, y, z = (q[..., i] for i in range(4))
     xx, yy, zz = x * x, y * y, z * z
     xy, xz, yz, wx, wy, wz = x * y, x * z, y * z, w * x, w * y, w * z
@@ -80,5 +80,5 @@ def quat_to_matrix(q):
 
 
 def rotate_back(rotation, x):
-    """$R^\\top x$."""
+    r"""$R^\top x$."""
     return jnp.einsum("...ji,...j->...i", rotation, x)

@@ -1,9 +1,9 @@
-"""First-order optimization on manifolds with any optax optimizer.
+r"""First-order optimization on manifolds with any optax optimizer.
 
 Gradients are taken in right-local tangent coordinates (`lieax.grad`: group leaves get
-$\\nabla_\\delta f(X \\oplus \\delta)|_{\\delta = 0}$, shape `(*batch, tangent_dim)`), the optimizer
+$\nabla_\delta f(X \oplus \delta)|_{\delta = 0}$, shape `(*batch, tangent_dim)`), the optimizer
 turns them into tangent updates, and the updates are applied by retraction,
-$X \\leftarrow X \\oplus u$ (`x + u` for array leaves), or by another retraction from
+$X \leftarrow X \oplus u$ (`x + u` for array leaves), or by another retraction from
 `lieax.retractions` (`retraction=lieax.retractions.cayley`: the gradients are the same, since every
 retraction's derivative at zero is the identity; pass the same one to `on_manifold` and
 `apply_updates`).
@@ -56,8 +56,8 @@ def _chart_params(params):
 
 
 def _from_chart(params, chart, retraction: Retraction):
-    """The point of chart coordinates `chart` around `params`: $\\mathcal{R}_X(u)$ for groups
-    ($X \\oplus u$ by default), `u` for arrays (whose chart coordinates are their values)."""
+    r"""The point of chart coordinates `chart` around `params`: $\mathcal{R}_X(u)$ for groups
+    ($X \oplus u$ by default), `u` for arrays (whose chart coordinates are their values)."""
     leaves, treedef = manifold_leaves(params, "params")
     coordinates = treedef.flatten_up_to(chart)
     return treedef.unflatten(
@@ -104,8 +104,8 @@ def on_manifold(
 
 
 def apply_updates(params, updates, *, retraction: Retraction = exp):
-    """$X \\oplus u$ leaf by leaf (the manifold version of `optax.apply_updates`), or
-    $\\mathcal{R}_X(u)$ with another `retraction` from `lieax.retractions`; updates are cast to
+    r"""$X \oplus u$ leaf by leaf (the manifold version of `optax.apply_updates`), or
+    $\mathcal{R}_X(u)$ with another `retraction` from `lieax.retractions`; updates are cast to
     each leaf's dtype."""
     leaves, treedef = manifold_leaves(params, "params")
     cast = [

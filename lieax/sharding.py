@@ -1,4 +1,4 @@
-"""Scale-out over several devices (and hosts) with JAX's own sharding: no scheduler of our own.
+r"""Scale-out over several devices (and hosts) with JAX's own sharding: no scheduler of our own.
 
 Two ways to split work, both compiled once per shapes and mesh:
 
@@ -14,7 +14,7 @@ Two ways to split work, both compiled once per shapes and mesh:
 - **Along the residual axis of one large problem** (a cloud of millions of points):
   `shard_residuals(residual_fn, mesh)` evaluates a `lieax.lstsq.least_squares` residual shard by
   shard: the state is replicated, the data's leading axis is split, and each device computes its
-  residuals and Jacobian blocks. The reductions into the cost, $J^\\top W J$ and $J^\\top W r$
+  residuals and Jacobian blocks. The reductions into the cost, $J^\top W J$ and $J^\top W r$
   are contractions over the sharded axis, which the partitioner turns into local sums and one
   all-reduce of $(c, g, H)$ per iteration (1 + n + n² numbers) — the Jacobian is never gathered.
 
@@ -230,14 +230,14 @@ def batch_map(fn, mesh: Mesh | None = None, *, in_axes=0, axis_name=None):
 
 
 def shard_residuals(residual_fn, mesh: Mesh | None = None, *, in_axes=0, axis_name=None):
-    """A `least_squares` residual function evaluated shard by shard along the residual axis.
+    r"""A `least_squares` residual function evaluated shard by shard along the residual axis.
 
     `shard_residuals(residual_fn, mesh)(x, args)` equals `residual_fn(x, args)` for a residual
     function whose output rows each depend on one row of `args` (one residual per point pair,
     built with `jax.vmap` over the data): the state `x` is replicated, the leading axis of `args`
     and of every residual leaf is split over the mesh, and each device evaluates its residuals
     and, when `least_squares` linearizes, its Jacobian blocks. The contractions into the cost,
-    $J^\\top W J$ and $J^\\top W r$ then run over a sharded axis: XLA computes each device's part
+    $J^\top W J$ and $J^\top W r$ then run over a sharded axis: XLA computes each device's part
     and sums them with one all-reduce per iteration.
 
     ```python

@@ -15,8 +15,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-jax.config.update("jax_enable_x64", True)
-
 import lieax
 from lieax._align import align
 from lieax.groups._sim3 import Sim3

@@ -30,7 +30,7 @@ INTRINSICS = np.array([480.0, 0.07, -0.03])
 
 
 def _case(rotvec, seed, pure_translation=False):
-    """A camera, point and observation with $P = (a, b, -4)$, $|a|, |b| \\le 1$ (in front)."""
+    r"""A camera, point and observation with $P = (a, b, -4)$, $|a|, |b| \le 1$ (in front)."""
     rng = np.random.default_rng(seed)
     point = rng.uniform(-2, 2, 3)
     R = Rotation.from_rotvec(rotvec).as_matrix()

@@ -11,8 +11,6 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-jax.config.update("jax_enable_x64", True)
-
 import lieax
 from lieax import conventions as cv
 from lieax.groups import _base
@@ -69,7 +67,7 @@ def _vee(m, scale):
 
 
 def test_left_right_perturbations():
-    """$\\mathrm{Exp}(\\xi_L) X = X \\mathrm{Exp}(\\xi_R)$; the converted Jacobian of $X \\cdot Y$ with
+    r"""$\mathrm{Exp}(\xi_L) X = X \mathrm{Exp}(\xi_R)$; the converted Jacobian of $X \cdot Y$ with
     respect to $X$ predicts left perturbations to first order (finite differences on matrices)."""
     step = 1e-6
 
@@ -160,7 +158,7 @@ def test_ceres_quaternion():
 
 
 def test_s2_tangent_conversion():
-    """Both bases span the tangent plane: $B_g \\xi_g = B_l \\xi_l$; GTSAM's basis is orthonormal and
+    r"""Both bases span the tangent plane: $B_g \xi_g = B_l \xi_l$; GTSAM's basis is orthonormal and
     tangent."""
     p = jnp.asarray(DIRECTIONS)
     basis_g = cv.s2_gtsam_basis(p)

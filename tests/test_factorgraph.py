@@ -240,7 +240,7 @@ def test_assembled_gradient_matches_finite_differences(landmarks):
 
 
 def snavely(camera, point, observation):
-    """Snavely's camera: $P = R X + t$, $p = -P_{xy}/P_z$, $f(1 + k_1|p|^2 + k_2|p|^4)\\,p$."""
+    r"""Snavely's camera: $P = R X + t$, $p = -P_{xy}/P_z$, $f(1 + k_1|p|^2 + k_2|p|^4)\,p$."""
     pose, (f, k1, k2) = camera
     p_camera = pose @ point
     p = -p_camera[:2] / p_camera[2]

@@ -53,8 +53,9 @@ def test_jit_vmap_and_loop_agree_with_numpy(problem, path):
 
 
 def test_guard_checks_the_keywords_the_lowering_passes():
-    def current(ctx, callback, token, operands, avals_in, avals_out, *, has_side_effect,
-                returns_token=True):
+    def current(
+        ctx, callback, token, operands, avals_in, avals_out, *, has_side_effect, returns_token=True
+    ):
         pass
 
     def older(ctx, callback, token, operands, avals_in, avals_out, has_side_effect):

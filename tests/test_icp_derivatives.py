@@ -1,7 +1,7 @@
-"""Derivatives through ICP (`lieax.icp._implicit`): the implicit derivative of the converged pose
+r"""Derivatives through ICP (`lieax.icp._implicit`): the implicit derivative of the converged pose
 against central finite differences of the whole registration, in local coordinates at the
-converged pose ($(T(\\theta + h\\dot\\theta) \\ominus T^*) - (T(\\theta - h\\dot\\theta) \\ominus T^*)$
-over $2h$, the matches unchanged at $\\pm h$), forward and reverse mode, over motions from the
+converged pose ($(T(\theta + h\dot\theta) \ominus T^*) - (T(\theta - h\dot\theta) \ominus T^*)$
+over $2h$, the matches unchanged at $\pm h$), forward and reverse mode, over motions from the
 identity to near π; `vmap`; the runs that did not converge; the bunny when `LIEAX_DATA_DIR` is set.
 
 Every synthetic pair has `N` points (one bucket), so the loops compile once per kind.

@@ -1,7 +1,7 @@
-"""`inverse_function_jacobian` / `implicit_jacobian` and their `custom_jvp` wrappers, on the two
+r"""`inverse_function_jacobian` / `implicit_jacobian` and their `custom_jvp` wrappers, on the two
 examples of Ceres' notes: ECEF → (latitude, longitude, height) by a `while_loop` iteration
 (whose inverse is a closed form), and the roots of a polynomial as functions of its coefficients
-(Newton's method; $Dx(a) = -[1, x, \\dots, x^n] / p'(x)$). Everything is checked against central
+(Newton's method; $Dx(a) = -[1, x, \dots, x^n] / p'(x)$). Everything is checked against central
 finite differences of the iterative functions themselves; `jax.jacrev` works although the
 iterations (`lax.while_loop`) cannot be reverse-differentiated.
 """
@@ -11,8 +11,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from jax import lax
-
-jax.config.update("jax_enable_x64", True)
 
 from lieax.autodiff._implicit import (
     implicit_jacobian,
@@ -28,7 +26,7 @@ E2 = F_FLAT * (2.0 - F_FLAT)
 
 
 def lla_to_ecef(lla):
-    """$(\\phi, \\lambda, h) \\mapsto (X, Y, Z)$ (Ceres' notes; radians and metres)."""
+    r"""$(\phi, \lambda, h) \mapsto (X, Y, Z)$ (Ceres' notes; radians and metres)."""
     lat, lon, h = lla[0], lla[1], lla[2]
     chi = jnp.sqrt(1.0 - E2 * jnp.sin(lat) ** 2)
     return jnp.stack(
@@ -108,7 +106,7 @@ def test_ecef_to_lla_by_inverse_function_theorem():
 
 
 def polynomial(coefficients, x):
-    """$p(x) = \\sum_k a_k x^k$."""
+    r"""$p(x) = \sum_k a_k x^k$."""
     return jnp.sum(coefficients * x ** jnp.arange(coefficients.shape[-1]))
 
 
@@ -157,7 +155,7 @@ def test_polynomial_roots_by_implicit_function_theorem():
 
 
 def test_implicit_system_with_pytrees():
-    """A 2D system $F(x, y) = (y_0^2 + y_1^2 - x_r,\\ y_1 - x_s y_0)$ (circle ∩ line), `x` a dict:
+    r"""A 2D system $F(x, y) = (y_0^2 + y_1^2 - x_r,\ y_1 - x_s y_0)$ (circle ∩ line), `x` a dict:
     the helper and the wrapper against finite differences."""
 
     def residual(x, y):

@@ -3,7 +3,6 @@
 streams; bias Jacobians and factor Jacobians against finite differences; the logarithmic-depth
 variant against the sequential scan; batching and bad input."""
 
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -104,8 +103,8 @@ def test_preintegration_matches_gtsam(with_arm):
 
 
 def test_predict_and_factor_match_gtsam():
-    """`predict` as `PreintegrationBase::predict`; the residual and all five Jacobians as
-    `ImuFactor.evaluateError` (ComponentWise), pose columns permuted to lieax's $(v, \\omega)$."""
+    r"""`predict` as `PreintegrationBase::predict`; the residual and all five Jacobians as
+    `ImuFactor.evaluateError` (ComponentWise), pose columns permuted to lieax's $(v, \omega)$."""
     gtsam = pytest.importorskip("gtsam")
     gyro, accel, dt = stream(1)
     reference = gtsam_pim(gtsam, gyro, accel, dt)
@@ -160,8 +159,8 @@ def test_bias_jacobians_by_finite_differences(variant, rate_scale):
 
 
 def test_associative_agrees_to_first_order_in_dt():
-    """The group product and GTSAM's tangent recursion are both consistent integrators of
-    piecewise constant samples: they differ by $O(\\delta t)$, halving when each sample is split
+    r"""The group product and GTSAM's tangent recursion are both consistent integrators of
+    piecewise constant samples: they differ by $O(\delta t)$, halving when each sample is split
     in two (measured: 3e-6 relative for 60 samples at 5 ms and 1 rad/s)."""
     gyro, accel, dt = stream(4)
     differences = []
@@ -183,9 +182,9 @@ def test_associative_agrees_to_first_order_in_dt():
 
 
 def test_associative_is_exact_for_constant_rotation_rate():
-    """With a constant rate the product $\\mathrm{Exp}(\\omega\\delta t)^N = \\mathrm{Exp}(N\\omega\\delta t)$
-    and the tangent recursion $\\theta^+ = \\theta + J_r^{-1}(\\theta)\\omega\\delta t$ (which keeps
-    $\\theta \\parallel \\omega$) agree in $\\theta$ exactly (13 samples: padded at two levels)."""
+    r"""With a constant rate the product $\mathrm{Exp}(\omega\delta t)^N = \mathrm{Exp}(N\omega\delta t)$
+    and the tangent recursion $\theta^+ = \theta + J_r^{-1}(\theta)\omega\delta t$ (which keeps
+    $\theta \parallel \omega$) agree in $\theta$ exactly (13 samples: padded at two levels)."""
     for samples in (13,):
         gyro = np.tile([[0.3, -0.2, 0.5]], (samples, 1)) + BIAS[3:]
         accel = np.tile([[0.0, 0.0, 9.81]], (samples, 1))

@@ -22,7 +22,7 @@ TIGHT = dict(function_tolerance=0.0, gradient_tolerance=1e-14, parameter_toleran
 
 
 def umeyama(source, target, with_scale=True):
-    """Closed-form minimizer of $\\sum_i \\|s R p_i + t - q_i\\|^2$ (Umeyama 1991): `(R, t, s)`."""
+    r"""Closed-form minimizer of $\sum_i \|s R p_i + t - q_i\|^2$ (Umeyama 1991): `(R, t, s)`."""
     source, target = np.asarray(source), np.asarray(target)
     mu_p, mu_q = source.mean(0), target.mean(0)
     p, q = source - mu_p, target - mu_q
@@ -34,7 +34,7 @@ def umeyama(source, target, with_scale=True):
 
 
 def similarity_residual(x, data):
-    """A pose split into a rotation and a vector, plus a log-scale: $e^\\sigma R p + t - q$."""
+    r"""A pose split into a rotation and a vector, plus a log-scale: $e^\sigma R p + t - q$."""
     source, target = data
     rotation, translation, log_scale = x["rotation"], x["translation"], x["log_scale"]
     return jax.vmap(lambda p, q: jnp.exp(log_scale) * (rotation @ p) + translation - q)(
@@ -73,7 +73,7 @@ def rosenbrock_residual(rotation, _):
 
 
 def chain_residual(poses, data):
-    """Relative-pose residuals $\\mathrm{Log}(Z_{ij}^{-1} X_i^{-1} X_j)$ and a prior on the first
+    r"""Relative-pose residuals $\mathrm{Log}(Z_{ij}^{-1} X_i^{-1} X_j)$ and a prior on the first
     pose."""
     first, second, measured, prior = data
     between = poses[first].between(poses[second])
@@ -93,7 +93,7 @@ def chain_problem(group, key, size=8):
 
 
 def log_residual(x, target):
-    """$\\log x - \\log t$: a full Gauss-Newton step from $x = e^3$ towards $t = 1$ lands at
+    r"""$\log x - \log t$: a full Gauss-Newton step from $x = e^3$ towards $t = 1$ lands at
     $x < 0$."""
     return jnp.log(x) - jnp.log(target)
 
@@ -147,7 +147,7 @@ def test_se2_pose_chain_reaches_ground_truth():
 
 
 def test_gauss_newton_with_an_unconstrained_variable():
-    """A variable no residual touches makes $J^\\top J$ singular: the fallback keeps it in place."""
+    r"""A variable no residual touches makes $J^\top J$ singular: the fallback keeps it in place."""
     data = similarity_data(jax.random.PRNGKey(0))
     start = {**similarity_start(), "unused": jnp.array([0.25, -0.5])}
 

@@ -1,4 +1,4 @@
-"""Badly scaled nonlinear regression: problems of the NIST StRD nonlinear regression set, as
+r"""Badly scaled nonlinear regression: problems of the NIST StRD nonlinear regression set, as
 published and rescaled so that one problem's parameters span twelve orders of magnitude, solved
 by `lieax.lstsq.least_squares` (Levenberg-Marquardt) and by MINPACK's `lmder` (through
 `scipy.optimize.least_squares(method="lm")`). Every problem MINPACK solves to four significant
@@ -6,7 +6,7 @@ digits of NIST's certified values, lieax must solve too.
 
 Models, data, starting points and certified values are NIST's
 (https://www.itl.nist.gov/div898/strd/nls/nls_main.shtml). In a rescaled variant the unknowns are
-$p = s \\odot b$, with factors $s$ that put $p$ at magnitudes from $10^{-9}$ to $10^3$
+$p = s \odot b$, with factors $s$ that put $p$ at magnitudes from $10^{-9}$ to $10^3$
 (`RESCALED_MAGNITUDES`), and the model is evaluated at $b = p / s$: the data, the optimum and
 every iterate of a scale-invariant method are those of the published problem.
 
@@ -242,7 +242,7 @@ def solved(problem, b) -> bool:
 
 @functools.cache
 def residual_fn(problem):
-    """The residual $f(p / s, x) - y$ of `problem` in the unknowns $p = s \\odot b$, one
+    r"""The residual $f(p / s, x) - y$ of `problem` in the unknowns $p = s \odot b$, one
     function object per problem (so that every solve of it shares one compilation)."""
 
     def residual(p, data):
@@ -371,7 +371,7 @@ def test_minpack_solves_most_of_the_suite(minpack_solutions):
 
 @pytest.mark.parametrize("problem", PROBLEMS, ids=lambda problem: problem.name)
 def test_rescaling_changes_nothing(problem, lieax_solutions):
-    """The default scaling is invariant under $b \\to s \\odot b$: published and rescaled variants
+    r"""The default scaling is invariant under $b \to s \odot b$: published and rescaled variants
     reach the same point in about the same number of iterations."""
     results = lieax_solutions[problem.name]
     for start in (1, 2):
@@ -406,7 +406,7 @@ def test_unknown_scaling_is_an_error():
 
 @pytest.mark.parametrize("differentiation", ["implicit", "unrolled"])
 def test_derivative_of_a_rescaled_solve(differentiation):
-    """$\\partial b^\\star / \\partial y$ of rescaled Misra1a (unknowns $10^{-9}$ and $10^3$
+    r"""$\partial b^\star / \partial y$ of rescaled Misra1a (unknowns $10^{-9}$ and $10^3$
     apart) through the scaled solver, against central finite differences of the solve."""
     problem = PROBLEMS[0]
     scale = rescaling(problem)
@@ -439,10 +439,10 @@ def test_derivative_of_a_rescaled_solve(differentiation):
 
 
 def test_spd_solve_is_invariant_under_diagonal_scaling():
-    """$(D A D)^{-1} D b = D^{-1} A^{-1} b$ for $D$ spanning twelve orders of magnitude: the
+    r"""$(D A D)^{-1} D b = D^{-1} A^{-1} b$ for $D$ spanning twelve orders of magnitude: the
     factorization's singularity test and fallback see the Jacobi-scaled matrix, so a well-posed
     badly scaled system is solved as the well-scaled one (the unscaled test would regularize it
-    by $\\sqrt{\\varepsilon}\\,10^6$ relative to its smallest diagonal entry)."""
+    by $\sqrt{\varepsilon}\,10^6$ relative to its smallest diagonal entry)."""
     from lieax.lstsq._normal_equations import solve_spd
 
     rng = np.random.default_rng(0)

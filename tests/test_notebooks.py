@@ -17,13 +17,9 @@ import pathlib
 import sys
 import time
 
+import nbclient
+import nbformat
 import pytest
-
-nbformat = pytest.importorskip("nbformat")
-nbclient = pytest.importorskip("nbclient")
-pytest.importorskip("ipykernel")
-pytest.importorskip("matplotlib")
-
 from jupyter_client import KernelManager
 from jupyter_client.kernelspec import KernelSpecManager
 

@@ -50,7 +50,7 @@ def tangents(G, count, seed, angle=(0.2, 2.8)):
 
 
 def cayley_matrix(omega):
-    """$(I - \\tfrac12 K)^{-1}(I + \\tfrac12 K)$, $K = [\\omega]_\\times$ (GTSAM math notes 12.4)."""
+    r"""$(I - \tfrac12 K)^{-1}(I + \tfrac12 K)$, $K = [\omega]_\times$ (GTSAM math notes 12.4)."""
     k = skew3(omega)
     return np.linalg.solve(np.eye(3) - 0.5 * k, np.eye(3) + 0.5 * k)
 

@@ -50,7 +50,9 @@ def test_solvers_throw_under_jit_and_report_under_vmap():
     assert batch.tolist() == [lstsq.Status.NONFINITE, lstsq.Status.CONVERGED]
 
     x = Var(jnp.zeros((1, 2)), name="x")
-    graph = FactorGraph([Factor(lambda x, a: residual(x, a), (x[jnp.array([0])],), jnp.zeros((1, 2)))])
+    graph = FactorGraph(
+        [Factor(lambda x, a: residual(x, a), (x[jnp.array([0])],), jnp.zeros((1, 2)))]
+    )
 
     def solve_graph(a):
         return graph.solve(data=[(a[None], None, None)]).status

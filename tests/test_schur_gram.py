@@ -1,8 +1,8 @@
-"""Tests of the Schur complement's closed forms in lieax.factorgraph: the batched 3×3 inverse
+r"""Tests of the Schur complement's closed forms in lieax.factorgraph: the batched 3×3 inverse
 (`_linear.spd_inverse`) against `jnp.linalg.inv`, the chunked Gram sums (`_gram`) against one
 product per term and a segment sum, and `schur_solve` on a bundle adjustment against dense
 elimination of the whole system; the camera blocks of the normal equations (summed by chunks)
-against the dense $J^\\top J$.
+against the dense $J^\top J$.
 """
 
 import jax

@@ -1,4 +1,4 @@
-"""Derivatives of functions that are computed by iterative algorithms, from the inverse and
+r"""Derivatives of functions that are computed by iterative algorithms, from the inverse and
 implicit function theorems (Ceres Solver's notes, "Using Inverse & Implicit Function Theorems").
 
 - Inverse function theorem: if $y = f(x)$ is hard to compute (an iteration) but its inverse
@@ -6,7 +6,7 @@ implicit function theorems (Ceres Solver's notes, "Using Inverse & Implicit Func
   height, whose inverse is a closed form).
 - Implicit function theorem: if $y(x)$ is defined by $F(x, y) = 0$ with $D_y F$ invertible, then
   $Dy(x) = -(D_y F)^{-1} D_x F$ (e.g. a root of a polynomial as a function of its coefficients:
-  $Dx(a) = -[1, x, \\dots, x^n] / p'(x)$).
+  $Dx(a) = -[1, x, \dots, x^n] / p'(x)$).
 
 `inverse_function_jacobian` and `implicit_jacobian` return these matrices; `with_inverse_derivative`
 and `with_implicit_derivative` wrap the iterative function in a `jax.custom_jvp` carrying them, so
@@ -28,14 +28,14 @@ def _flat_function(function, example):
 
 
 def inverse_function_jacobian(f_inverse, y):
-    """$Df(x) = (D f^{-1}(y))^{-1}$ at $x = f^{-1}(y)$: the Jacobian of a hard function $f$ at the
+    r"""$Df(x) = (D f^{-1}(y))^{-1}$ at $x = f^{-1}(y)$: the Jacobian of a hard function $f$ at the
     point whose image is `y`, from its easy inverse.
 
     **Arguments:**
     - `f_inverse`: the inverse $g = f^{-1}$, differentiable by JAX.
     - `y`: the value $f(x)$ (array or pytree).
 
-    **Returns:** the matrix $\\partial y / \\partial x$, shape `(size of y, size of x)`.
+    **Returns:** the matrix $\partial y / \partial x$, shape `(size of y, size of x)`.
     """
     flat_y, _ = ravel_pytree(y)
     jac_inverse = jax.jacfwd(_flat_function(f_inverse, y))(flat_y)
@@ -43,13 +43,13 @@ def inverse_function_jacobian(f_inverse, y):
 
 
 def implicit_jacobian(F, x, y):
-    """$Dy(x) = -(D_y F(x, y))^{-1} D_x F(x, y)$ at a solution of $F(x, y) = 0$.
+    r"""$Dy(x) = -(D_y F(x, y))^{-1} D_x F(x, y)$ at a solution of $F(x, y) = 0$.
 
     **Arguments:**
     - `F`: the residual $F(x, y)$, with as many outputs as `y` has entries, differentiable by JAX.
     - `x`, `y`: a point with $F(x, y) = 0$ (arrays or pytrees).
 
-    **Returns:** the matrix $\\partial y / \\partial x$, shape `(size of y, size of x)`.
+    **Returns:** the matrix $\partial y / \partial x$, shape `(size of y, size of x)`.
     """
     flat_x, unravel_x = ravel_pytree(x)
     flat_y, unravel_y = ravel_pytree(y)
@@ -63,7 +63,7 @@ def implicit_jacobian(F, x, y):
 
 
 def with_inverse_derivative(f, f_inverse):
-    """`f` with the derivative of the inverse function theorem: $\\dot y = (D f^{-1}(y))^{-1} \\dot x$.
+    r"""`f` with the derivative of the inverse function theorem: $\dot y = (D f^{-1}(y))^{-1} \dot x$.
 
     `f` itself is never differentiated (it may be a `while_loop`, call the host, ...); `f_inverse`
     is differentiated by JAX at $y = f(x)$. The result is exact to the accuracy to which
@@ -88,11 +88,11 @@ def with_inverse_derivative(f, f_inverse):
 
 
 def with_implicit_derivative(solve, F):
-    """`solve` (returning $y$ with $F(x, y) = 0$) with the derivative of the implicit function
-    theorem: $\\dot y = -(D_y F)^{-1} (D_x F\\,\\dot x)$.
+    r"""`solve` (returning $y$ with $F(x, y) = 0$) with the derivative of the implicit function
+    theorem: $\dot y = -(D_y F)^{-1} (D_x F\,\dot x)$.
 
     `solve` itself is never differentiated; `F` is differentiated by JAX at the solution
-    ($D_x F\\,\\dot x$ by one forward pass, $D_y F$ as a square matrix). The derivative is exact to the
+    ($D_x F\,\dot x$ by one forward pass, $D_y F$ as a square matrix). The derivative is exact to the
     accuracy to which `solve` satisfies $F = 0$.
     """
 

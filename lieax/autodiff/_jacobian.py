@@ -1,9 +1,9 @@
-"""Manifold-local Jacobians and gradients of functions of pytrees that mix groups and arrays.
+r"""Manifold-local Jacobians and gradients of functions of pytrees that mix groups and arrays.
 
-The Jacobian of $f: \\mathcal{M} \\to \\mathcal{N}$ at $X$ is the matrix $J$ with
-$f(X \\oplus \\delta) \\ominus f(X) \\approx J\\,\\delta$, in right-local tangent coordinates on both
-sides (for arrays $\\oplus$ is $+$). It is computed by one linearization of `f` in the parameters,
-seeded with the JAX tangent that moves $X$ along $\\delta$ (each group's `_tangent_from_local`; for
+The Jacobian of $f: \mathcal{M} \to \mathcal{N}$ at $X$ is the matrix $J$ with
+$f(X \oplus \delta) \ominus f(X) \approx J\,\delta$, in right-local tangent coordinates on both
+sides (for arrays $\oplus$ is $+$). It is computed by one linearization of `f` in the parameters,
+seeded with the JAX tangent that moves $X$ along $\delta$ (each group's `_tangent_from_local`; for
 SO3 and SE3 the local tangent itself) and read out with the inverse map at $f(X)$. Because every group kernel carries a closed-form `custom_jvp`
 rule, the linearization costs what the hand-written block Jacobians cost: nothing is ever
 differentiated through Exp, Log or the quaternion embedding.
@@ -115,7 +115,7 @@ def value_and_jacobian(f, argnums=0, *, has_aux=False, mode="auto"):
 
 
 def jacobian(f, argnums=0, *, has_aux=False, mode="auto"):
-    """The manifold-local Jacobian of `f`: $f(X \\oplus \\delta) \\ominus f(X) \\approx J\\,\\delta$.
+    r"""The manifold-local Jacobian of `f`: $f(X \oplus \delta) \ominus f(X) \approx J\,\delta$.
 
     **Arguments:**
     - `f`: a function whose arguments and result are groups, arrays or pytrees of them.
@@ -154,8 +154,8 @@ def value_and_grad(f, argnums=0, *, has_aux=False):
 
 
 def grad(f, argnums=0, *, has_aux=False):
-    """The gradient of a scalar function in tangent coordinates: group leaves get tangent vectors
-    $\\nabla_\\delta f(X \\oplus \\delta)|_{\\delta=0}$, shape `(*batch, tangent_dim)`."""
+    r"""The gradient of a scalar function in tangent coordinates: group leaves get tangent vectors
+    $\nabla_\delta f(X \oplus \delta)|_{\delta=0}$, shape `(*batch, tangent_dim)`."""
     with_value = value_and_grad(f, argnums, has_aux=has_aux)
 
     def evaluate(*args):

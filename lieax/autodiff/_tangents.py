@@ -1,7 +1,7 @@
-"""Tangent spaces of pytrees that mix groups and arrays.
+r"""Tangent spaces of pytrees that mix groups and arrays.
 
 A pytree's manifold is the product of its leaves': a group leaf contributes its tangent space
-(shape `(*batch, tangent_dim)`), a floating array leaf its own shape (for arrays $\\oplus$ is $+$).
+(shape `(*batch, tangent_dim)`), a floating array leaf its own shape (for arrays $\oplus$ is $+$).
 `rplus`, `rminus`, `zero_tangents`, `tangent_dim` and `flatten_tangents` / `unflatten_tangents`
 act leaf by leaf; the solvers and `lieax.jacobian` are built on them.
 """
@@ -76,8 +76,8 @@ def check_retraction(retraction) -> Retraction:
 
 
 def rplus(tree, tangents, retraction: Retraction = exp):
-    """$X \\oplus \\delta$ leaf by leaf: `X.rplus(δ)` for groups, `x + δ` for arrays; with a
-    `retraction` from `lieax.retractions` (e.g. `cayley`), $\\mathcal{R}_X(\\delta)$ instead."""
+    r"""$X \oplus \delta$ leaf by leaf: `X.rplus(δ)` for groups, `x + δ` for arrays; with a
+    `retraction` from `lieax.retractions` (e.g. `cayley`), $\mathcal{R}_X(\delta)$ instead."""
     retract = check_retraction(retraction).rplus
     leaves, treedef = manifold_leaves(tree, "tree")
     deltas = treedef.flatten_up_to(tangents)
@@ -85,9 +85,9 @@ def rplus(tree, tangents, retraction: Retraction = exp):
 
 
 def rminus(tree_a, tree_b, retraction: Retraction = exp):
-    """$A \\ominus B$ leaf by leaf (`a.rminus(b)` for groups, `a - b` for arrays), so that
+    r"""$A \ominus B$ leaf by leaf (`a.rminus(b)` for groups, `a - b` for arrays), so that
     `rplus(tree_b, rminus(tree_a, tree_b)) == tree_a`; with a `retraction`, its inverse
-    $\\mathcal{R}_B^{-1}(A)$ (the same identity holds with the same `retraction` in `rplus`)."""
+    $\mathcal{R}_B^{-1}(A)$ (the same identity holds with the same `retraction` in `rplus`)."""
     local = check_retraction(retraction).rminus
     leaves_a, treedef = manifold_leaves(tree_a, "tree_a")
     leaves_b = treedef.flatten_up_to(tree_b)

@@ -1,4 +1,4 @@
-"""Bundle adjustment building blocks: BAL files, Snavely's camera and its reprojection factor,
+r"""Bundle adjustment building blocks: BAL files, Snavely's camera and its reprojection factor,
 generated problems.
 
 `read_bal` / `write_bal` read and write "Bundle Adjustment in the Large" files (plain or `.bz2`)
@@ -7,7 +7,7 @@ a batched `lieax.SE3` $T_{cw}$ and `(f, k_1, k_2)` intrinsics). `reprojection_re
 residual of one camera, one point and one observation, written with lieax operations (so
 `lieax.jacobian` differentiates it); `reprojection_jacobians` gives its 2×6 pose, 2×3 intrinsics
 and 2×3 point blocks in closed form, the camera's tangent being the SE3 right perturbation
-$(v, \\omega)$ then additive $(f, k_1, k_2)$; `camera_residual` / `camera_jacobians` take the
+$(v, \omega)$ then additive $(f, k_1, k_2)$; `camera_residual` / `camera_jacobians` take the
 camera as one `(pose, intrinsics)` variable with a 2×9 block, the form a factor graph's factor
 takes. `synthetic_bal` generates problems with a ground
 truth at any size (`SYNTHETIC_PRESETS`: Ladybug-49 and Trafalgar-138). Conventions: see the

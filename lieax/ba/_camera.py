@@ -1,21 +1,21 @@
-"""Snavely's camera (Bundler, "Bundle Adjustment in the Large"): projection, reprojection residual
+r"""Snavely's camera (Bundler, "Bundle Adjustment in the Large"): projection, reprojection residual
 and its closed-form Jacobian blocks.
 
 A camera is `(T_camera_world: SE3, intrinsics)` with intrinsics $(f, k_1, k_2)$; its tangent has 9
-coordinates, the SE3 right perturbation $(v, \\omega)$ (translation first, as everywhere in lieax)
-then additive $(\\delta f, \\delta k_1, \\delta k_2)$. A world point $X$ projects as (Snavely
+coordinates, the SE3 right perturbation $(v, \omega)$ (translation first, as everywhere in lieax)
+then additive $(\delta f, \delta k_1, \delta k_2)$. A world point $X$ projects as (Snavely
 et al., "Photo tourism", 2006; Agarwal et al., "Bundle adjustment in the large", 2010; Ceres'
 `SnavelyReprojectionError`)
-$$P = R X + t, \\qquad p = -P_{xy} / P_z, \\qquad r(p) = 1 + k_1\\|p\\|^2 + k_2\\|p\\|^4, \\qquad
-u = f\\,r(p)\\,p,$$
+$$P = R X + t, \qquad p = -P_{xy} / P_z, \qquad r(p) = 1 + k_1\|p\|^2 + k_2\|p\|^4, \qquad
+u = f\,r(p)\,p,$$
 and the residual of an observation $u_{obs}$ is $u - u_{obs}$ (pixels, origin at the image centre).
 The camera looks down its $-z$ axis: points in front have $P_z < 0$. As in Ceres nothing special is
 done for points behind the camera ($P_z > 0$ projects through the centre, mirrored) or on its
-plane: the residual and its Jacobians are finite for every $P_z \\ne 0$ and infinite or NaN at
+plane: the residual and its Jacobians are finite for every $P_z \ne 0$ and infinite or NaN at
 $P_z = 0$.
 
 The BAL file stores a camera as 9 numbers: the rotation vector of $R$ (axis times angle, the SO3
-tangent, so $R = \\mathrm{Exp}(\\omega)$), $t$, then $f, k_1, k_2$ (`bal_to_camera`,
+tangent, so $R = \mathrm{Exp}(\omega)$), $t$, then $f, k_1, k_2$ (`bal_to_camera`,
 `camera_to_bal`).
 """
 
@@ -44,12 +44,12 @@ def _check_inputs(pose, intrinsics, point, observation=None):
 
 
 def bal_to_camera(cameras):
-    """`(T_camera_world, intrinsics)` from BAL's camera 9-vectors.
+    r"""`(T_camera_world, intrinsics)` from BAL's camera 9-vectors.
 
     **Arguments:**
-    - `cameras`: `(*batch, 9)`: rotation vector $\\omega$, translation $t$, $f$, $k_1$, $k_2$.
+    - `cameras`: `(*batch, 9)`: rotation vector $\omega$, translation $t$, $f$, $k_1$, $k_2$.
 
-    **Returns:** the `SE3` $[\\mathrm{Exp}(\\omega), t]$ (world to camera) and the `(*batch, 3)`
+    **Returns:** the `SE3` $[\mathrm{Exp}(\omega), t]$ (world to camera) and the `(*batch, 3)`
     intrinsics $(f, k_1, k_2)$.
     """
     cameras = check_last_axis(cameras, 9, "BAL cameras", "rotation vector, t, f, k1, k2")
@@ -58,8 +58,8 @@ def bal_to_camera(cameras):
 
 
 def camera_to_bal(pose, intrinsics):
-    """BAL's camera 9-vectors `(*batch, 9)` from `(T_camera_world, intrinsics)`: the inverse of
-    `bal_to_camera` (rotation vectors with angle in $[0, \\pi]$)."""
+    r"""BAL's camera 9-vectors `(*batch, 9)` from `(T_camera_world, intrinsics)`: the inverse of
+    `bal_to_camera` (rotation vectors with angle in $[0, \pi]$)."""
     _check_pose(pose)
     intrinsics = check_last_axis(intrinsics, 3, "intrinsics", "f, k1, k2")
     batch = broadcast_batch("camera_to_bal", pose.batch_shape, intrinsics.shape[:-1])
@@ -69,7 +69,7 @@ def camera_to_bal(pose, intrinsics):
 
 
 def project(pose, intrinsics, point):
-    """The pixel $u = f\\,r(p)\\,p$ of a world point, $p = -P_{xy}/P_z$, $P = T_{cw} X$ (see the
+    r"""The pixel $u = f\,r(p)\,p$ of a world point, $p = -P_{xy}/P_z$, $P = T_{cw} X$ (see the
     module docstring), written with lieax operations so that `lieax.jacobian` differentiates it
     through SE3's closed-form action rule. Batch shapes broadcast."""
     intrinsics, point, _ = _check_inputs(pose, intrinsics, point)
@@ -99,22 +99,22 @@ def reprojection_residual(pose, intrinsics, point, observation):
 
 
 def reprojection_jacobians(pose, intrinsics, point, observation):
-    """`(residual, J_res_pose, J_res_intrinsics, J_res_point)` in closed form, shapes
+    r"""`(residual, J_res_pose, J_res_intrinsics, J_res_point)` in closed form, shapes
     `(*batch, 2)`, `(*batch, 2, 6)`, `(*batch, 2, 3)`, `(*batch, 2, 3)`.
 
-    With right perturbation $T \\oplus \\xi = T\\,\\mathrm{Exp}(\\xi)$, $\\xi = (v, \\omega)$:
-    $T\\,\\mathrm{Exp}(\\xi) X \\approx P + R v - R [X]_\\times \\omega$, so
-    $\\partial P / \\partial \\xi = [R, \\; -R[X]_\\times]$ and $\\partial P / \\partial X = R$
+    With right perturbation $T \oplus \xi = T\,\mathrm{Exp}(\xi)$, $\xi = (v, \omega)$:
+    $T\,\mathrm{Exp}(\xi) X \approx P + R v - R [X]_\times \omega$, so
+    $\partial P / \partial \xi = [R, \; -R[X]_\times]$ and $\partial P / \partial X = R$
     (Solà et al., "A micro Lie theory", eq. 181-182). The chain is
-    $$\\frac{\\partial p}{\\partial P} = -\\frac{1}{P_z}\\begin{bmatrix} 1 & 0 & p_x \\\\
-    0 & 1 & p_y \\end{bmatrix}, \\qquad
-    \\frac{\\partial u}{\\partial p} =
-    f\\left(r\\,I + 2 (k_1 + 2 k_2 \\|p\\|^2)\\, p p^\\top\\right),$$
-    $$\\frac{\\partial u}{\\partial (f, k_1, k_2)} = \\left[r\\,p, \\; f\\|p\\|^2 p, \\;
-    f\\|p\\|^4 p\\right],$$
-    and `J_res_pose` $= \\frac{\\partial u}{\\partial P}[R, -R[X]_\\times]$, `J_res_point`
-    $= \\frac{\\partial u}{\\partial P} R$ with $\\frac{\\partial u}{\\partial P} =
-    \\frac{\\partial u}{\\partial p}\\frac{\\partial p}{\\partial P}$. The camera's 2×9 block is
+    $$\frac{\partial p}{\partial P} = -\frac{1}{P_z}\begin{bmatrix} 1 & 0 & p_x \\
+    0 & 1 & p_y \end{bmatrix}, \qquad
+    \frac{\partial u}{\partial p} =
+    f\left(r\,I + 2 (k_1 + 2 k_2 \|p\|^2)\, p p^\top\right),$$
+    $$\frac{\partial u}{\partial (f, k_1, k_2)} = \left[r\,p, \; f\|p\|^2 p, \;
+    f\|p\|^4 p\right],$$
+    and `J_res_pose` $= \frac{\partial u}{\partial P}[R, -R[X]_\times]$, `J_res_point`
+    $= \frac{\partial u}{\partial P} R$ with $\frac{\partial u}{\partial P} =
+    \frac{\partial u}{\partial p}\frac{\partial p}{\partial P}$. The camera's 2×9 block is
     `concatenate([J_res_pose, J_res_intrinsics], -1)`.
 
     **Arguments:** as `reprojection_residual`.
@@ -154,8 +154,8 @@ def reprojection_jacobians(pose, intrinsics, point, observation):
 
 
 def camera_residual(camera, point, observation):
-    """`reprojection_residual` with the camera as one variable `(T_camera_world, intrinsics)`,
-    whose 9-coordinate tangent is the pose's $(v, \\omega)$ then $(f, k_1, k_2)$: the residual of
+    r"""`reprojection_residual` with the camera as one variable `(T_camera_world, intrinsics)`,
+    whose 9-coordinate tangent is the pose's $(v, \omega)$ then $(f, k_1, k_2)$: the residual of
     ONE camera and ONE point, as a factor graph's factor takes it."""
     pose, intrinsics = camera
     return reprojection_residual(pose, intrinsics, point, observation)

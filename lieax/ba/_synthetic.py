@@ -35,9 +35,9 @@ class SyntheticBAL(typing.NamedTuple):
 
 
 def _rotation_matrices(rotvecs):
-    """Rodrigues' formula $R = I + \\frac{\\sin\\theta}{\\theta}[\\omega]_\\times +
-    \\frac{1 - \\cos\\theta}{\\theta^2}[\\omega]_\\times^2$, vectorized (rotations are ≥ 1e-3 rad
-    here, so no Taylor branch is needed... but one is cheap: $\\theta \\to 0$ gives $I$)."""
+    r"""Rodrigues' formula $R = I + \frac{\sin\theta}{\theta}[\omega]_\times +
+    \frac{1 - \cos\theta}{\theta^2}[\omega]_\times^2$, vectorized (rotations are ≥ 1e-3 rad
+    here, so no Taylor branch is needed... but one is cheap: $\theta \to 0$ gives $I$)."""
     theta = np.linalg.norm(rotvecs, axis=-1)[..., None, None]
     safe = np.where(theta > 1e-8, theta, 1.0)
     x, y, z = rotvecs[..., 0], rotvecs[..., 1], rotvecs[..., 2]
@@ -60,9 +60,9 @@ def project_numpy(cameras, points):
 
 
 def _rotvecs(R):
-    """Rotation vectors of rotation matrices, through the quaternion of the largest of
-    $4w^2, 4x^2, 4y^2, 4z^2$ (Shepperd's method, stable at every angle) with $w \\ge 0$, then
-    $\\omega = 2\\,\\mathrm{atan2}(\\|q_{xyz}\\|, w)\\, q_{xyz} / \\|q_{xyz}\\|$."""
+    r"""Rotation vectors of rotation matrices, through the quaternion of the largest of
+    $4w^2, 4x^2, 4y^2, 4z^2$ (Shepperd's method, stable at every angle) with $w \ge 0$, then
+    $\omega = 2\,\mathrm{atan2}(\|q_{xyz}\|, w)\, q_{xyz} / \|q_{xyz}\|$."""
     trace = np.trace(R, axis1=1, axis2=2)
     diagonal = np.stack([trace, R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]], axis=1)
     pick = np.argmax(diagonal, axis=1)
@@ -138,15 +138,15 @@ def synthetic_bal(
     focal_length=500.0,
     seed=0,
 ) -> SyntheticBAL:
-    """A generated bundle-adjustment problem with its ground truth.
+    r"""A generated bundle-adjustment problem with its ground truth.
 
     Points fill a ball of radius 1 at the origin. Cameras orbit it on a closed loop (radius about
     4, wavy in radius and height), looking at points near its centre (rolled and tilted by up to
-    0.05 rad), so every point is in front of every camera ($P_z \\le -2.4$, $|p| \\le 0.42$, pixels
+    0.05 rad), so every point is in front of every camera ($P_z \le -2.4$, $|p| \le 0.42$, pixels
     within about ±230 at the default focal length). Each point is seen by a run of consecutive
     cameras centred on its azimuth (at least 2; lengths drawn so that they sum to
     `num_observations`), so every camera sees about `num_observations / num_cameras` points.
-    Intrinsics: $f$ within 10% of `focal_length`, $k_1 \\in [-0.1, 0.1]$, $k_2 \\in [-0.05, 0.05]$.
+    Intrinsics: $f$ within 10% of `focal_length`, $k_1 \in [-0.1, 0.1]$, $k_2 \in [-0.05, 0.05]$.
 
     **Arguments:**
     - `num_cameras`, `num_points`, `num_observations`: sizes, with

@@ -1,15 +1,15 @@
-"""The cost and the block normal equations of a factor graph at given values (traced).
+r"""The cost and the block normal equations of a factor graph at given values (traced).
 
 For factor kind $f$ with whitened residuals $r_i = R_i f_i$, blocks $A_{is} = R_i J_{is}$ and
-IRLS weights $w_i = \\rho'(\\|r_i\\|^2)$, the cost is $\\tfrac12\\sum_i \\rho(\\|r_i\\|^2)$ and
-$$H_{a_s a_s} \\mathrel{+}= w_i A_{is}^\\top A_{is}, \\qquad
-H_{a_s a_t} \\mathrel{+}= w_i A_{is}^\\top A_{it}, \\qquad
-g_{a_s} \\mathrel{+}= w_i A_{is}^\\top r_i,$$
+IRLS weights $w_i = \rho'(\|r_i\|^2)$, the cost is $\tfrac12\sum_i \rho(\|r_i\|^2)$ and
+$$H_{a_s a_s} \mathrel{+}= w_i A_{is}^\top A_{is}, \qquad
+H_{a_s a_t} \mathrel{+}= w_i A_{is}^\top A_{it}, \qquad
+g_{a_s} \mathrel{+}= w_i A_{is}^\top r_i,$$
 each a segment sum over the instances into the fixed slots of the `Layout` (the blocks of
-$J^\\top W J$ and $J^\\top W r$, Dellaert and Kaess, "Factor graphs for robot perception", 2017,
+$J^\top W J$ and $J^\top W r$, Dellaert and Kaess, "Factor graphs for robot perception", 2017,
 Sec. 2.3); where an argument's instances collect long runs of terms (a camera's observations),
-$[H_{a_s a_s} \\mid g_{a_s}]$ is one chunked Gram sum `_gram.gram_sum` of $w_i A_{is}$ against
-$[A_{is} \\mid r_i]$ instead (`FactorPlan.grams`). Fixed instances get an identity diagonal
+$[H_{a_s a_s} \mid g_{a_s}]$ is one chunked Gram sum `_gram.gram_sum` of $w_i A_{is}$ against
+$[A_{is} \mid r_i]$ instead (`FactorPlan.grams`). Fixed instances get an identity diagonal
 block, zero gradient and zero couplings, so their step is zero. `evaluate` computes $r_i$,
 $A_{is}$ and $w_i$ (the cost with them) and `assemble` the sums, so that the solver's cost
 evaluation of a trial point is, when the step is taken, the first half of its linearization;
@@ -44,7 +44,7 @@ def _robust(loss, s):
 
 
 def cost(factors, plans, values, data):
-    """$\\tfrac12 \\sum \\rho(\\|R r\\|^2)$ over every factor kind."""
+    r"""$\tfrac12 \sum \rho(\|R r\|^2)$ over every factor kind."""
     total = 0.0
     for factor, plan, (d, root, loss) in zip(factors, plans, data):
         xs = _arguments(plan, values)

@@ -1,14 +1,14 @@
-"""Factor kinds: one residual function written for one instance, vmapped over many instances.
+r"""Factor kinds: one residual function written for one instance, vmapped over many instances.
 
-A `Factor` is $r_i = R\\,f(x_{a_i}, x_{b_i}, \\dots, d_i) \\in \\mathbb{R}^k$ for instances
-$i = 1 \\dots m$: the same `residual` function, index arrays per argument into variable kinds,
+A `Factor` is $r_i = R\,f(x_{a_i}, x_{b_i}, \dots, d_i) \in \mathbb{R}^k$ for instances
+$i = 1 \dots m$: the same `residual` function, index arrays per argument into variable kinds,
 batched `data` $d_i$, a square-root information $R$ (shared `(k, k)` or per instance
-`(m, k, k)`, $\\Omega = R^\\top R$) and an optional robust loss $\\rho$ from `lieax.lstsq`. Its
-cost is $\\tfrac12 \\sum_i \\rho(\\|r_i\\|^2)$ and it enters the normal equations reweighted by
-$w_i = \\rho'(\\|r_i\\|^2)$ (IRLS, as GTSAM's robust noise models and Ceres' `LossFunction`
+`(m, k, k)`, $\Omega = R^\top R$) and an optional robust loss $\rho$ from `lieax.lstsq`. Its
+cost is $\tfrac12 \sum_i \rho(\|r_i\|^2)$ and it enters the normal equations reweighted by
+$w_i = \rho'(\|r_i\|^2)$ (IRLS, as GTSAM's robust noise models and Ceres' `LossFunction`
 without its second-order correction; Triggs et al. 2000, Sec. 3.3).
 
-Jacobian blocks $\\partial f / \\partial x_a$ (shape `(k, tangent_dim_a)`, right-local tangents)
+Jacobian blocks $\partial f / \partial x_a$ (shape `(k, tangent_dim_a)`, right-local tangents)
 come from `lieax.value_and_jacobian`, i.e. the groups' closed-form `custom_jvp` rules, unless a
 `jacobian_fn(*xs, data) -> (residual, (J_a, J_b, ...))` is given.
 """
@@ -22,7 +22,7 @@ from ._variables import VarRef
 
 
 class Factor:
-    """One factor kind (see the module docstring).
+    r"""One factor kind (see the module docstring).
 
     **Arguments:**
     - `residual`: `residual(x_a, x_b, ..., data) -> (k,)` for ONE instance (`data` is passed
@@ -30,7 +30,7 @@ class Factor:
       pytree of them).
     - `args`: one `var[index]` per argument of `residual`, `index` an integer array `(m,)`.
     - `data`: a pytree of arrays with leading axis `m` (or `None`).
-    - `sqrt_information`: $R$, `(k, k)` shared or `(m, k, k)`; or `information` $\\Omega$
+    - `sqrt_information`: $R$, `(k, k)` shared or `(m, k, k)`; or `information` $\Omega$
       (its Cholesky factor is taken). Default identity.
     - `loss`: a robust loss (`lieax.lstsq.Huber`, `Cauchy`, ...) or `None`.
     - `jacobian_fn`: optional `jacobian_fn(*xs, data) -> (residual, (J_a, ...))`, blocks
@@ -96,7 +96,7 @@ def _index_array(index, name, position):
 
 
 def _sqrt_information(information, name):
-    """$R$ upper triangular with $R^\\top R = \\Omega$ (`ValueError` unless positive definite)."""
+    r"""$R$ upper triangular with $R^\top R = \Omega$ (`ValueError` unless positive definite)."""
     information = np.asarray(information, dtype=np.float64)
     batch = information.reshape(-1, *information.shape[-2:])
     try:

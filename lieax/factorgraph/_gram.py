@@ -1,12 +1,12 @@
-"""Grouped Gram sums $G_s = \\sum_{i \\in s} X_{u_i}^\\top Y_{v_i}$ as batched products of chunks.
+r"""Grouped Gram sums $G_s = \sum_{i \in s} X_{u_i}^\top Y_{v_i}$ as batched products of chunks.
 
-The Schur complement of bundle adjustment sums $B_{cp} H_{pp}^{-1} B_{c'p}^\\top$ over the
-points $p$ two cameras share, and the normal equations sum $A_i^\\top A_i$ over each camera's
+The Schur complement of bundle adjustment sums $B_{cp} H_{pp}^{-1} B_{c'p}^\top$ over the
+points $p$ two cameras share, and the normal equations sum $A_i^\top A_i$ over each camera's
 observations: many small products into few slots. One small product per term followed by a
 scatter (a segment sum) is slow on a CPU (a call per 9×3 product and a scattered update per
 term). Instead, `gram_plan` sorts the terms by slot on the host and cuts each slot's run into
 chunks of `C` terms (the last one padded with a zero row), and `gram_sum` computes, per chunk,
-$[X_{u_1}; \\dots; X_{u_C}]^\\top [Y_{v_1}; \\dots; Y_{v_C}]$, one `(a, Ck) × (Ck, b)` product,
+$[X_{u_1}; \dots; X_{u_C}]^\top [Y_{v_1}; \dots; Y_{v_C}]$, one `(a, Ck) × (Ck, b)` product,
 then adds the few chunks of each slot (a sorted segment sum). The sums are those of the Schur
 complement and normal equations of Triggs et al. ("Bundle adjustment — a modern synthesis",
 2000, Sec. 6.1); Ceres' `SchurEliminator` also works by chunks, there the rows of one point.
@@ -44,7 +44,7 @@ def chunk_size(terms, count, largest=64):
 
 
 def gram_plan(u, v, segment, count, pad_left, pad_right, chunk=None):
-    """The `GramPlan` of terms $X_{u_i}^\\top Y_{v_i}$ into slots `segment[i]` of `count`;
+    r"""The `GramPlan` of terms $X_{u_i}^\top Y_{v_i}$ into slots `segment[i]` of `count`;
     `pad_left`, `pad_right`: the index of the zero row appended to $X$ and to $Y$ (their row
     counts)."""
     u, v, segment = (np.asarray(a, dtype=np.int64) for a in (u, v, segment))
@@ -67,7 +67,7 @@ def gram_plan(u, v, segment, count, pad_left, pad_right, chunk=None):
 
 
 def gram_sum(plan, x, y):
-    """$G_s = \\sum_{i \\in s} X_{u_i}^\\top Y_{v_i}$, `(count, a, b)`, for `x` `(m, k, a)` and
+    r"""$G_s = \sum_{i \in s} X_{u_i}^\top Y_{v_i}$, `(count, a, b)`, for `x` `(m, k, a)` and
     `y` `(m', k, b)` (see the module docstring). The chunks go through a `lax.scan` in blocks of
     about `_BLOCK_ENTRIES` gathered entries per operand: XLA CPU's batched product of two
     computed operands slows down several times once they outgrow the cache (5,058 products of

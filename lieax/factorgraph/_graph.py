@@ -126,7 +126,7 @@ class FactorGraph:
         return self._default_data
 
     def cost(self, values=None, data=None):
-        """$\\tfrac12 \\sum \\rho(\\|R r\\|^2)$ at `values` (default the initial values)."""
+        r"""$\tfrac12 \sum \rho(\|R r\|^2)$ at `values` (default the initial values)."""
         from ._assembly import cost
 
         values = self.initial_values if values is None else tuple(values)
@@ -177,7 +177,7 @@ class FactorGraph:
         verbose=False,
         throw=True,
     ):
-        """Minimize $\\tfrac12 \\sum \\rho(\\|R r\\|^2)$ (see `_solve` for the semantics).
+        r"""Minimize $\tfrac12 \sum \rho(\|R r\|^2)$ (see `_solve` for the semantics).
 
         **Arguments:**
         - `values`: starting values, a tuple in the order of `variables` (default the `Var`s').
@@ -190,11 +190,11 @@ class FactorGraph:
         - `eliminate`: a `Var` to eliminate by the Schur complement (its instances must not
           share factors: points in bundle adjustment).
         - `algorithm`: `"levenberg_marquardt"` or `"gauss_newton"`.
-        - `damping`: `"identity"` ($\\lambda I$, GTSAM) or `"marquardt"` ($\\lambda$ diag $H$,
+        - `damping`: `"identity"` ($\lambda I$, GTSAM) or `"marquardt"` ($\lambda$ diag $H$,
           clipped to `[diagonal_min, diagonal_max]`, Ceres).
         - `lambda_update`: `"gtsam"` or `"nielsen"`.
         - `retraction`: how a step moves the values, a `lieax.retractions.Retraction` (default
-          `lieax.retractions.exp`, $x \\oplus \\delta$; `cayley` is GTSAM's default Pose3 chart).
+          `lieax.retractions.exp`, $x \oplus \delta$; `cayley` is GTSAM's default Pose3 chart).
           The Jacobians and the optimum do not depend on it, the path to the optimum does.
         - the rest: as `lieax.graph.optimize`, GTSAM's defaults.
         - `verbose`: print iteration, cost, gain ratio and damping at every attempt.

@@ -1,10 +1,10 @@
-"""Derivatives of a solution with respect to the factor data, by the implicit function theorem.
+r"""Derivatives of a solution with respect to the factor data, by the implicit function theorem.
 
-At the solution $x^*(\\theta)$ the tangent gradient $g(\\delta, \\theta) = \\nabla_\\delta
-f(x^* \\oplus \\delta, \\theta)$ of the cost vanishes at $\\delta = 0$, so
-$\\dot\\delta = -H^{-1} \\frac{\\partial g}{\\partial\\theta}\\dot\\theta$ with the exact Hessian
-$H = \\partial g / \\partial \\delta$ over the free instances (Ceres' notes on the implicit
-function theorem; `lieax.lstsq`'s `_implicit` for one dense state). $\\theta$ is every factor
+At the solution $x^*(\theta)$ the tangent gradient $g(\delta, \theta) = \nabla_\delta
+f(x^* \oplus \delta, \theta)$ of the cost vanishes at $\delta = 0$, so
+$\dot\delta = -H^{-1} \frac{\partial g}{\partial\theta}\dot\theta$ with the exact Hessian
+$H = \partial g / \partial \delta$ over the free instances (Ceres' notes on the implicit
+function theorem; `lieax.lstsq`'s `_implicit` for one dense state). $\theta$ is every factor
 kind's `(data, sqrt_information, loss)`; fixed instances do not move. The Hessian is dense
 (one forward pass per unknown over a reverse pass of the cost), so this is for problems of up to
 `MAX_UNKNOWNS` unknowns; larger ones raise a `ValueError` when differentiated.

@@ -1,4 +1,4 @@
-"""Linear solvers for the block normal equations $H\\,\\delta = b$ of a `Layout`.
+r"""Linear solvers for the block normal equations $H\,\delta = b$ of a `Layout`.
 
 A system is `(diag, off, rhs)`: per variable kind `diag[k]` `(n_k, d_k, d_k)` and `rhs[k]`
 `(n_k, d_k)`, per pair of kinds (in the order of `layout.pairs`) `off[j]` `(p, d_a, d_b)`.
@@ -10,8 +10,8 @@ A system is `(diag, off, rhs)`: per variable kind `diag[k]` `(n_k, d_k, d_k)` an
   accelerator path; inexact steps).
 - Schur complement (`schur_solve`): with $H = [H_{rr}, H_{re}; H_{er}, H_{ee}]$ and $H_{ee}$
   block diagonal, $S = H_{rr} - H_{re} H_{ee}^{-1} H_{er}$,
-  $S\\,\\delta_r = b_r - H_{re} H_{ee}^{-1} b_e$ (solved by any of the three), then
-  $\\delta_e = H_{ee}^{-1}(b_e - H_{er}\\,\\delta_r)$ block by block (Triggs et al., "Bundle
+  $S\,\delta_r = b_r - H_{re} H_{ee}^{-1} b_e$ (solved by any of the three), then
+  $\delta_e = H_{ee}^{-1}(b_e - H_{er}\,\delta_r)$ block by block (Triggs et al., "Bundle
   adjustment — a modern synthesis", 2000, Sec. 6.1; Ceres' `DENSE_SCHUR` / `SPARSE_SCHUR` /
   `ITERATIVE_SCHUR`, the last here without the implicit products). The sums of products
   $H_{re} H_{ee}^{-1} H_{er}$ are chunked Gram sums (`_gram`), $H_{ee}^{-1}$ of 3×3 blocks (points)
@@ -78,14 +78,14 @@ def _t(a):
 
 
 def spd_inverse(a):
-    """The inverses of a batch `(n, d, d)` of symmetric positive definite blocks; NaN where a
+    r"""The inverses of a batch `(n, d, d)` of symmetric positive definite blocks; NaN where a
     block is not positive definite. For $d = 3$ in closed form (Cramer's rule),
-    $A^{-1} = \\operatorname{adj}(A) / \\det A$ with the cofactors
+    $A^{-1} = \operatorname{adj}(A) / \det A$ with the cofactors
     $c_{00} = a_{11}a_{22} - a_{12}^2$, $c_{01} = a_{02}a_{12} - a_{01}a_{22}$,
     $c_{02} = a_{01}a_{12} - a_{02}a_{11}$, $c_{11} = a_{00}a_{22} - a_{02}^2$,
     $c_{12} = a_{01}a_{02} - a_{00}a_{12}$, $c_{22} = a_{00}a_{11} - a_{01}^2$ and
-    $\\det A = a_{00}c_{00} + a_{01}c_{01} + a_{02}c_{02}$, positive definite when $a_{00}$,
-    $c_{22}$ and $\\det A$ are positive (Sylvester's criterion; Horn and Johnson, "Matrix
+    $\det A = a_{00}c_{00} + a_{01}c_{01} + a_{02}c_{02}$, positive definite when $a_{00}$,
+    $c_{22}$ and $\det A$ are positive (Sylvester's criterion; Horn and Johnson, "Matrix
     analysis", Sec. 0.8.2 and Thm. 7.2.5); other sizes through the Cholesky factor."""
     d = a.shape[-1]
     if d != 3:
@@ -103,9 +103,9 @@ def spd_inverse(a):
 
 
 def schur_solve(layout, plan, method, diag, off, rhs, **options):
-    """$H^{-1}$ `rhs` by eliminating `plan.eliminated` (a `SchurPlan` of `layout`). The sums of
-    products $B_u H_{pp}^{-1} B_v^\\top$ are `gram_sum`s over the plan's chunks of links, with
-    the transposed blocks $B_u^\\top$ `(d_e, d_r)` and $Q_p B_u^\\top$, $Q_p = H_{pp}^{-1}$."""
+    r"""$H^{-1}$ `rhs` by eliminating `plan.eliminated` (a `SchurPlan` of `layout`). The sums of
+    products $B_u H_{pp}^{-1} B_v^\top$ are `gram_sum`s over the plan's chunks of links, with
+    the transposed blocks $B_u^\top$ `(d_e, d_r)` and $Q_p B_u^\top$, $Q_p = H_{pp}^{-1}$."""
     e = plan.eliminated
     keys = list(layout.pairs)
     n_e = layout.counts[e]

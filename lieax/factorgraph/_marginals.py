@@ -1,7 +1,7 @@
-"""Marginal covariances: blocks of $H^{-1}$ at a solution (GTSAM's
+r"""Marginal covariances: blocks of $H^{-1}$ at a solution (GTSAM's
 `Marginals.marginalCovariance`, Ceres' `Covariance`).
 
-$H = J^\\top W J$ is the Gauss-Newton matrix of the whitened, reweighted residuals at the given
+$H = J^\top W J$ is the Gauss-Newton matrix of the whitened, reweighted residuals at the given
 values, so the covariance of instance $a$ is the diagonal block $(H^{-1})_{aa}$ in its right-local
 tangent coordinates (translation first for poses, as everywhere in lieax; GTSAM orders Pose3's
 rotation first). Small graphs invert the dense $H$; larger ones factor it once with the

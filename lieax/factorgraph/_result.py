@@ -9,11 +9,11 @@ from ..lstsq import Status
 
 
 class SolveResult(NamedTuple):
-    """The result of `FactorGraph.solve`, a pytree (so it batches under `vmap`).
+    r"""The result of `FactorGraph.solve`, a pytree (so it batches under `vmap`).
 
     **Fields:**
     - `values`: the solution, a tuple in the order of the graph's `variables`.
-    - `cost`: $\\tfrac12 \\sum \\rho(\\|R r\\|^2)$ at `values`.
+    - `cost`: $\tfrac12 \sum \rho(\|R r\|^2)$ at `values`.
     - `iterations`: outer iterations (linearizations), as GTSAM counts them.
     - `linear_solves`: linear solves, rejected steps included.
     - `status`: an integer `lieax.lstsq.Status` code; `status_name` reads it.

@@ -1,26 +1,26 @@
-"""Levenberg-Marquardt on a factor graph, inside one jitted `lax.while_loop`.
+r"""Levenberg-Marquardt on a factor graph, inside one jitted `lax.while_loop`.
 
-Each attempt solves $(H + \\lambda D)\\,\\delta = -g$ with the block normal equations of
-`_assembly`, retracts every instance $x \\leftarrow x \\oplus \\delta$ (right perturbation,
+Each attempt solves $(H + \lambda D)\,\delta = -g$ with the block normal equations of
+`_assembly`, retracts every instance $x \leftarrow x \oplus \delta$ (right perturbation,
 `lieax.rplus`, or another `retraction` from `lieax.retractions`) and compares the actual cost
 decrease with the decrease predicted by the undamped model,
-$-g^\\top\\delta - \\tfrac12 \\delta^\\top H \\delta
-= \\tfrac12(-g^\\top\\delta + \\lambda\\,\\delta^\\top D\\,\\delta)$ (the gain ratio, or model fidelity).
-$D = I$ (`damping="identity"`, GTSAM's default) or $D = \\mathrm{diag}(H)$ clipped to
+$-g^\top\delta - \tfrac12 \delta^\top H \delta
+= \tfrac12(-g^\top\delta + \lambda\,\delta^\top D\,\delta)$ (the gain ratio, or model fidelity).
+$D = I$ (`damping="identity"`, GTSAM's default) or $D = \mathrm{diag}(H)$ clipped to
 `[diagonal_min, diagonal_max]` (`damping="marquardt"`, Marquardt 1963, Ceres' default with the
 same clipping `[1e-6, 1e32]`): the step then does not depend on the units of the parameters.
 
-$\\lambda$ updates (`lambda_update`): `"gtsam"`, GTSAM 4.3's `LevenbergMarquardtOptimizer`
+$\lambda$ updates (`lambda_update`): `"gtsam"`, GTSAM 4.3's `LevenbergMarquardtOptimizer`
 (divide by `lambda_factor` on success, multiply on failure, give up at `lambda_max`; a step is
 taken when the fidelity exceeds `min_model_fidelity`); `"nielsen"`, Nielsen's rule as Ceres'
-`LevenbergMarquardtStrategy`: on success $\\lambda \\leftarrow \\lambda \\max(\\tfrac13,
-1 - (2\\rho - 1)^3)$, $\\nu \\leftarrow 2$, on failure $\\lambda \\leftarrow \\lambda\\nu$,
-$\\nu \\leftarrow 2\\nu$ (Madsen, Nielsen and Tingleff, "Methods for non-linear least squares
+`LevenbergMarquardtStrategy`: on success $\lambda \leftarrow \lambda \max(\tfrac13,
+1 - (2\rho - 1)^3)$, $\nu \leftarrow 2$, on failure $\lambda \leftarrow \lambda\nu$,
+$\nu \leftarrow 2\nu$ (Madsen, Nielsen and Tingleff, "Methods for non-linear least squares
 problems", 2004, Sec. 3.2). `algorithm="gauss_newton"` takes every finite step with
-$\\lambda = 0$. An iteration ends with a taken step or, without one, when the cost change is below
+$\lambda = 0$. An iteration ends with a taken step or, without one, when the cost change is below
 `relative_tolerance` × cost; the run stops when an iteration decreases the cost by at most
 `absolute_tolerance` or `relative_tolerance` × cost (`CONVERGED`), after `max_iterations`
-iterations (`MAX_ITERATIONS`), when $\\lambda$ reaches `lambda_max` without a decrease
+iterations (`MAX_ITERATIONS`), when $\lambda$ reaches `lambda_max` without a decrease
 (`DIVERGED`) or when the linearization is not finite (`NONFINITE`). A point whose gradient is
 exactly zero (a zero error, as GTSAM's `errorTol` of 0) is `CONVERGED` (there is no step to try;
 at the start, after 0 iterations); no other start is: every other convergence test compares a
@@ -28,10 +28,10 @@ tried step's decrease.
 
 What depends on the size of the residual, as in GTSAM: `absolute_tolerance` (GTSAM's
 `absoluteErrorTol`) is a cost, absolute by definition (a problem whose whole cost is below it
-stops after its first iteration; pass 0 to make every test relative), and $\\lambda$ with
+stops after its first iteration; pass 0 to make every test relative), and $\lambda$ with
 `damping="identity"` is in the units of $H$ (`lambda_initial`, `lambda_max`); with
-`damping="marquardt"` only the clip of $\\mathrm{diag}(H)$ to `diagonal_min` is. The relative
-tests (`relative_tolerance`, the predicted decrease against $\\varepsilon$ × cost) are
+`damping="marquardt"` only the clip of $\mathrm{diag}(H)$ to `diagonal_min` is. The relative
+tests (`relative_tolerance`, the predicted decrease against $\varepsilon$ × cost) are
 invariant. A non-finite start (values, or data where the factors read them) ends `NONFINITE`
 after 0 iterations with the values unchanged.
 

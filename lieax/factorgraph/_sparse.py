@@ -1,17 +1,17 @@
-"""Block-sparse normal equations, and their solvers (for `lieax.factorgraph`, and so for pose
+r"""Block-sparse normal equations, and their solvers (for `lieax.factorgraph`, and so for pose
 graphs).
 
 The matrix is symmetric with `n` diagonal blocks of size `d` (one per pose or variable) and one
 off-diagonal block per pair joined by a factor: `diag` `(n, d, d)` holds $H_{aa}$, `off` `(p, d, d)`
 holds $H_{ab}$ for the pairs `rows[k] = a < b = cols[k]` of a fixed `BlockPattern`
-($H_{ba} = H_{ab}^\\top$). Assembly is a segment sum over edges into these fixed slots, so
+($H_{ba} = H_{ab}^\top$). Assembly is a segment sum over edges into these fixed slots, so
 nothing is rebuilt from one iteration to the next.
 
 Three solvers work on these blocks:
 
-- `CholeskyPlan`: a multifrontal block Cholesky factorization $H = L L^\\top$. The symbolic part
+- `CholeskyPlan`: a multifrontal block Cholesky factorization $H = L L^\top$. The symbolic part
   runs once per graph in numpy: a minimum-degree ordering of the block graph (SuperLU's multiple
-  minimum degree on $A^\\top + A$, through `scipy.sparse.linalg.splu`; SciPy is already a dependency
+  minimum degree on $A^\top + A$, through `scipy.sparse.linalg.splu`; SciPy is already a dependency
   of JAX), the elimination tree, supernodes with relaxed amalgamation, and a schedule that groups
   fronts of the same height in the tree and similar size into batches. The numeric part runs on
   the host with numpy and LAPACK (called from the jitted loop through `host_call`): per batch,
@@ -76,8 +76,8 @@ def block_matvec(pattern, diag, off, x):
 
 
 def minimum_degree_order(num_blocks, rows, cols):
-    """A fill-reducing elimination order (new position -> block) of the graph with edges
-    `(rows, cols)`: SuperLU's multiple minimum degree on $A^\\top + A$ (`splu` is asked to factor a
+    r"""A fill-reducing elimination order (new position -> block) of the graph with edges
+    `(rows, cols)`: SuperLU's multiple minimum degree on $A^\top + A$ (`splu` is asked to factor a
     diagonally dominant matrix with this pattern and its column permutation is read back)."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.linalg import splu
@@ -457,8 +457,8 @@ _BATCHED_LIMIT = 8
 
 
 def _lower_inverse(lower):
-    """$L^{-1}$ for a batch `(B, n, n)` of lower-triangular $L$:
-    $[A, 0; C, D]^{-1} = [A^{-1}, 0; -D^{-1} C A^{-1}, D^{-1}]$ for $n \\ge 64$, LAPACK's
+    r"""$L^{-1}$ for a batch `(B, n, n)` of lower-triangular $L$:
+    $[A, 0; C, D]^{-1} = [A^{-1}, 0; -D^{-1} C A^{-1}, D^{-1}]$ for $n \ge 64$, LAPACK's
     `trtri` one matrix at a time below, one batched `numpy.linalg.inv` up to order 8."""
     n = lower.shape[-1]
     if n <= _BATCHED_LIMIT:
@@ -492,10 +492,10 @@ def _trtri_each(lower):
 
 
 def _lower_solve(lower, rhs, *, transpose=False):
-    """$L^{-1}$ `rhs` (or $L^{-\\top}$ `rhs`) for a batch `(B, n, n)` of lower-triangular $L$
-    and `rhs` `(B, n, k)`: by blocks for $n \\ge 64$, with $L = [A, 0; C, D]$,
-    $L^{-1} [b_1; b_2] = [A^{-1} b_1;\\ D^{-1}(b_2 - C A^{-1} b_1)]$ and
-    $L^{-\\top} [b_1; b_2] = [A^{-\\top}(b_1 - C^\\top D^{-\\top} b_2);\\ D^{-\\top} b_2]$; LAPACK's
+    r"""$L^{-1}$ `rhs` (or $L^{-\top}$ `rhs`) for a batch `(B, n, n)` of lower-triangular $L$
+    and `rhs` `(B, n, k)`: by blocks for $n \ge 64$, with $L = [A, 0; C, D]$,
+    $L^{-1} [b_1; b_2] = [A^{-1} b_1;\ D^{-1}(b_2 - C A^{-1} b_1)]$ and
+    $L^{-\top} [b_1; b_2] = [A^{-\top}(b_1 - C^\top D^{-\top} b_2);\ D^{-\top} b_2]$; LAPACK's
     `trtrs` one matrix at a time below (as `_trtri_each`, in place on the transpose)."""
     n = lower.shape[-1]
     if n < _SINGLE_THREAD_LIMIT:
@@ -573,9 +573,9 @@ def _front_work(pivots, updates):
 
 
 def pcg(pattern, diag, off, rhs, *, tolerance=1e-10, max_iterations=None):
-    """Solve $H x = b$ by conjugate gradients preconditioned with the inverse diagonal blocks.
+    r"""Solve $H x = b$ by conjugate gradients preconditioned with the inverse diagonal blocks.
 
-    Stops when $\\|r\\| \\le$ `tolerance` $\\|b\\|$ or after `max_iterations` (default $10 n d$).
+    Stops when $\|r\| \le$ `tolerance` $\|b\|$ or after `max_iterations` (default $10 n d$).
     **Returns:** `(x, iterations)`.
     """
     n, d = pattern.num_blocks, pattern.block_size

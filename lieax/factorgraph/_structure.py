@@ -1,13 +1,13 @@
-"""The structure of a factor graph, analysed once on the host in numpy (nothing is traced).
+r"""The structure of a factor graph, analysed once on the host in numpy (nothing is traced).
 
-Every variable instance is one block of the normal equations $H\\,\\delta = -g$, of its kind's
-tangent dimension $d_k$. A factor over instances $(a, b, \\dots)$ adds to the diagonal blocks
+Every variable instance is one block of the normal equations $H\,\delta = -g$, of its kind's
+tangent dimension $d_k$. A factor over instances $(a, b, \dots)$ adds to the diagonal blocks
 $H_{aa}$ and to the off-diagonal blocks $H_{ab}$ of every pair of its arguments, so the block
-pattern of $H = J^\\top W J$ is the union of those pairs. A `Layout` keeps it per kind:
+pattern of $H = J^\top W J$ is the union of those pairs. A `Layout` keeps it per kind:
 diagonal blocks `(n_k, d_k, d_k)` per variable kind and off-diagonal blocks `(p, d_a, d_b)`
 per pair of kinds `(a, b)`, `a <= b` in the order of the graph's variables (within one kind
 `rows < cols`, as `lieax.graph.BlockPattern`). For the sparse solvers the blocks are laid into
-one uniform `BlockPattern` of block size $D = \\max_k d_k$, each block padded with the identity
+one uniform `BlockPattern` of block size $D = \max_k d_k$, each block padded with the identity
 on its diagonal padding and zeros elsewhere, so that the padded unknowns solve to zero and the
 multifrontal `CholeskyPlan` of `lieax.graph` (one block size) serves mixed sizes.
 
@@ -96,9 +96,9 @@ def unique_pairs(ia, ib):
 
 @dataclasses.dataclass(frozen=True)
 class FactorPlan:
-    """Where one factor kind's blocks go: `kinds[s]` of each argument, `indices[s]`, and per pair
+    r"""Where one factor kind's blocks go: `kinds[s]` of each argument, `indices[s]`, and per pair
     of arguments `(s, t, key, slots, flipped)`: the kind pair `key`, the slot of each instance's
-    block and whether $J_s^\\top J_t$ is stored transposed (a bool per instance within one kind,
+    block and whether $J_s^\top J_t$ is stored transposed (a bool per instance within one kind,
     a Python bool across kinds); `grams[s]` the `GramPlan` summing argument `s`'s diagonal
     blocks and gradients where its instances collect long runs of terms, else `None` (a segment
     sum)."""
@@ -224,14 +224,14 @@ def check_anchored(variables, factors, layout, plans):
 
 @dataclasses.dataclass(frozen=True)
 class SchurPlan:
-    """The elimination of kind `eliminated`: the reduced `layout` over the other kinds
+    r"""The elimination of kind `eliminated`: the reduced `layout` over the other kinds
     (`kept[j]` = original kind of reduced kind `j`); per kept kind `r` linked to it,
     `links[r] = (key, slots, inst, point, transposed)` (blocks of pair `key` between instances
     `inst` of `r` and `point` of the eliminated kind; `transposed` when stored as `(e, r)`);
     `original[(a, b)] = (reduced key, slots)` for the blocks among kept kinds; `diagonal[r]` the
-    `GramPlan` of the products $B_u H_{pp}^{-1} B_u^\\top$ (and $B_u H_{pp}^{-1} b_p$) into the
+    `GramPlan` of the products $B_u H_{pp}^{-1} B_u^\top$ (and $B_u H_{pp}^{-1} b_p$) into the
     diagonal blocks of kind `r`, `fill` a list of `(r1, r2, reduced key, plan)`: the `GramPlan`
-    of the products $B_u H_{pp}^{-1} B_v^\\top$ (`u` a link of `r1`, `v` of `r2`) into the blocks
+    of the products $B_u H_{pp}^{-1} B_v^\top$ (`u` a link of `r1`, `v` of `r2`) into the blocks
     of the reduced key."""
 
     eliminated: int

@@ -1,9 +1,9 @@
-"""Variable kinds: many instances of one group, array or small pytree of them, stored batched.
+r"""Variable kinds: many instances of one group, array or small pytree of them, stored batched.
 
 A `Var` holds the initial values of all its instances as one batched value (a group batched
 `(n,)`, an array `(n, ...)`, or a pytree of those with the same leading `n`); factors refer to
 instances by integer index arrays, `poses[i]`. Each instance has a tangent of `tangent_dim`
-coordinates (the product of its leaves' tangents, right perturbation $X \\oplus \\delta$; see the
+coordinates (the product of its leaves' tangents, right perturbation $X \oplus \delta$; see the
 README's "Conventions"). Instances listed in `fixed` are held constant (GTSAM's "constant
 values", Ceres' `SetParameterBlockConstant`); priors are ordinary unary factors.
 """

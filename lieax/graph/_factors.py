@@ -1,22 +1,22 @@
-"""Between and prior residuals of SE2/SE3 poses with their closed-form Jacobian blocks.
+r"""Between and prior residuals of SE2/SE3 poses with their closed-form Jacobian blocks.
 
 Between factor (GTSAM's `BetweenFactor`): with $H = X_i^{-1} X_j$ and $E = Z^{-1} H$,
-$$e = \\mathrm{Log}(E), \\qquad
-\\frac{\\partial e}{\\partial X_j} = J_r^{-1}(e), \\qquad
-\\frac{\\partial e}{\\partial X_i} = -J_r^{-1}(e)\\,\\mathrm{Ad}(H^{-1}) = -J_r^{-1}(e)\\,\\mathrm{Ad}(X_j^{-1} X_i).$$
-(Right perturbations: $X_j \\oplus \\delta$ gives $E\\,\\mathrm{Exp}(\\delta)$; $X_i \\oplus \\delta$ gives
-$Z^{-1}\\mathrm{Exp}(-\\delta) H = E\\,\\mathrm{Exp}(-\\mathrm{Ad}(H^{-1})\\delta)$; then
-$\\mathrm{Log}(E\\,\\mathrm{Exp}(\\delta)) \\approx e + J_r^{-1}(e)\\,\\delta$.) The measurement sits left of
+$$e = \mathrm{Log}(E), \qquad
+\frac{\partial e}{\partial X_j} = J_r^{-1}(e), \qquad
+\frac{\partial e}{\partial X_i} = -J_r^{-1}(e)\,\mathrm{Ad}(H^{-1}) = -J_r^{-1}(e)\,\mathrm{Ad}(X_j^{-1} X_i).$$
+(Right perturbations: $X_j \oplus \delta$ gives $E\,\mathrm{Exp}(\delta)$; $X_i \oplus \delta$ gives
+$Z^{-1}\mathrm{Exp}(-\delta) H = E\,\mathrm{Exp}(-\mathrm{Ad}(H^{-1})\delta)$; then
+$\mathrm{Log}(E\,\mathrm{Exp}(\delta)) \approx e + J_r^{-1}(e)\,\delta$.) The measurement sits left of
 $H$, so the adjoint is that of $H^{-1}$, not of $E^{-1}$.
 
 GTSAM's `BetweenFactor` built without `GTSAM_SLOW_BUT_CORRECT_BETWEENFACTOR` drops $J_r^{-1}(e)$: its
-blocks are then $-\\mathrm{Ad}(H^{-1})$ and $I$, the Jacobians of `between` "before the Log" (Jeong,
+blocks are then $-\mathrm{Ad}(H^{-1})$ and $I$, the Jacobians of `between` "before the Log" (Jeong,
 "GTSAM tutorial 6", eq. 7). Both weigh the same error, so the cost is the same function;
 `exact=False` gives those blocks, `exact=True` (the default of `lieax.graph.optimize`) the true
 Jacobian, whose fixed points are the cost's stationary points (GTSAM 4.3's pip wheels follow these
 iterates: same iteration counts and final costs on the shared g2o sets).
 
-Prior factor (GTSAM's `PriorFactor`): $e = \\mathrm{Log}(Z^{-1} X)$, $\\partial e / \\partial X = J_r^{-1}(e)$
+Prior factor (GTSAM's `PriorFactor`): $e = \mathrm{Log}(Z^{-1} X)$, $\partial e / \partial X = J_r^{-1}(e)$
 ($I$ in GTSAM).
 """
 
@@ -24,20 +24,20 @@ import jax.numpy as jnp
 
 
 def between_error(pose_i, pose_j, measured):
-    """$\\mathrm{Log}(Z^{-1} X_i^{-1} X_j)$, batched; the residual before whitening."""
+    r"""$\mathrm{Log}(Z^{-1} X_i^{-1} X_j)$, batched; the residual before whitening."""
     return measured.between(pose_i.between(pose_j)).log()
 
 
 def between_jacobians(pose_i, pose_j, measured, exact=True):
-    """`(e, J_e_pose_i, J_e_pose_j)`: the error and its `(..., d, d)` blocks (see the module
-    docstring; `exact=False` gives GTSAM's blocks $-\\mathrm{Ad}(H^{-1})$ and $I$)."""
+    r"""`(e, J_e_pose_i, J_e_pose_j)`: the error and its `(..., d, d)` blocks (see the module
+    docstring; `exact=False` gives GTSAM's blocks $-\mathrm{Ad}(H^{-1})$ and $I$)."""
     relative = pose_i.between(pose_j)
     error = measured.between(relative).log()
     return (error, *between_jacobians_at(relative, error, exact))
 
 
 def between_jacobians_at(relative, error, exact=True):
-    """`(J_e_pose_i, J_e_pose_j)` from $H = X_i^{-1} X_j$ and $e = \\mathrm{Log}(Z^{-1} H)$, for
+    r"""`(J_e_pose_i, J_e_pose_j)` from $H = X_i^{-1} X_j$ and $e = \mathrm{Log}(Z^{-1} H)$, for
     callers that already hold both (the optimizer evaluates the cost first)."""
     adjoint = relative.inverse().adjoint()
     if exact:
@@ -50,7 +50,7 @@ def between_jacobians_at(relative, error, exact=True):
 
 
 def prior_error(pose, measured):
-    """$\\mathrm{Log}(Z^{-1} X)$."""
+    r"""$\mathrm{Log}(Z^{-1} X)$."""
     return measured.between(pose).log()
 
 
@@ -69,19 +69,19 @@ def prior_jacobian_at(group, error, exact=True):
 
 
 def whiten(sqrt_information, error):
-    """$R\\,e$ for `(..., d, d)` and `(..., d)`."""
+    r"""$R\,e$ for `(..., d, d)` and `(..., d)`."""
     return jnp.einsum("...ab,...b->...a", sqrt_information, error)
 
 
 def robust_weights(loss, squared_norm):
-    """$\\rho(s)$ and $\\rho'(s)$ of the whitened squared norms (`(s, 1)` without a loss)."""
+    r"""$\rho(s)$ and $\rho'(s)$ of the whitened squared norms (`(s, 1)` without a loss)."""
     if loss is None:
         return squared_norm, jnp.ones_like(squared_norm)
     return loss(squared_norm), loss.weight(squared_norm)
 
 
 def between_cost(graph_between, poses):
-    """$\\tfrac12 \\sum \\rho(\\|R e\\|^2)$ over the between factors at `poses`."""
+    r"""$\tfrac12 \sum \rho(\|R e\|^2)$ over the between factors at `poses`."""
     f = graph_between
     e = between_error(poses[f.i], poses[f.j], f.measured)
     s = jnp.sum(whiten(f.sqrt_information, e) ** 2, axis=-1)
@@ -97,7 +97,7 @@ def prior_cost(priors, poses):
 
 
 def cost(graph, poses=None):
-    """The graph's cost $\\tfrac12 \\sum \\rho(r^\\top \\Omega r)$ at `poses` (default `graph.poses`):
+    r"""The graph's cost $\tfrac12 \sum \rho(r^\top \Omega r)$ at `poses` (default `graph.poses`):
     the quantity GTSAM's `graph.error(values)` reports (without robust losses)."""
     poses = graph.poses if poses is None else poses
     return between_cost(graph.between, poses) + prior_cost(graph.priors, poses)

@@ -1,4 +1,4 @@
-"""Reading and writing g2o pose-graph files (2D `VERTEX_SE2`/`EDGE_SE2`, 3D
+r"""Reading and writing g2o pose-graph files (2D `VERTEX_SE2`/`EDGE_SE2`, 3D
 `VERTEX_SE3:QUAT`/`EDGE_SE3:QUAT`, and `FIX`).
 
 Layouts (g2o's, as GTSAM's `readG2o`/`writeG2o` read and write them):
@@ -6,21 +6,21 @@ Layouts (g2o's, as GTSAM's `readG2o`/`writeG2o` read and write them):
 | line | fields |
 |---|---|
 | `VERTEX_SE2 id x y θ` | pose |
-| `EDGE_SE2 i j x y θ I11 I12 I13 I22 I23 I33` | measurement $X_i^{-1}X_j$, upper triangle of $\\Omega$ |
+| `EDGE_SE2 i j x y θ I11 I12 I13 I22 I23 I33` | measurement $X_i^{-1}X_j$, upper triangle of $\Omega$ |
 | `VERTEX_SE3:QUAT id x y z qx qy qz qw` | pose (quaternion scalar last) |
 | `EDGE_SE3:QUAT i j x y z qx qy qz qw I11 … I16 I22 … I66` | 21 upper-triangle entries |
 | `FIX id` | the vertex is held constant |
 
 g2o orders the information of an SE3 edge as translation then rotation, like lieax's tangent
 `(vx, vy, vz, ωx, ωy, ωz)` (GTSAM, whose tangent is rotation first, swaps the blocks on reading):
-the matrix is used as read. The residual it weighs is lieax's $\\mathrm{Log}(Z^{-1}X_i^{-1}X_j)$,
+the matrix is used as read. The residual it weighs is lieax's $\mathrm{Log}(Z^{-1}X_i^{-1}X_j)$,
 GTSAM's `BetweenFactor` error, so costs agree with GTSAM's.
 
 Files that have edges but no vertices get initial poses by composing the measurements along a
 breadth-first spanning tree from the smallest id (`lieax.graph.spanning_tree_poses`).
 
-What the reader accepts, with GTSAM's `readG2o` as the reference: lines split on `\\n` (a
-trailing `\\r` is whitespace, so Windows files read), fields on spaces and tabs, `#` to the end of a
+What the reader accepts, with GTSAM's `readG2o` as the reference: lines split on `\n` (a
+trailing `\r` is whitespace, so Windows files read), fields on spaces and tabs, `#` to the end of a
 line is a comment, a UTF-8 byte-order mark is skipped and the bytes are decoded as Latin-1 (so
 comment bytes in any encoding read; tags and numbers are ASCII). Negative ids are ids (GTSAM reads
 them too, as wrapped unsigned keys). Tags lieax does not model (landmarks `VERTEX_XY`/`EDGE_SE2_XY`,
@@ -84,20 +84,20 @@ def _upper_to_symmetric(values, d):
 
 
 def read_g2o(path, *, information="nearest", dtype=None) -> PoseGraph:
-    """Read a 2D or 3D g2o file into a `PoseGraph`.
+    r"""Read a 2D or 3D g2o file into a `PoseGraph`.
 
     **Arguments:**
     - `path`: the file.
-    - `information`: what to do with an edge whose information matrix $\\Omega$ is not positive
-      definite to working precision ($\\lambda_{\\min} \\le 10^{-12}\\lambda_{\\max}$; public sets
+    - `information`: what to do with an edge whose information matrix $\Omega$ is not positive
+      definite to working precision ($\lambda_{\min} \le 10^{-12}\lambda_{\max}$; public sets
       such as SE-Sync's `cubicle` and `rim` have thousands, which GTSAM reads as they are):
-      - `"nearest"` (default): eigenvalue clipping, $\\Omega' = V\\,\\mathrm{diag}(\\max(\\lambda_k,
-        \\delta))\\,V^\\top$ with $\\Omega = V\\mathrm{diag}(\\lambda)V^\\top$ and the floor
-        $\\delta = 10^{-9}\\lambda_{\\max}$: the nearest symmetric matrix in the Frobenius norm
-        whose eigenvalues are all at least $\\delta$ (Higham 1988, "Computing a nearest symmetric
+      - `"nearest"` (default): eigenvalue clipping, $\Omega' = V\,\mathrm{diag}(\max(\lambda_k,
+        \delta))\,V^\top$ with $\Omega = V\mathrm{diag}(\lambda)V^\top$ and the floor
+        $\delta = 10^{-9}\lambda_{\max}$: the nearest symmetric matrix in the Frobenius norm
+        whose eigenvalues are all at least $\delta$ (Higham 1988, "Computing a nearest symmetric
         positive semidefinite matrix", Linear Algebra Appl. 103:103-118, applied to
-        $\\Omega - \\delta I$); only the edges found not positive definite are changed;
-      - `"diagonal"`: $\\Omega' = \\mathrm{diag}(\\max(\\Omega_{kk}, 10^{-9}\\max_l \\Omega_{ll}))$,
+        $\Omega - \delta I$); only the edges found not positive definite are changed;
+      - `"diagonal"`: $\Omega' = \mathrm{diag}(\max(\Omega_{kk}, 10^{-9}\max_l \Omega_{ll}))$,
         the off-diagonal correlations dropped;
       - `"raise"`: refuse the file (`G2oError` naming the first such line).
 
@@ -382,8 +382,8 @@ def _warn_quaternions(off, lines, path):
 
 
 def _poses_from_rows(group, rows, lines, path):
-    """Parameters `(k, parameters_dim)` from g2o rows `x y θ` or `x y z qx qy qz qw` (the
-    quaternion normalised), and each row's $|\\lVert q\\rVert - 1|$ (zeros for SE2)."""
+    r"""Parameters `(k, parameters_dim)` from g2o rows `x y θ` or `x y z qx qy qz qw` (the
+    quaternion normalised), and each row's $|\lVert q\rVert - 1|$ (zeros for SE2)."""
     if group is SE2:
         x, y, theta = rows[:, 0], rows[:, 1], rows[:, 2]
         return np.stack([np.cos(theta), np.sin(theta), x, y], axis=1), np.zeros(len(rows))
@@ -401,9 +401,9 @@ def _poses_from_rows(group, rows, lines, path):
 
 
 def write_g2o(path, graph: PoseGraph, *, poses=None):
-    """Write `graph` (with `poses` in place of `graph.poses` if given, e.g. an optimized result)
+    r"""Write `graph` (with `poses` in place of `graph.poses` if given, e.g. an optimized result)
     as a g2o file that `read_g2o` and GTSAM's `readG2o` read back: vertices in pose order with
-    `graph.vertex_ids` (negative ones too), then edges with the information $R^\\top R$ as read
+    `graph.vertex_ids` (negative ones too), then edges with the information $R^\top R$ as read
     (repaired, if `read_g2o` repaired it), then a `FIX` line for fixed poses. Priors are not
     written (g2o has no prior tag)."""
     poses = graph.poses if poses is None else poses

@@ -1,10 +1,10 @@
-"""The pose-graph container: poses, between factors, prior factors and fixed vertices.
+r"""The pose-graph container: poses, between factors, prior factors and fixed vertices.
 
 Conventions are lieax's (see the README's "Conventions"): right perturbation, translation-first
 tangents, so a residual's information matrix is ordered like the tangent, `(vx, vy, ω)` in 2D and
 `(vx, vy, vz, ωx, ωy, ωz)` in 3D. Factors keep the square root $R$ of their information
-$\\Omega = R^\\top R$ ($R$ upper triangular), and the cost of a residual $r$ is
-$\\tfrac12 r^\\top \\Omega r = \\tfrac12 \\|R r\\|^2$.
+$\Omega = R^\top R$ ($R$ upper triangular), and the cost of a residual $r$ is
+$\tfrac12 r^\top \Omega r = \tfrac12 \|R r\|^2$.
 """
 
 import dataclasses
@@ -20,7 +20,7 @@ GROUPS = {2: SE2, 3: SE3}
 
 
 def square_root_information(information, what="information matrix"):
-    """$R$ upper triangular with $R^\\top R = \\Omega$, for a batch of symmetric positive-definite
+    r"""$R$ upper triangular with $R^\top R = \Omega$, for a batch of symmetric positive-definite
     matrices `(..., d, d)` (numpy, checked: `ValueError` naming `what` and the first bad index)."""
     information = np.asarray(information, dtype=np.float64)
     if information.ndim < 2 or information.shape[-1] != information.shape[-2]:
@@ -44,14 +44,14 @@ def square_root_information(information, what="information matrix"):
 
 @dataclasses.dataclass(frozen=True)
 class BetweenFactors:
-    """Relative-pose factors $r = \\mathrm{Log}(Z^{-1} X_i^{-1} X_j)$, one per edge.
+    r"""Relative-pose factors $r = \mathrm{Log}(Z^{-1} X_i^{-1} X_j)$, one per edge.
 
     **Fields:**
     - `i`, `j`: numpy int arrays `(m,)`, indices into the graph's poses (not file ids).
     - `measured`: the measurements $Z = X_i^{-1} X_j$, a group batched `(m,)`.
-    - `sqrt_information`: `(m, d, d)` upper-triangular $R$, $R^\\top R = \\Omega$.
+    - `sqrt_information`: `(m, d, d)` upper-triangular $R$, $R^\top R = \Omega$.
     - `loss`: `None` (least squares) or a robust loss from `lieax.lstsq` (any object with
-      `loss(s)` $= \\rho(s)$ and `loss.weight(s)` $= \\rho'(s)$ of the whitened squared norm $s$).
+      `loss(s)` $= \rho(s)$ and `loss.weight(s)` $= \rho'(s)$ of the whitened squared norm $s$).
     """
 
     i: np.ndarray
@@ -66,7 +66,7 @@ class BetweenFactors:
 
 @dataclasses.dataclass(frozen=True)
 class PriorFactors:
-    """Absolute-pose factors $r = \\mathrm{Log}(Z^{-1} X_k)$; fields as `BetweenFactors` with
+    r"""Absolute-pose factors $r = \mathrm{Log}(Z^{-1} X_k)$; fields as `BetweenFactors` with
     `index` `(p,)` in place of `i`, `j`."""
 
     index: np.ndarray
@@ -185,7 +185,7 @@ class PoseGraph:
 
     @property
     def information(self):
-        """$\\Omega = R^\\top R$ of every between factor, `(m, d, d)`."""
+        r"""$\Omega = R^\top R$ of every between factor, `(m, d, d)`."""
         r = self.between.sqrt_information
         return jnp.swapaxes(r, -1, -2) @ r
 

@@ -1,13 +1,13 @@
-"""Initial poses for hard graphs: composition along a spanning tree, and chordal initialisation.
+r"""Initial poses for hard graphs: composition along a spanning tree, and chordal initialisation.
 
 - `spanning_tree_poses`: a breadth-first spanning tree from the first pose (or a given root), each
   pose the composition of the measurements along the tree path ($X_j = X_i Z_{ij}$, or
   $X_i = X_j Z_{ij}^{-1}$ for an edge walked backwards). Used by `read_g2o` for files without
   vertices; exact where the graph is a tree, odometry drift elsewhere.
 - `chordal_initialization`: rotations first, by the chordal relaxation
-  $\\min \\sum_{ij} w_{ij} \\|R_j - R_i \\tilde R_{ij}\\|_F^2$ over unconstrained $d \\times d$ matrices
+  $\min \sum_{ij} w_{ij} \|R_j - R_i \tilde R_{ij}\|_F^2$ over unconstrained $d \times d$ matrices
   with the root's rotation held, each result projected back to $SO(d)$ (SVD); then translations
-  by the linear least squares $\\min \\sum_{ij} w_{ij} \\|t_j - t_i - R_i \\tilde t_{ij}\\|^2$ with those
+  by the linear least squares $\min \sum_{ij} w_{ij} \|t_j - t_i - R_i \tilde t_{ij}\|^2$ with those
   rotations (Carlone, Tron, Daniilidis, Dellaert, "Initialization techniques for 3D SLAM: a survey
   on rotation estimation and its use in pose graph optimization", ICRA 2015; Martinec and Pajdla
   2007). The weights $w_{ij}$ are the means of the rotational and translational diagonals of each

@@ -29,11 +29,11 @@ _SOLVERS = ("cholesky", "cg")
 
 @dataclasses.dataclass(frozen=True)
 class OptimizeResult:
-    """What `optimize` returns.
+    r"""What `optimize` returns.
 
     **Fields:**
     - `poses`: the optimized poses, in the order of `graph.vertex_ids`.
-    - `cost`: $\\tfrac12 \\sum \\rho(r^\\top \\Omega r)$ at `poses` (GTSAM's `graph.error`).
+    - `cost`: $\tfrac12 \sum \rho(r^\top \Omega r)$ at `poses` (GTSAM's `graph.error`).
     - `iterations`: outer iterations (linearizations), as GTSAM counts them.
     - `linear_solves`: factorizations (or conjugate-gradient solves), rejected steps included.
     - `status`: a `Status`.
@@ -71,7 +71,7 @@ def optimize(
     cg_tolerance=1e-8,
     cg_max_iterations=None,
 ):
-    """Levenberg-Marquardt on a `PoseGraph` (see the module docstring for the semantics).
+    r"""Levenberg-Marquardt on a `PoseGraph` (see the module docstring for the semantics).
 
     **Arguments:**
     - `graph`: the `PoseGraph`; its poses are the initial values.
@@ -86,7 +86,7 @@ def optimize(
       dense factorization's $O((nd)^3)$ work overtakes the fronts' fixed costs early).
       `"cg"`: block-Jacobi preconditioned conjugate gradients, all in JAX, for accelerators
       (no host round trip; inexact steps, slower to converge on poorly conditioned graphs).
-    - `jacobian`: `"exact"` (default) differentiates the residual $\\mathrm{Log}(Z^{-1}X_i^{-1}X_j)$
+    - `jacobian`: `"exact"` (default) differentiates the residual $\mathrm{Log}(Z^{-1}X_i^{-1}X_j)$
       exactly (with $J_r^{-1}(e)$), so the optimizer converges to a stationary point of the cost.
       GTSAM 4.3's iterates match these (same iteration counts, final costs equal to 1e-12 on the
       shared sets). `"approximate"` drops $J_r^{-1}$, the "I before the Log" of GTSAM builds
@@ -94,12 +94,12 @@ def optimize(
       cost's stationary points, so tight tolerances stop it early (up to 0.3% above the
       minimum on smallGrid3D).
     - `retraction`: how a step moves the poses, a `lieax.retractions.Retraction` (default
-      `lieax.retractions.exp`, $X_i \\mathrm{Exp}(\\delta_i)$ as GTSAM with
+      `lieax.retractions.exp`, $X_i \mathrm{Exp}(\delta_i)$ as GTSAM with
       `GTSAM_POSE3_EXPMAP`; `lieax.retractions.cayley` is GTSAM's default Pose3 chart). The
       Jacobians and the optimum do not depend on it, the path to the optimum does.
-    - `verbose`: print the cost, $\\lambda$ and the step's fate at every attempt.
+    - `verbose`: print the cost, $\lambda$ and the step's fate at every attempt.
     - the rest: the Levenberg-Marquardt parameters (GTSAM's defaults) and the conjugate-gradient
-      tolerance and iteration limit (default $10\\,n\\,d$).
+      tolerance and iteration limit (default $10\,n\,d$).
 
     The gauge: poses in `graph.fixed` are held constant; without any, and without priors, the
     first pose is. A graph with several connected components must anchor each one (a prior or

@@ -48,8 +48,8 @@ def pad_clouds(clouds, size=None, *, dtype=None):
 
 
 def bucket_size(n: int) -> int:
-    """The capacity bucket of `n` rows: the smallest multiple of $2^{\\max(b - 3, 0)}$ that holds
-    `n`, with $b$ the bit length of $n - 1$ (so $2^{b-1} < n \\le 2^b$). Buckets are 5, 6, 7 and 8
+    r"""The capacity bucket of `n` rows: the smallest multiple of $2^{\max(b - 3, 0)}$ that holds
+    `n`, with $b$ the bit length of $n - 1$ (so $2^{b-1} < n \le 2^b$). Buckets are 5, 6, 7 and 8
     times $2^{b-3}$: four shapes per doubling of the size, and at most 25% of padded rows
     ($2^{b-3} / 2^{b-1}$). Sizes up to 8 are their own bucket. E.g. 3000 → 3072, 3100 → 3584,
     4500 → 5120, 25,000 → 28,672."""

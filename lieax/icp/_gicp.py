@@ -1,8 +1,8 @@
-"""Generalized ICP (plane-to-plane; Segal, Haehnel, Thrun, "Generalized-ICP", RSS 2009).
+r"""Generalized ICP (plane-to-plane; Segal, Haehnel, Thrun, "Generalized-ICP", RSS 2009).
 
 Every point carries a covariance of its local surface; a pair $(s_i, d_i)$ (source point, its
 nearest target point) has the residual $r_i = T s_i - d_i$ and the Mahalanobis weight
-$M_i = (C^d_i + R C^s_i R^\\top)^{-1}$, and the pose minimizes $\\sum_i \\rho(r_i^\\top M_i r_i)$.
+$M_i = (C^d_i + R C^s_i R^\top)^{-1}$, and the pose minimizes $\sum_i \rho(r_i^\top M_i r_i)$.
 It runs in the loop of `point_to_plane` (`lieax.icp._registration`: match, update, re-match, the
 same statuses, stopping rule and exact check), with this module's Gauss-Newton update.
 
@@ -39,12 +39,12 @@ _UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
 
 def estimate_covariances(points, *, k=20, mask=None, search="auto"):
-    """Regularized local covariances of a point cloud, shape `(n, 3, 3)`.
+    r"""Regularized local covariances of a point cloud, shape `(n, 3, 3)`.
 
     The sample covariance of each point and its `k - 1` nearest neighbours, eigen-decomposed as
-    $U \\Lambda U^\\top$ (eigenvalues ascending), is replaced by
-    $C = U\\,\\mathrm{diag}(\\varepsilon, 1, 1)\\,U^\\top = I - (1 - \\varepsilon)\\,n n^\\top$
-    with $\\varepsilon = 10^{-3}$ and $n$ the eigenvector of the smallest eigenvalue: the "plane"
+    $U \Lambda U^\top$ (eigenvalues ascending), is replaced by
+    $C = U\,\mathrm{diag}(\varepsilon, 1, 1)\,U^\top = I - (1 - \varepsilon)\,n n^\top$
+    with $\varepsilon = 10^{-3}$ and $n$ the eigenvector of the smallest eigenvalue: the "plane"
     regularization of Segal et al. (2009, section III.B), as small_gicp's `CovarianceSetter` and
     fast_gicp's `PLANE` method. Neighbourhoods of fewer than 5 valid points get the identity
     (small_gicp's rule).
@@ -134,7 +134,7 @@ def _host_neighbours(points, valid, *, k):
 
 
 def _regularized(centre, neighbours, inside, valid):
-    """$I - (1 - \\varepsilon) n n^\\top$ from the sample covariance of `neighbours` `(n, 3, k)`
+    r"""$I - (1 - \varepsilon) n n^\top$ from the sample covariance of `neighbours` `(n, 3, k)`
     where `inside` `(n, k)`; the identity where fewer than 5 are inside or `valid` is False."""
     count = jnp.sum(inside, axis=1)
     offsets = jnp.where(inside[:, None, :], neighbours - centre[:, :, None], 0.0)
@@ -165,9 +165,9 @@ def _entry(upper, a, b):
 
 
 def _mahalanobis(rotation, source_covariances, target_covariances):
-    """$M_i = (C^d_i + R C^s_i R^\\top)^{-1}$ as six `(n,)` entries, written out elementwise: the
+    r"""$M_i = (C^d_i + R C^s_i R^\top)^{-1}$ as six `(n,)` entries, written out elementwise: the
     rotated covariance entry by entry, then the symmetric inverse by cofactors,
-    $S^{-1} = \\mathrm{adj}(S) / \\det S$."""
+    $S^{-1} = \mathrm{adj}(S) / \det S$."""
     cs = _symmetric(source_covariances)
     cd = _symmetric(target_covariances)
     # B = R C^s (3 x 3), then S = C^d + B R^T (upper entries).
@@ -186,9 +186,9 @@ def _mahalanobis(rotation, source_covariances, target_covariances):
 
 
 def gicp_normal_equations(params, source, matched, source_covariances, target_covariances, weights):
-    """$H = \\sum_i w_i J_i^\\top M_i J_i$, $g = \\sum_i w_i J_i^\\top M_i r_i$ and the costs
-    $r_i^\\top M_i r_i$ of the GICP residuals $r_i = T s_i - d_i$ at `params`, with
-    $J_i = \\partial (T \\oplus \\xi) s_i / \\partial \\xi = [R, -R[s_i]_\\times]$ (from
+    r"""$H = \sum_i w_i J_i^\top M_i J_i$, $g = \sum_i w_i J_i^\top M_i r_i$ and the costs
+    $r_i^\top M_i r_i$ of the GICP residuals $r_i = T s_i - d_i$ at `params`, with
+    $J_i = \partial (T \oplus \xi) s_i / \partial \xi = [R, -R[s_i]_\times]$ (from
     `lieax.jacobian` of `SE3`'s action, see `_act_jacobian_rows`) and $M_i$ held fixed
     (`_mahalanobis` at the current rotation, as small_gicp recomputes it per linearization).
     `weights` (`(n,)`, or a function of the costs) are the pair weights (0 for rejected pairs).
@@ -219,8 +219,8 @@ def gicp_normal_equations(params, source, matched, source_covariances, target_co
 def gicp_step(
     params, source, matched, source_covariances, target_covariances, inliers, loss_weights
 ):  # fmt: skip
-    """One Gauss-Newton step $T \\leftarrow T \\oplus \\delta$, $\\delta = -H^{-1} g$ (see
-    `gicp_normal_equations`), with the IRLS weights $w_i = \\rho'(r_i^\\top M_i r_i)$ of the
+    r"""One Gauss-Newton step $T \leftarrow T \oplus \delta$, $\delta = -H^{-1} g$ (see
+    `gicp_normal_equations`), with the IRLS weights $w_i = \rho'(r_i^\top M_i r_i)$ of the
     inlier pairs; rejected pairs get identity covariances (any finite value: their weight is 0)."""
     eye = jnp.eye(3, dtype=params.dtype)
     source_covariances = jnp.where(inliers[:, None, None], source_covariances, eye)
@@ -257,8 +257,8 @@ def gicp(
     search="auto",
     buckets=True,
 ) -> ICPResult:
-    """Generalized ICP: minimize
-    $\\sum_i \\rho\\big(r_i^\\top (C^d_i + R C^s_i R^\\top)^{-1} r_i\\big)$, $r_i = T s_i - d_i$,
+    r"""Generalized ICP: minimize
+    $\sum_i \rho\big(r_i^\top (C^d_i + R C^s_i R^\top)^{-1} r_i\big)$, $r_i = T s_i - d_i$,
     over $T$ = `T_target_source`, re-matching $d_i$ (nearest target point of $T s_i$) every
     iteration; one Gauss-Newton step per iteration (see `gicp_step`).
 

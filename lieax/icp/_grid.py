@@ -1,10 +1,10 @@
-"""A voxel hash grid of the target, built and queried under `jit` and `vmap` with fixed shapes.
+r"""A voxel hash grid of the target, built and queried under `jit` and `vmap` with fixed shapes.
 
 The structure KISS-ICP and small_gicp use for their correspondences: cells of side `cell_size`
 (the correspondence distance $r$, so that every target point within $r$ of a query lies in the
 $3^3$ cells around the query's own), each cell's integer coordinates $(i, j, k)$ hashed into a
 table of `capacity` (a power of two) buckets,
-$h = (73856093\\,i \\oplus 19349663\\,j \\oplus 83492791\\,k) \\bmod$ `capacity` (Teschner et al.,
+$h = (73856093\,i \oplus 19349663\,j \oplus 83492791\,k) \bmod$ `capacity` (Teschner et al.,
 "Optimized spatial hashing for collision detection of deformable objects", VMV 2003). The target
 points are sorted by bucket (one 32-bit integer sort of keys that pack the bucket with the point's
 index, where both fit), and `start`/`count` give each bucket's run of points.

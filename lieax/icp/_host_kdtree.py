@@ -1,4 +1,4 @@
-"""A k-d tree on the host, built once per target and queried from jitted code through `host_call`.
+r"""A k-d tree on the host, built once per target and queried from jitted code through `host_call`.
 
 On a CPU the compiled k-d trees of SciPy (`cKDTree`) and pykdtree answer a nearest-neighbour query
 in well under a microsecond, faster than any fixed-shape search XLA compiles (see
@@ -14,8 +14,8 @@ in a few microseconds. So the tree lives on the host:
 
 Warm start (ICP's iterations): the build also records each target point's `spacing`, the distance
 to its nearest other valid point. A query at distance $d$ from its previous match $c$ keeps it
-when $2d \\le$ `spacing[c]`: every other point $p$ has $|q - p| \\ge |p - c| - d \\ge$
-`spacing[c]` $- d \\ge d$ (the triangle inequality), so $c$ is still the nearest. Only the other
+when $2d \le$ `spacing[c]`: every other point $p$ has $|q - p| \ge |p - c| - d \ge$
+`spacing[c]` $- d \ge d$ (the triangle inequality), so $c$ is still the nearest. Only the other
 queries are sent to the tree (40-80% of the source points are kept near convergence on the
 benchmark's scans).
 

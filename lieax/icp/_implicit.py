@@ -1,27 +1,27 @@
-"""Derivatives of a converged ICP pose by the implicit function theorem; the loop is never
+r"""Derivatives of a converged ICP pose by the implicit function theorem; the loop is never
 differentiated (its inputs reach it through `lax.stop_gradient`).
 
 With its final matches $c_i$ held fixed, a converged pose $T^*$ is a stationary point of the
-robust cost $f(T; \\theta) = \\tfrac12 \\sum_{i \\in I} \\rho(\\|r_i(T; \\theta)\\|^2)$ over the inlier
+robust cost $f(T; \theta) = \tfrac12 \sum_{i \in I} \rho(\|r_i(T; \theta)\|^2)$ over the inlier
 pairs $I$, with
 
-- point-to-plane: $r_i = n_{c_i}^\\top (T s_i - d_{c_i})$ (one row per pair),
+- point-to-plane: $r_i = n_{c_i}^\top (T s_i - d_{c_i})$ (one row per pair),
 - point-to-point: $r_i = T s_i - d_{c_i}$ (three rows; the weighted Kabsch step is the exact
   minimizer of this cost for fixed weights),
 
-and the data $\\theta$ = (`source` $s$, `target` $d$, `target_normals` $n$, the loss's scale).
-Its tangent gradient $g(\\delta; \\theta) = \\nabla_\\delta f(T^* \\oplus \\delta; \\theta) = J^\\top W r$,
-$W = \\rho'(\\|r_i\\|^2)$ (the IRLS weights, as functions of the residuals: a fixed point of
-iteratively reweighted least squares is a stationary point of $f$), vanishes at $\\delta = 0$.
+and the data $\theta$ = (`source` $s$, `target` $d$, `target_normals` $n$, the loss's scale).
+Its tangent gradient $g(\delta; \theta) = \nabla_\delta f(T^* \oplus \delta; \theta) = J^\top W r$,
+$W = \rho'(\|r_i\|^2)$ (the IRLS weights, as functions of the residuals: a fixed point of
+iteratively reweighted least squares is a stationary point of $f$), vanishes at $\delta = 0$.
 The implicit function theorem (Ceres Solver's notes, "Using Inverse & Implicit Function
 Theorems") gives the right-local tangent of the pose
 
-$$\\dot\\delta = -H^{-1}\\,\\frac{\\partial g}{\\partial \\theta}\\,\\dot\\theta, \\qquad
-H = \\frac{\\partial g}{\\partial \\delta}\\Big|_{\\delta = 0}$$
+$$\dot\delta = -H^{-1}\,\frac{\partial g}{\partial \theta}\,\dot\theta, \qquad
+H = \frac{\partial g}{\partial \delta}\Big|_{\delta = 0}$$
 
 (the exact Hessian of $f$, so nonzero residuals get exact derivatives). What is held fixed:
 
-- the matches and the inlier set: piecewise constant in $\\theta$ (they change only where a
+- the matches and the inlier set: piecewise constant in $\theta$ (they change only where a
   nearest neighbour or the `max_correspondence_distance` test switches), so this is the
   derivative wherever one exists; `max_correspondence_distance` and the tolerances get zero.
 - the target normals, when `point_to_plane` estimates them (`target_normals=None`): they move
@@ -30,7 +30,7 @@ H = \\frac{\\partial g}{\\partial \\delta}\\Big|_{\\delta = 0}$$
   depend on where the iterations started (a small change of `init` leads to the same matches
   and the same minimizer).
 
-The other outputs: `inlier_rmse` $= (\\tfrac1{|I|} \\sum_{i \\in I} \\|T^* s_i - d_{c_i}\\|^2)^{1/2}$
+The other outputs: `inlier_rmse` $= (\tfrac1{|I|} \sum_{i \in I} \|T^* s_i - d_{c_i}\|^2)^{1/2}$
 is differentiated through $T^*$ and the data with the inliers fixed; `fitness`, `iterations`,
 `status` and `correspondences` are piecewise constant (zero derivative).
 
@@ -41,7 +41,7 @@ problems (a `vmap`ped batch keeps the others' derivatives). The derivative is th
 stationary point: it matches finite differences of the returned pose to the accuracy to which
 the loop converged (tighten `relative_fitness`/`relative_rmse` to compare them closely).
 
-The rule is linear in $\\dot\\theta$ (one Hessian, a forward pass of $g$, a 6x6 solve), so JAX
+The rule is linear in $\dot\theta$ (one Hessian, a forward pass of $g$, a 6x6 solve), so JAX
 transposes it for `jax.grad`, as `lieax.lstsq`'s implicit derivatives.
 """
 
@@ -117,7 +117,7 @@ def _tangents(params, rmse, data, fixed, data_dot, *, kind, static_loss):
     centred = centred_pose(params, source_centre, target_centre)
 
     def gaps(delta, data):
-        """$T' \\oplus \\delta$ (the centred pose) applied to the inlier source points about their
+        r"""$T' \oplus \delta$ (the centred pose) applied to the inlier source points about their
         centre, minus their matches about theirs (rows of rejected points are zero, whatever the
         data hold there)."""
         source, target = data[:2]
@@ -136,8 +136,8 @@ def _tangents(params, rmse, data, fixed, data_dot, *, kind, static_loss):
         return gap, jnp.sum(gap * gap, axis=-1)
 
     def gradient(delta, data):
-        """$g = J^\\top W r$, $W = \\rho'(\\|r_i\\|^2)$ at $\\delta$: the gradient of
-        $\\tfrac12 \\sum_i \\rho(\\|r_i\\|^2)$ (the weights are not differentiated by the pullback)."""
+        r"""$g = J^\top W r$, $W = \rho'(\|r_i\|^2)$ at $\delta$: the gradient of
+        $\tfrac12 \sum_i \rho(\|r_i\|^2)$ (the weights are not differentiated by the pullback)."""
         (residual, squared), pullback = jax.vjp(lambda d: residuals(d, data), delta)
         loss = None if loss_kind is None else (loss_kind, data[3])
         weights = inliers.astype(residual.dtype) * loss_weights(loss, static_loss, squared)
@@ -166,9 +166,9 @@ def _tangents(params, rmse, data, fixed, data_dot, *, kind, static_loss):
 
 
 def estimated_normals(target, mask, k):
-    """`estimate_normals(target, k=k, mask=mask)`, differentiable with respect to `target` by
-    the perturbation of an eigenvector: for the normal $n$ (eigenvalue $\\lambda$) of the
-    neighbourhood covariance $C$, $\\dot n = -(C - \\lambda I)^{+}\\,\\dot C\\,n$ (first-order
+    r"""`estimate_normals(target, k=k, mask=mask)`, differentiable with respect to `target` by
+    the perturbation of an eigenvector: for the normal $n$ (eigenvalue $\lambda$) of the
+    neighbourhood covariance $C$, $\dot n = -(C - \lambda I)^{+}\,\dot C\,n$ (first-order
     perturbation theory of a simple eigenvalue; e.g. Magnus, "On differentiating eigenvalues and
     eigenvectors", 1985), with the neighbourhoods and the viewpoint flip held fixed."""
     normals = estimate_normals(jax.lax.stop_gradient(target), k=k, mask=mask)
@@ -189,7 +189,7 @@ def _normals_of_jvp(k, primals, tangents):
 
 @functools.partial(jax.jit, static_argnames=("k",))
 def _normals_tangent(target, mask, normals, target_dot, *, k):
-    """$\\dot n$ for every point, over the neighbourhoods `estimate_normals` uses (the same index:
+    r"""$\dot n$ for every point, over the neighbourhoods `estimate_normals` uses (the same index:
     the point and its `k - 1` graph neighbours); rows with fewer than 3 valid neighbours (the
     constant fallback normal) and padding get zero."""
     valid_rows = mask & jnp.all(jnp.isfinite(target), axis=1)

@@ -1,4 +1,4 @@
-"""Nearest neighbours under `jit` with fixed shapes: an index built once per target cloud.
+r"""Nearest neighbours under `jit` with fixed shapes: an index built once per target cloud.
 
 The index (`NeighborIndex`, a pytree of arrays) holds
 
@@ -17,7 +17,7 @@ A query follows three steps, all fixed-shape and batchable:
 2. **descend** the graph: move to the best neighbour while that gets closer (one or two steps
    once warm-started);
 3. **certify**: at the final point $c$ with distance $d$, any target point closer than
-   $d' = \\min(d, r)$ lies within $d + d'$ of $c$, so if $d + d' \\le$ `coverage[c]` the match is
+   $d' = \min(d, r)$ lies within $d + d'$ of $c$, so if $d + d' \le$ `coverage[c]` the match is
    exact (exact within the radius $r$: a query beyond $r$ is certified to have no neighbour
    within $r$). The uncertified queries (10-20% on range scans: holes, borders, queries far from
    the surface) are gathered and searched in the 8 leaves a beam search keeps, which certifies

@@ -1,10 +1,10 @@
-"""Surface normals by principal component analysis over nearest neighbours.
+r"""Surface normals by principal component analysis over nearest neighbours.
 
 The normal at $p$ is the eigenvector of the smallest eigenvalue of the covariance of its
 neighbourhood (the point and its `k - 1` nearest neighbours, optionally only those within
 `radius`: Open3D's `KDTreeSearchParamHybrid(radius, max_nn=k)`), computed in closed form
 (Smith, "Eigenvalues of a symmetric 3x3 matrix", CACM 1961, then the largest cross product of
-two rows of $A - \\lambda I$), and flipped to face `viewpoint`.
+two rows of $A - \lambda I$), and flipped to face `viewpoint`.
 """
 
 import functools
@@ -17,14 +17,14 @@ from ._checks import check_cloud, check_count, check_mask
 
 
 def estimate_normals(points, *, k=30, radius=None, mask=None, viewpoint=(0.0, 0.0, 0.0)):
-    """Unit normals of a point cloud, shape `(n, 3)`.
+    r"""Unit normals of a point cloud, shape `(n, 3)`.
 
     **Arguments:**
     - `points`: shape `(n, 3)`.
     - `k`: neighbourhood size, the point itself included.
     - `radius`: if given, only neighbours within this distance count.
     - `mask`: `(n,)` bools, False for padding; those rows get `(0, 0, 0)`.
-    - `viewpoint`: each normal is flipped to point toward it ($n^\\top (v - p) \\ge 0$), e.g. the
+    - `viewpoint`: each normal is flipped to point toward it ($n^\top (v - p) \ge 0$), e.g. the
       sensor position; `None` leaves the sign the eigen solver gives.
 
     Neighbourhoods with fewer than 3 points give `(0, 0, 1)`. Runs under `jit` and `vmap`.

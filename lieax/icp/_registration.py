@@ -1,8 +1,8 @@
-"""Point-to-point and point-to-plane ICP: one jitted loop, fixed shapes, batchable with `vmap`.
+r"""Point-to-point and point-to-plane ICP: one jitted loop, fixed shapes, batchable with `vmap`.
 
 Conventions: `transform` is `T_target_source` (it maps source coordinates into the target frame),
-a `lieax.SE3` with right perturbation $T \\oplus \\xi = T\\,\\mathrm{Exp}(\\xi)$, tangent
-$\\xi = (v, \\omega)$ translation first (the README's "Conventions").
+a `lieax.SE3` with right perturbation $T \oplus \xi = T\,\mathrm{Exp}(\xi)$, tangent
+$\xi = (v, \omega)$ translation first (the README's "Conventions").
 
 The loop is Open3D's `registration_icp`: match every source point to its nearest target point,
 reject pairs farther than `max_correspondence_distance` (masked, never dropped), update the pose
@@ -11,9 +11,9 @@ by more than its tolerance (Open3D's absolute changes), or after `max_iterations
 addition: the test also passes against the iteration before the last, so that a pose cycling
 between two states (each update switching the matches that lead back) stops as converged.
 
-- Point-to-plane: one Gauss-Newton step per iteration on $r_i = n_i^\\top (T s_i - d_i)$, whose
-  $1 \\times 6$ Jacobian block $n_i^\\top [R, -R[s_i]_\\times]$ comes from `lieax.jacobian` of
-  `SE3`'s action (its closed-form rule); the $6 \\times 6$ normal equations are a reduction over
+- Point-to-plane: one Gauss-Newton step per iteration on $r_i = n_i^\top (T s_i - d_i)$, whose
+  $1 \times 6$ Jacobian block $n_i^\top [R, -R[s_i]_\times]$ comes from `lieax.jacobian` of
+  `SE3`'s action (its closed-form rule); the $6 \times 6$ normal equations are a reduction over
   the cloud, weighted by the robust loss (iteratively reweighted least squares).
 - Point-to-point: the closed-form weighted Kabsch / Umeyama step (Arun et al. 1987), as Open3D.
 
@@ -25,7 +25,7 @@ changed the fitness or RMSE (unless two exact checks in a row agree), so the res
 exact nearest neighbours give.
 
 Shapes: by default (`buckets=True`) the clouds are padded (masked rows) to capacity buckets,
-the next size of the form $c \\cdot 2^k$, $c \\in \\{5, 6, 7, 8\\}$ (`lieax.icp._batch.bucket_size`:
+the next size of the form $c \cdot 2^k$, $c \in \{5, 6, 7, 8\}$ (`lieax.icp._batch.bucket_size`:
 at most 25% padded rows, four shapes per doubling), and the results sliced back: a stream of
 clouds of varying sizes (LiDAR odometry) compiles the loop and the normals once per bucket, not
 once per size, with the results of the unpadded call.
@@ -169,7 +169,7 @@ def point_to_plane(
     search="auto",
     buckets=True,
 ) -> ICPResult:
-    """Point-to-plane ICP: minimize $\\sum_i \\rho\\big((n_i^\\top (T s_i - d_i))^2\\big)$ over
+    r"""Point-to-plane ICP: minimize $\sum_i \rho\big((n_i^\top (T s_i - d_i))^2\big)$ over
     $T$ = `T_target_source`, re-matching $d_i$ (nearest target point of $T s_i$) every iteration.
 
     **Arguments:**
@@ -232,7 +232,7 @@ def point_to_point(
     search="auto",
     buckets=True,
 ) -> ICPResult:
-    """Point-to-point ICP: minimize $\\sum_i \\rho(\\|T s_i - d_i\\|^2)$ over $T$ = `T_target_source`
+    r"""Point-to-point ICP: minimize $\sum_i \rho(\|T s_i - d_i\|^2)$ over $T$ = `T_target_source`
     with the closed-form (weighted Kabsch) step each iteration, re-matching $d_i$.
 
     Arguments as `point_to_plane` (no normals). **Returns:** an `ICPResult`.
@@ -597,8 +597,8 @@ def transform_points(params, points):
 
 
 def _act_jacobian_rows(pose: SE3, points):
-    """$\\partial (T \\oplus \\xi)\\,s / \\partial \\xi = [R, -R[s]_\\times]$ is affine in $s$:
-    $J(s) = J(0) + \\sum_k s_k (J(e_k) - J(0))$. Returns `(J(0), J(e_k) - J(0))`, shapes `(3, 6)` and
+    r"""$\partial (T \oplus \xi)\,s / \partial \xi = [R, -R[s]_\times]$ is affine in $s$:
+    $J(s) = J(0) + \sum_k s_k (J(e_k) - J(0))$. Returns `(J(0), J(e_k) - J(0))`, shapes `(3, 6)` and
     `(3, 3, 6)`, from `lieax.jacobian` of `SE3`'s action (its closed-form rule) at four points."""
     basis = jnp.concatenate([jnp.zeros((1, 3), points.dtype), jnp.eye(3, dtype=points.dtype)])
     blocks = jax.vmap(jacobian(lambda T, s: T @ s), in_axes=(None, 0))(pose, basis)  # (4, 3, 6)
@@ -606,7 +606,7 @@ def _act_jacobian_rows(pose: SE3, points):
 
 
 def _plane_rows(pose: SE3, points, normals):
-    """$J_i = n_i^\\top [R, -R[s_i]_\\times]$, `(n, 6)`, from `_act_jacobian_rows`, written out as
+    r"""$J_i = n_i^\top [R, -R[s_i]_\times]$, `(n, 6)`, from `_act_jacobian_rows`, written out as
     elementwise sums (small matrix products batch poorly under `vmap` on the CPU)."""
     constant, slope = _act_jacobian_rows(pose, points)
     rows = 0.0
@@ -617,8 +617,8 @@ def _plane_rows(pose: SE3, points, normals):
 
 
 def _plane_step(params, source, matched, normals, inliers, loss_weights):
-    """One Gauss-Newton step $T \\leftarrow T \\oplus \\delta$, $\\delta = -(J^\\top W J)^{-1} J^\\top W r$,
-    with rows $J_i = n_i^\\top [R, -R[s_i]_\\times]$ (see `_plane_rows`)."""
+    r"""One Gauss-Newton step $T \leftarrow T \oplus \delta$, $\delta = -(J^\top W J)^{-1} J^\top W r$,
+    with rows $J_i = n_i^\top [R, -R[s_i]_\times]$ (see `_plane_rows`)."""
     pose = SE3._wrap(params)
     jac = _plane_rows(pose, source, normals)
     residuals = jnp.sum(normals * (transform_points(params, source) - matched), axis=-1)
@@ -631,7 +631,7 @@ def _plane_step(params, source, matched, normals, inliers, loss_weights):
 
 
 def _solve_spd(matrix, rhs):
-    """$(H + \\lambda I)^{-1} b$ by Cholesky, $\\lambda = 10\\,n\\,\\varepsilon \\max_i H_{ii}$: a ridge at
+    r"""$(H + \lambda I)^{-1} b$ by Cholesky, $\lambda = 10\,n\,\varepsilon \max_i H_{ii}$: a ridge at
     rounding level, so that a rank-deficient $H$ (a plane slides along itself) still gives a
     finite step with no component along its null space. Fixed points ($b = 0$) are unchanged."""
     n = matrix.shape[-1]
@@ -642,8 +642,8 @@ def _solve_spd(matrix, rhs):
 
 
 def _point_step(params, source, matched, inliers, loss_weights):
-    """The rigid motion that best maps the moved source onto its matches (weighted Kabsch),
-    composed on the left: $T \\leftarrow \\Delta T \\cdot T$."""
+    r"""The rigid motion that best maps the moved source onto its matches (weighted Kabsch),
+    composed on the left: $T \leftarrow \Delta T \cdot T$."""
     moved = transform_points(params, source)
     weights = inliers.astype(params.dtype) * loss_weights(jnp.sum((moved - matched) ** 2, axis=-1))
     total = jnp.maximum(jnp.sum(weights), jnp.finfo(params.dtype).tiny)

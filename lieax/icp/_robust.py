@@ -1,4 +1,4 @@
-"""Robust losses inside the ICP loops: IRLS weights $\\rho'(s)$ of squared residuals $s$.
+r"""Robust losses inside the ICP loops: IRLS weights $\rho'(s)$ of squared residuals $s$.
 
 The `lieax.lstsq` losses (and no loss) travel as a traced `(kind, scale)` pair, so that every
 loss shares one compiled loop; any other object with a `weight(s)` method is a static argument.
@@ -31,7 +31,7 @@ def split_loss(loss):
 
 
 def loss_weights(loss, static_loss, squared):
-    """IRLS weights $\\rho'(s)$ of squared residuals (differentiable in `s` and the scale)."""
+    r"""IRLS weights $\rho'(s)$ of squared residuals (differentiable in `s` and the scale)."""
     if static_loss is not None:
         return static_loss.weight(squared)
     kind, scale = loss

@@ -1,12 +1,12 @@
-"""IMU factors for `lieax.factorgraph`: the preintegrated IMU factor between
+r"""IMU factors for `lieax.factorgraph`: the preintegrated IMU factor between
 $(T_i, v_i, T_j, v_j, b_i)$ and the bias random walk between $(b_i, b_j)$.
 
-The states are an `SE3` pose $T_{nb}$ and a navigation-frame velocity in $\\mathbb{R}^3$ (GTSAM's
+The states are an `SE3` pose $T_{nb}$ and a navigation-frame velocity in $\mathbb{R}^3$ (GTSAM's
 `ImuFactor` / `CombinedImuFactor` variables, so graphs and Jacobians map one to one), biases
-$(b_a, b_g) \\in \\mathbb{R}^6$. The residual is GTSAM's `ImuFactorErrorMode.ComponentWise`
+$(b_a, b_g) \in \mathbb{R}^6$. The residual is GTSAM's `ImuFactorErrorMode.ComponentWise`
 error, the prediction in the local coordinates of $x_j$ (`PreintegrationBase::computeError`):
-$r = (\\mathrm{Log}(R_j^\\top \\hat R_j),\\ R_j^\\top(\\hat p_j - p_j),\\ R_j^\\top(\\hat v_j - v_j))$
-with $(\\hat T_j, \\hat v_j)$ = `predict`, whitened by `Preintegrated.residual_covariance` (the
+$r = (\mathrm{Log}(R_j^\top \hat R_j),\ R_j^\top(\hat p_j - p_j),\ R_j^\top(\hat v_j - v_j))$
+with $(\hat T_j, \hat v_j)$ = `predict`, whitened by `Preintegrated.residual_covariance` (the
 preintegrated covariance mapped into the residual's coordinates, as GTSAM 4.3's `ImuFactor`).
 Jacobians come from the groups' closed-form rules through `lieax.value_and_jacobian`.
 Conventions: the README's "Conventions"; GTSAM's mapping in `lieax.conventions`.
@@ -21,7 +21,7 @@ from ._preintegration import ImuError, ImuParams, Preintegrated, predict
 
 
 def imu_residual(pose_i, velocity_i, pose_j, velocity_j, bias_i, pim: Preintegrated, params):
-    """The unwhitened 9-vector $(r_\\theta, r_p, r_v)$ of one IMU factor (module docstring):
+    r"""The unwhitened 9-vector $(r_\theta, r_p, r_v)$ of one IMU factor (module docstring):
     `pose_i`, `pose_j` `SE3` ($T_{nb}$), velocities `(3,)`, `bias_i` `(6,)`, `pim` one interval."""
     pose_hat, velocity_hat = predict(pim, pose_i, velocity_i, bias_i, params)
     rotation_j = pose_j.rotation()
@@ -34,7 +34,7 @@ def imu_residual(pose_i, velocity_i, pose_j, velocity_j, bias_i, pim: Preintegra
 def imu_factor(
     pim: Preintegrated, params: ImuParams, pose_i, velocity_i, pose_j, velocity_j, bias_i
 ):
-    """A `Factor` kind of IMU factors, one per interval of the batched `pim` (`(m,)`).
+    r"""A `Factor` kind of IMU factors, one per interval of the batched `pim` (`(m,)`).
 
     **Arguments:**
     - `pim`: a `Preintegrated` batched `(m,)` (e.g. `vmap(preintegrate)` over intervals).
@@ -42,7 +42,7 @@ def imu_factor(
     - `pose_i`, `velocity_i`, `pose_j`, `velocity_j`, `bias_i`: `var[index]` references, index
       arrays `(m,)` (poses an `SE3` `Var`, velocities `(n, 3)`, biases `(n, 6)`).
 
-    **Returns:** a `Factor` with information $\\Sigma_r^{-1}$, $\\Sigma_r$ each interval's
+    **Returns:** a `Factor` with information $\Sigma_r^{-1}$, $\Sigma_r$ each interval's
     `residual_covariance()`.
     Raises `ImuError` when a `pim` is invalid or its covariance is not positive definite.
     """
@@ -69,8 +69,8 @@ def imu_factor(
 
 
 def bias_random_walk_factor(bias_i, bias_j, delta_t, accel_bias_sigma, gyro_bias_sigma):
-    """A `Factor` kind $r = b_j - b_i$ with covariance
-    $\\Delta t\\,\\mathrm{diag}(\\sigma_{b_a}^2 I, \\sigma_{b_g}^2 I)$: the bias random walk of
+    r"""A `Factor` kind $r = b_j - b_i$ with covariance
+    $\Delta t\,\mathrm{diag}(\sigma_{b_a}^2 I, \sigma_{b_g}^2 I)$: the bias random walk of
     GTSAM's `CombinedImuFactor` (`biasAccCovariance`, `biasOmegaCovariance`, continuous time),
     without its coupling of the bias noise into the navigation covariance (as
     `ImuFactor` + `BetweenFactor<ConstantBias>`).

@@ -1,12 +1,12 @@
-"""IMU preintegration between two keyframes: the increments, their covariance and their first-order
+r"""IMU preintegration between two keyframes: the increments, their covariance and their first-order
 bias correction, by a sequential `lax.scan` (GTSAM's `TangentPreintegration`, exactly) or by a
 tree reduction of logarithmic depth over the composable per-sample increments.
 
 Forster, Carlone, Dellaert and Scaramuzza, "On-Manifold Preintegration for Real-Time
 Visual-Inertial Odometry", T-RO 2017; GTSAM 4.3's `PreintegratedImuMeasurements` (its default
 backend is `TangentPreintegration`, which the installed Python `gtsam` uses: it exposes
-`preintegrated()`). The preintegrated vector is $(\\theta, \\Delta p, \\Delta v)$ with
-$\\Delta R = \\mathrm{Exp}(\\theta)$, all in the body frame at keyframe $i$; the covariance and the
+`preintegrated()`). The preintegrated vector is $(\theta, \Delta p, \Delta v)$ with
+$\Delta R = \mathrm{Exp}(\theta)$, all in the body frame at keyframe $i$; the covariance and the
 bias Jacobians are in the same order (GTSAM's `preintMeasCov`, `preintegrated_H_biasAcc`,
 `preintegrated_H_biasOmega`). Biases are 6-vectors $(b_a, b_g)$, GTSAM's
 `imuBias.ConstantBias.vector()` order. Conventions: the README's "Conventions".
@@ -31,13 +31,13 @@ class ImuError(ValueError):
 
 
 class ImuParams(NamedTuple):
-    """Preintegration parameters (GTSAM's `PreintegrationParams`), a pytree.
+    r"""Preintegration parameters (GTSAM's `PreintegrationParams`), a pytree.
 
     **Fields:**
-    - `accelerometer_covariance`: $\\Sigma_a$, `(3, 3)`, continuous time
-      ((m/s²)²/Hz, the noise density squared; the discrete covariance is $\\Sigma_a / \\delta t$).
-    - `gyroscope_covariance`: $\\Sigma_g$, `(3, 3)`, (rad/s)²/Hz.
-    - `integration_covariance`: $\\Sigma_i$, `(3, 3)`, added to the position as $\\Sigma_i\\,\\delta t$.
+    - `accelerometer_covariance`: $\Sigma_a$, `(3, 3)`, continuous time
+      ((m/s²)²/Hz, the noise density squared; the discrete covariance is $\Sigma_a / \delta t$).
+    - `gyroscope_covariance`: $\Sigma_g$, `(3, 3)`, (rad/s)²/Hz.
+    - `integration_covariance`: $\Sigma_i$, `(3, 3)`, added to the position as $\Sigma_i\,\delta t$.
     - `n_gravity`: gravity in the navigation frame, `(3,)`.
     - `body_P_sensor`: the sensor's pose in the body frame (`SE3`), or `None` for the identity.
     """
@@ -58,8 +58,8 @@ class ImuParams(NamedTuple):
         integration_sigma=0.0,
         body_P_sensor=None,
     ):
-        """Z up, gravity along $-z$ (GTSAM's `PreintegrationParams.MakeSharedU(g)`), with isotropic
-        covariances $\\sigma^2 I$ from the noise densities (m/s²/√Hz, rad/s/√Hz) and the
+        r"""Z up, gravity along $-z$ (GTSAM's `PreintegrationParams.MakeSharedU(g)`), with isotropic
+        covariances $\sigma^2 I$ from the noise densities (m/s²/√Hz, rad/s/√Hz) and the
         integration sigma."""
         eye = np.eye(3)
         return cls(
@@ -72,14 +72,14 @@ class ImuParams(NamedTuple):
 
 
 class Preintegrated(NamedTuple):
-    """Preintegrated IMU measurements of one interval (or a batch of them), a pytree.
+    r"""Preintegrated IMU measurements of one interval (or a batch of them), a pytree.
 
     **Fields:**
-    - `theta`, `delta_p`, `delta_v`: the preintegrated vector $(\\theta, \\Delta p, \\Delta v)$,
-      each `(*batch, 3)`; $\\Delta R = \\mathrm{Exp}(\\theta)$ (`delta_R`).
-    - `delta_t`: $\\Delta t_{ij}$, `(*batch,)`.
-    - `covariance`: `(*batch, 9, 9)` in the order $(\\theta, \\Delta p, \\Delta v)$ (`preintMeasCov`).
-    - `jacobian_bias`: $\\partial(\\theta, \\Delta p, \\Delta v) / \\partial(b_a, b_g)$, `(*batch, 9, 6)`
+    - `theta`, `delta_p`, `delta_v`: the preintegrated vector $(\theta, \Delta p, \Delta v)$,
+      each `(*batch, 3)`; $\Delta R = \mathrm{Exp}(\theta)$ (`delta_R`).
+    - `delta_t`: $\Delta t_{ij}$, `(*batch,)`.
+    - `covariance`: `(*batch, 9, 9)` in the order $(\theta, \Delta p, \Delta v)$ (`preintMeasCov`).
+    - `jacobian_bias`: $\partial(\theta, \Delta p, \Delta v) / \partial(b_a, b_g)$, `(*batch, 9, 6)`
       (`[preintegrated_H_biasAcc, preintegrated_H_biasOmega]`).
     - `bias_hat`: the bias the samples were corrected with, `(*batch, 6)`.
     - `valid`: `False` where the samples were non-finite or a `dt` was not positive (found
@@ -101,8 +101,8 @@ class Preintegrated(NamedTuple):
 
     @property
     def J_theta_bias_gyro(self) -> jax.Array:
-        """$\\partial\\theta / \\partial b_g$ (GTSAM `ManifoldPreintegration`'s `delRdelBiasOmega`
-        to first order at small $\\theta$)."""
+        r"""$\partial\theta / \partial b_g$ (GTSAM `ManifoldPreintegration`'s `delRdelBiasOmega`
+        to first order at small $\theta$)."""
         return self.jacobian_bias[..., 0:3, 3:6]
 
     @property
@@ -122,11 +122,11 @@ class Preintegrated(NamedTuple):
         return self.jacobian_bias[..., 6:9, 3:6]
 
     def residual_covariance(self):
-        """The covariance of the IMU factor's residual (`lieax.imu.imu_residual`), `(*batch, 9, 9)`:
+        r"""The covariance of the IMU factor's residual (`lieax.imu.imu_residual`), `(*batch, 9, 9)`:
         `covariance` pushed through the residual's Jacobian at zero residual,
-        $M \\Sigma M^\\top$ with $M = \\mathrm{diag}(J_r(\\theta), \\Delta R^\\top, \\Delta R^\\top)$
-        (the rotation error is $\\mathrm{Log}(\\mathrm{Exp}(\\theta)^{-1}\\mathrm{Exp}(\\theta + \\delta))
-        \\approx J_r(\\theta)\\delta$; position and velocity errors are in frame $j$). GTSAM 4.3's
+        $M \Sigma M^\top$ with $M = \mathrm{diag}(J_r(\theta), \Delta R^\top, \Delta R^\top)$
+        (the rotation error is $\mathrm{Log}(\mathrm{Exp}(\theta)^{-1}\mathrm{Exp}(\theta + \delta))
+        \approx J_r(\theta)\delta$; position and velocity errors are in frame $j$). GTSAM 4.3's
         `residualCovariance()`, which its `ImuFactor` whitens with."""
         rotation_t = jnp.swapaxes(so3.as_matrix(so3.exp(self.theta)), -1, -2)
         jr = so3.right_jacobian(self.theta)
@@ -142,7 +142,7 @@ class Preintegrated(NamedTuple):
         return m @ self.covariance @ jnp.swapaxes(m, -1, -2)
 
     def bias_corrected(self, bias):
-        """$(\\theta, \\Delta p, \\Delta v) + J_b (b - \\hat b)$, `(*batch, 9)` (GTSAM's
+        r"""$(\theta, \Delta p, \Delta v) + J_b (b - \hat b)$, `(*batch, 9)` (GTSAM's
         `biasCorrectedDelta`, first order in the bias change)."""
         vector = jnp.concatenate([self.theta, self.delta_p, self.delta_v], axis=-1)
         return vector + matvec(self.jacobian_bias, bias - self.bias_hat)
@@ -198,11 +198,11 @@ def _check_samples(gyro, accel, dt, bias, params):
 
 
 def _corrected(accel, gyro, bias, params):
-    """Bias- and sensor-pose-corrected body-frame $(a, \\omega)$ and the blocks
-    $(\\partial a/\\partial\\tilde a, \\partial a/\\partial\\tilde\\omega, \\partial\\omega/\\partial\\tilde\\omega)$
+    r"""Bias- and sensor-pose-corrected body-frame $(a, \omega)$ and the blocks
+    $(\partial a/\partial\tilde a, \partial a/\partial\tilde\omega, \partial\omega/\partial\tilde\omega)$
     (`None` without a sensor pose), GTSAM's
-    `correctMeasurementsBySensorPose`: $\\omega = {}^bR_s \\omega_s$,
-    $a = {}^bR_s a_s - \\omega \\times (\\omega \\times r)$ with $r$ the lever arm."""
+    `correctMeasurementsBySensorPose`: $\omega = {}^bR_s \omega_s$,
+    $a = {}^bR_s a_s - \omega \times (\omega \times r)$ with $r$ the lever arm."""
     acc, omega = accel - bias[:3], gyro - bias[3:]
     if params.body_P_sensor is None:
         return acc, omega, None
@@ -223,12 +223,12 @@ def _corrected(accel, gyro, bias, params):
 
 
 def _so3_at(theta, omega):
-    """$R = \\mathrm{Exp}(\\theta) = I + g_1 W + g_2 W^2$, $J_r = I - g_2 W + g_3 W^2$,
-    $J_r^{-1} = I + \\tfrac12 W + D W^2$ ($W = [\\theta]_\\times$, $g_n$, $D$ of `lieax.groups._so3`,
-    Solà eqs. 77, 143, 144) and $\\partial(J_r^{-1}(\\theta)\\omega)/\\partial\\theta =
-    -\\tfrac12[\\omega]_\\times + D\\,((\\theta\\cdot\\omega) I + \\theta\\omega^\\top - 2\\omega\\theta^\\top)
-    + 2D'(s)\\,\\theta\\times(\\theta\\times\\omega)\\,\\theta^\\top$ (GTSAM's `DexpFunctor`, its
-    `applyInvDexp` derivative), sharing one $s = \\theta^2$ and one $W^2$."""
+    r"""$R = \mathrm{Exp}(\theta) = I + g_1 W + g_2 W^2$, $J_r = I - g_2 W + g_3 W^2$,
+    $J_r^{-1} = I + \tfrac12 W + D W^2$ ($W = [\theta]_\times$, $g_n$, $D$ of `lieax.groups._so3`,
+    Solà eqs. 77, 143, 144) and $\partial(J_r^{-1}(\theta)\omega)/\partial\theta =
+    -\tfrac12[\omega]_\times + D\,((\theta\cdot\omega) I + \theta\omega^\top - 2\omega\theta^\top)
+    + 2D'(s)\,\theta\times(\theta\times\omega)\,\theta^\top$ (GTSAM's `DexpFunctor`, its
+    `applyInvDexp` derivative), sharing one $s = \theta^2$ and one $W^2$."""
     s = jnp.dot(theta, theta)
     w = skew(theta)
     w2 = w @ w
@@ -249,15 +249,15 @@ def _so3_at(theta, omega):
 
 
 def _tangent_step(carry, sample, bias, params):
-    """One `TangentPreintegration::update` and `integrateMeasurement` covariance step:
-    $\\theta^+ = \\theta + J_r^{-1}(\\theta)\\omega\\delta t$, $p^+ = p + v\\delta t + \\tfrac12 R a
-    \\delta t^2$, $v^+ = v + R a \\delta t$ with $R = \\mathrm{Exp}(\\theta)$ before the update;
-    $\\Sigma^+ = A\\Sigma A^\\top + B\\frac{\\Sigma_a}{\\delta t}B^\\top + C\\frac{\\Sigma_g}{\\delta t}C^\\top
-    + \\Sigma_i\\delta t$ (position block), $J_b^+ = A J_b - [B, C]$, with
-    $A = [[I + \\partial_\\theta(J_r^{-1}\\omega)\\delta t, 0, 0], [H\\tfrac{\\delta t^2}2, I, I\\delta t],
-    [H\\delta t, 0, I]]$, $H = -R[a]_\\times J_r(\\theta)$, $B = [0; R\\tfrac{\\delta t^2}2; R\\delta t]$,
-    $C = [J_r^{-1}(\\theta)\\delta t; 0; 0]$, evaluated on 3×3 blocks (the velocity rows of $A$, $B$
-    are $2/\\delta t$ times the position rows'). The covariance `s` is its six upper blocks
+    r"""One `TangentPreintegration::update` and `integrateMeasurement` covariance step:
+    $\theta^+ = \theta + J_r^{-1}(\theta)\omega\delta t$, $p^+ = p + v\delta t + \tfrac12 R a
+    \delta t^2$, $v^+ = v + R a \delta t$ with $R = \mathrm{Exp}(\theta)$ before the update;
+    $\Sigma^+ = A\Sigma A^\top + B\frac{\Sigma_a}{\delta t}B^\top + C\frac{\Sigma_g}{\delta t}C^\top
+    + \Sigma_i\delta t$ (position block), $J_b^+ = A J_b - [B, C]$, with
+    $A = [[I + \partial_\theta(J_r^{-1}\omega)\delta t, 0, 0], [H\tfrac{\delta t^2}2, I, I\delta t],
+    [H\delta t, 0, I]]$, $H = -R[a]_\times J_r(\theta)$, $B = [0; R\tfrac{\delta t^2}2; R\delta t]$,
+    $C = [J_r^{-1}(\theta)\delta t; 0; 0]$, evaluated on 3×3 blocks (the velocity rows of $A$, $B$
+    are $2/\delta t$ times the position rows'). The covariance `s` is its six upper blocks
     `(θθ, θp, θv, pp, pv, vv)`, the bias Jacobian `j` its three row blocks."""
     x, s, j = carry
     gyro, accel, dt = sample
@@ -303,15 +303,15 @@ def _tangent_step(carry, sample, bias, params):
 
 
 def preintegrate(gyro, accel, dt, bias, params: ImuParams) -> Preintegrated:
-    """Preintegrate the samples of one interval by a sequential `lax.scan`, exactly as GTSAM's
+    r"""Preintegrate the samples of one interval by a sequential `lax.scan`, exactly as GTSAM's
     `PreintegratedImuMeasurements(params, bias).integrateMeasurement(accel[k], gyro[k], dt[k])`
-    for $k = 0 \\dots N-1$ (see `_tangent_step`). `vmap` it over intervals.
+    for $k = 0 \dots N-1$ (see `_tangent_step`). `vmap` it over intervals.
 
     **Arguments:**
     - `gyro`, `accel`: samples in the sensor frame, `(N, 3)` each (rad/s, m/s²).
     - `dt`: the time each sample is held, a scalar or `(N,)`; from timestamps
       `t` (`N + 1` of them), `dt = jnp.diff(t)`.
-    - `bias`: $\\hat b = (b_a, b_g)$, `(6,)`.
+    - `bias`: $\hat b = (b_a, b_g)$, `(6,)`.
     - `params`: an `ImuParams`.
 
     **Returns:** a `Preintegrated`. Raises `ImuError` on bad shapes, and, outside tracing, on
@@ -345,9 +345,9 @@ def _result(x, delta_t, cov, jac, bias, ok):
 
 
 class _Increment(NamedTuple):
-    """$U = (\\Delta R, \\Delta v, \\Delta p, \\Delta t)$ with the affine maps of its right-local error
-    $\\xi = (\\delta\\theta, \\delta p, \\delta v)$: $\\xi \\mapsto A\\xi + G\\,\\delta b$ (bias) and
-    $\\Sigma \\mapsto A \\Sigma A^\\top + Q$ (noise)."""
+    r"""$U = (\Delta R, \Delta v, \Delta p, \Delta t)$ with the affine maps of its right-local error
+    $\xi = (\delta\theta, \delta p, \delta v)$: $\xi \mapsto A\xi + G\,\delta b$ (bias) and
+    $\Sigma \mapsto A \Sigma A^\top + Q$ (noise)."""
 
     rotation: jax.Array
     v: jax.Array
@@ -359,9 +359,9 @@ class _Increment(NamedTuple):
 
 
 def _compose(e1, e2):
-    """$U_1 U_2 = (R_1R_2,\\ v_1 + R_1 v_2,\\ p_1 + v_1 t_2 + R_1 p_2,\\ t_1 + t_2)$ (the extended
+    r"""$U_1 U_2 = (R_1R_2,\ v_1 + R_1 v_2,\ p_1 + v_1 t_2 + R_1 p_2,\ t_1 + t_2)$ (the extended
     pose with time, Brossard et al., "Associating uncertainty to extended poses", 2022);
-    $A = A_2A_1$, $G = A_2G_1 + G_2$, $Q = A_2 Q_1 A_2^\\top + Q_2$. Associative."""
+    $A = A_2A_1$, $G = A_2G_1 + G_2$, $Q = A_2 Q_1 A_2^\top + Q_2$. Associative."""
     a2t = jnp.swapaxes(e2.a, -1, -2)
     return _Increment(
         e1.rotation @ e2.rotation,
@@ -375,11 +375,11 @@ def _compose(e1, e2):
 
 
 def _sample_increment(gyro, accel, dt, bias, params):
-    """One sample's $U = (\\mathrm{Exp}(\\omega\\delta t), a\\delta t, \\tfrac12 a\\delta t^2, \\delta t)$;
-    the right-local error maps as $\\delta\\theta' = U_R^\\top\\delta\\theta$,
-    $\\delta p' = U_R^\\top(\\delta p + \\delta t\\,\\delta v - [u_p]_\\times\\delta\\theta)$,
-    $\\delta v' = U_R^\\top(\\delta v - [u_v]_\\times\\delta\\theta)$; a sample error moves it by
-    $-J_r(\\omega\\delta t)\\delta t\\,\\delta\\omega$, $-U_R^\\top(\\tfrac12\\delta t^2, \\delta t)\\,\\delta a$."""
+    r"""One sample's $U = (\mathrm{Exp}(\omega\delta t), a\delta t, \tfrac12 a\delta t^2, \delta t)$;
+    the right-local error maps as $\delta\theta' = U_R^\top\delta\theta$,
+    $\delta p' = U_R^\top(\delta p + \delta t\,\delta v - [u_p]_\times\delta\theta)$,
+    $\delta v' = U_R^\top(\delta v - [u_v]_\times\delta\theta)$; a sample error moves it by
+    $-J_r(\omega\delta t)\delta t\,\delta\omega$, $-U_R^\top(\tfrac12\delta t^2, \delta t)\,\delta a$."""
     acc, omega, d = _corrected(accel, gyro, bias, params)
     zero = jnp.zeros((3, 3), dtype=acc.dtype)
     rotation = so3.as_matrix(so3.exp(omega * dt))
@@ -407,21 +407,21 @@ def _sample_increment(gyro, accel, dt, bias, params):
 
 
 def preintegrate_associative(gyro, accel, dt, bias, params: ImuParams) -> Preintegrated:
-    """Preintegrate one interval by a pairwise tree reduction of the per-sample increments
-    (`_compose`), of depth $\\lceil\\log_2 N\\rceil$, instead of `preintegrate`'s $N$ sequential
+    r"""Preintegrate one interval by a pairwise tree reduction of the per-sample increments
+    (`_compose`), of depth $\lceil\log_2 N\rceil$, instead of `preintegrate`'s $N$ sequential
     steps; same arguments and result.
 
-    The increments compose exactly, so $\\Delta R, \\Delta v, \\Delta p$ are the group product
-    $\\prod_k (\\mathrm{Exp}(\\omega_k\\delta t_k), \\dots)$, which differs from GTSAM's tangent
-    recursion $\\theta^+ = \\theta + J_r^{-1}(\\theta)\\omega\\delta t$ by $O(|\\omega\\delta t|^2)$ per
-    sample (the tangent recursion is a first-order integrator of $\\dot\\theta =
-    J_r^{-1}(\\theta)\\omega$; the product is exact for piecewise constant $\\omega$). The covariance
-    and bias Jacobians are propagated in the right-local error and mapped to $(\\theta, \\Delta p,
-    \\Delta v)$ at the end by $\\mathrm{diag}(J_r^{-1}(\\theta), \\Delta R, \\Delta R)$; the
+    The increments compose exactly, so $\Delta R, \Delta v, \Delta p$ are the group product
+    $\prod_k (\mathrm{Exp}(\omega_k\delta t_k), \dots)$, which differs from GTSAM's tangent
+    recursion $\theta^+ = \theta + J_r^{-1}(\theta)\omega\delta t$ by $O(|\omega\delta t|^2)$ per
+    sample (the tangent recursion is a first-order integrator of $\dot\theta =
+    J_r^{-1}(\theta)\omega$; the product is exact for piecewise constant $\omega$). The covariance
+    and bias Jacobians are propagated in the right-local error and mapped to $(\theta, \Delta p,
+    \Delta v)$ at the end by $\mathrm{diag}(J_r^{-1}(\theta), \Delta R, \Delta R)$; the
     integration covariance is added in the local frame ($= $ GTSAM's for isotropic
-    $\\Sigma_i$). Measured (`benchmarks/imu.py`, 1000 one-second intervals at 200 Hz of a
+    $\Sigma_i$). Measured (`benchmarks/imu.py`, 1000 one-second intervals at 200 Hz of a
     driving vehicle): largest relative difference to the sequential scan 9e-8 in
-    $(\\theta, \\Delta p, \\Delta v)$, 2e-6 in the covariance; it halves when $\\delta t$ halves
+    $(\theta, \Delta p, \Delta v)$, 2e-6 in the covariance; it halves when $\delta t$ halves
     (`tests/test_imu.py`). On a CPU it is slower than the scan (dense 9×9 products at each
     level); it is meant for accelerators and long intervals.
     """
@@ -457,10 +457,10 @@ def _identity(dt):
 
 
 def predict(pim: Preintegrated, pose_i: SE3, velocity_i, bias, params: ImuParams):
-    """The state at $j$ from the state at $i$ (GTSAM's `PreintegrationBase::predict`, without
-    Coriolis): with $(\\theta, \\Delta p, \\Delta v)$ = `pim.bias_corrected(bias)`,
-    $R_j = R_i \\mathrm{Exp}(\\theta)$, $p_j = p_i + R_i \\Delta p + v_i \\Delta t + \\tfrac12 g
-    \\Delta t^2$, $v_j = v_i + R_i \\Delta v + g \\Delta t$.
+    r"""The state at $j$ from the state at $i$ (GTSAM's `PreintegrationBase::predict`, without
+    Coriolis): with $(\theta, \Delta p, \Delta v)$ = `pim.bias_corrected(bias)`,
+    $R_j = R_i \mathrm{Exp}(\theta)$, $p_j = p_i + R_i \Delta p + v_i \Delta t + \tfrac12 g
+    \Delta t^2$, $v_j = v_i + R_i \Delta v + g \Delta t$.
 
     **Arguments:** `pim` (one interval), `pose_i` ($T_{nb}$, `SE3`), `velocity_i` (navigation
     frame, `(3,)`), `bias` `(6,)`, `params` (for `n_gravity`).

@@ -4,13 +4,13 @@ from ._common import byte_error
 
 
 def lzf_decompress(data, size, path, offset) -> bytes:
-    """Decompress LZF `data` to exactly `size` bytes, refusing a corrupt stream as liblzf's
+    r"""Decompress LZF `data` to exactly `size` bytes, refusing a corrupt stream as liblzf's
     `lzf_decompress` does.
 
     The stream is a sequence of chunks, each opened by a control byte $c$: $c < 32$ is a literal
     run of the next $c + 1$ bytes; otherwise a back reference copies $L + 2$ bytes from $d$ bytes
-    before the end of the output, where $L = c \\gg 5$ (plus the next byte when $L = 7$) and
-    $d = ((c \\mathbin{\\&} 31) \\ll 8) + b + 1$ with $b$ the byte after (liblzf's `lzf_d.c`). A
+    before the end of the output, where $L = c \gg 5$ (plus the next byte when $L = 7$) and
+    $d = ((c \mathbin{\&} 31) \ll 8) + b + 1$ with $b$ the byte after (liblzf's `lzf_d.c`). A
     copy may overlap its own output, repeating its last $d$ bytes.
 
     **Arguments:**

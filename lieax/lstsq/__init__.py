@@ -1,8 +1,8 @@
-"""Nonlinear least squares on manifolds: Gauss-Newton and Levenberg-Marquardt over states that
+r"""Nonlinear least squares on manifolds: Gauss-Newton and Levenberg-Marquardt over states that
 mix lieax groups and arrays, robust losses, solves that batch under `vmap`, and implicit
 derivatives of a solution.
 
-Conventions (right perturbation $x \\oplus \\delta$, tangent layouts): the README's "Conventions".
+Conventions (right perturbation $x \oplus \delta$, tangent layouts): the README's "Conventions".
 """
 
 from ._least_squares import least_squares

@@ -1,21 +1,21 @@
-"""Derivatives of a converged solution by the implicit function theorem, in tangent coordinates.
+r"""Derivatives of a converged solution by the implicit function theorem, in tangent coordinates.
 
-At a minimum $x^*(\\theta)$ of $f(x, \\theta) = \\tfrac12 \\sum_i \\rho(\\|r_i(x, \\theta)\\|^2)$
-the tangent-space gradient $g(\\delta, \\theta) = \\nabla_\\delta f(x^* \\oplus \\delta, \\theta)$
-vanishes at $\\delta = 0$. Differentiating $g(\\delta(\\theta), \\theta) = 0$ (Ceres' notes, "Using
+At a minimum $x^*(\theta)$ of $f(x, \theta) = \tfrac12 \sum_i \rho(\|r_i(x, \theta)\|^2)$
+the tangent-space gradient $g(\delta, \theta) = \nabla_\delta f(x^* \oplus \delta, \theta)$
+vanishes at $\delta = 0$. Differentiating $g(\delta(\theta), \theta) = 0$ (Ceres' notes, "Using
 Inverse & Implicit Function Theorems", on the solution of an optimization problem) gives
 
-$$\\dot\\delta = -H^{-1}\\,\\frac{\\partial g}{\\partial \\theta}\\,\\dot\\theta, \\qquad
-H = \\frac{\\partial g}{\\partial \\delta}
-  = \\nabla^2_\\delta f(x^* \\oplus \\delta, \\theta)\\big|_{\\delta=0},$$
+$$\dot\delta = -H^{-1}\,\frac{\partial g}{\partial \theta}\,\dot\theta, \qquad
+H = \frac{\partial g}{\partial \delta}
+  = \nabla^2_\delta f(x^* \oplus \delta, \theta)\big|_{\delta=0},$$
 
 with the exact Hessian of the (robust) cost in tangent coordinates, not the Gauss-Newton one, so
-that problems with nonzero residuals get exact derivatives. $\\dot\\delta$ is a right-local
+that problems with nonzero residuals get exact derivatives. $\dot\delta$ is a right-local
 tangent; each group leaf's JAX tangent is made from it by `leaf_tangent_from_local`. The cost
-moves by $\\partial f / \\partial \\theta\\,\\dot\\theta$ (its derivative through $x^*$ vanishes
+moves by $\partial f / \partial \theta\,\dot\theta$ (its derivative through $x^*$ vanishes
 with $g$). No iteration is unrolled: the rule costs one Hessian ($n$ forward passes over one
-reverse pass of the residual) and one $n \\times n$ Cholesky solve, and it is linear in
-$\\dot\\theta$, so JAX transposes it for `jax.grad`.
+reverse pass of the residual) and one $n \times n$ Cholesky solve, and it is linear in
+$\dot\theta$, so JAX transposes it for `jax.grad`.
 """
 
 import functools

@@ -1,10 +1,10 @@
-"""`least_squares`: the solve loop, compiled once as a `lax.while_loop`, with its status logic,
+r"""`least_squares`: the solve loop, compiled once as a `lax.while_loop`, with its status logic,
 its tolerances and the verbose iteration table.
 
-Each iteration evaluates the cost, $H = J^\\top W J$ and $g = J^\\top W r$ at the trial point
-$x \\oplus \\delta$ the previous iteration chose (one linearization of the residual; the first
+Each iteration evaluates the cost, $H = J^\top W J$ and $g = J^\top W r$ at the trial point
+$x \oplus \delta$ the previous iteration chose (one linearization of the residual; the first
 iteration evaluates $x_0$), keeps or rejects it on the gain ratio
-$\\varrho = (c(x) - c(x \\oplus \\delta)) / (-g^\\top\\delta - \\tfrac12 \\delta^\\top H \\delta)$,
+$\varrho = (c(x) - c(x \oplus \delta)) / (-g^\top\delta - \tfrac12 \delta^\top H \delta)$,
 checks the stopping rules, and solves the normal equations at the kept point for the next step.
 Every problem of a `vmap` runs this same loop in lockstep; a problem that has stopped keeps its
 state while the others run on (the batching rule of `while_loop`).
@@ -60,9 +60,9 @@ def least_squares(
     verbose: bool = False,
     throw: bool = True,
 ) -> Solution:
-    """Minimizes $\\tfrac12 \\sum_i \\rho(\\|r_i(x, \\text{args})\\|^2)$ over a state `x` that
-    mixes group elements and arrays, every update a retraction $x \\leftarrow x \\oplus \\delta$
-    ($x \\leftarrow \\mathcal{R}_x(\\delta)$ with another `retraction`).
+    r"""Minimizes $\tfrac12 \sum_i \rho(\|r_i(x, \text{args})\|^2)$ over a state `x` that
+    mixes group elements and arrays, every update a retraction $x \leftarrow x \oplus \delta$
+    ($x \leftarrow \mathcal{R}_x(\delta)$ with another `retraction`).
 
     **Arguments:**
     - `residual_fn`: `residual_fn(x, args)` returns an array or a pytree of arrays (typically one
@@ -80,20 +80,20 @@ def least_squares(
       fraction of it, or a rejected step was predicted to decrease it by less (0 turns the test
       off).
     - `gradient_tolerance`: converged when
-      $\\max_j |g_j| / (c_j \\|r\\|) \\le \\text{tol}$, the largest cosine between the (weighted)
-      residual and a column of the Jacobian, $g = J^\\top W r$, $c_j$ the column's norm and
-      $\\|r\\| = \\sqrt{2\\,\\text{cost}}$ (MINPACK's `gtol`; a zero residual passes): independent
+      $\max_j |g_j| / (c_j \|r\|) \le \text{tol}$, the largest cosine between the (weighted)
+      residual and a column of the Jacobian, $g = J^\top W r$, $c_j$ the column's norm and
+      $\|r\| = \sqrt{2\,\text{cost}}$ (MINPACK's `gtol`; a zero residual passes): independent
       of the units of the unknowns and of the residual. At `x0`, where no step has been tried,
       only an exactly zero gradient (a stationary start, such as a zero residual) stops the
       solve, with `iterations == 0`.
-    - `parameter_tolerance`: converged when a step $\\delta$ has
-      $\\|D\\delta\\| \\le \\text{tol}\\,(\\|D|x|\\| + \\text{tol}\\,\\|d\\|/\\sqrt{n})$, with
-      $D = \\mathrm{diag}(d)$ the solver's scaling of the variables (`solver.scale`: for
+    - `parameter_tolerance`: converged when a step $\delta$ has
+      $\|D\delta\| \le \text{tol}\,(\|D|x|\| + \text{tol}\,\|d\|/\sqrt{n})$, with
+      $D = \mathrm{diag}(d)$ the solver's scaling of the variables (`solver.scale`: for
       `LevenbergMarquardt()` the largest column norms of the Jacobian so far; the identity for
       `GaussNewton()`), $|x|$ the state's magnitude per tangent coordinate (an array's absolute
       values; a group element's parameter norm spread over its coordinates) and $n$ the tangent
       dimension: relative to the state as MINPACK's `xtol`, so that it holds for unknowns of any
-      size (with $D = I$: $\\|\\delta\\| \\le \\text{tol}\\,(\\|x\\| + \\text{tol})$).
+      size (with $D = I$: $\|\delta\| \le \text{tol}\,(\|x\| + \text{tol})$).
       The three tolerances default to $10^{-10}$ in float64 and $10^{-6}$ in float32. Every
       test is relative (to the cost, the residual norm, the state): multiplying the residual by a
       constant changes neither the iterates (up to rounding) nor the status, with the default
@@ -106,9 +106,9 @@ def least_squares(
       loop runs as a `lax.scan` of `max_iterations + 1` masked iterations and JAX differentiates
       through it (for comparison: every iteration runs, and reverse mode stores them all).
     - `retraction`: how a step moves the state, from `lieax.retractions`: `exp` (default,
-      $X\\,\\mathrm{Exp}(\\delta)$), `cayley` (SO3, SE3) or `first_order` (SE3); leaves it has
+      $X\,\mathrm{Exp}(\delta)$), `cayley` (SO3, SE3) or `first_order` (SE3); leaves it has
       no rule for move by `exp`. The Jacobians are the same (every retraction's derivative at
-      $\\delta = 0$ is the identity), and so is the optimum (a zero of the gradient); the
+      $\delta = 0$ is the identity), and so is the optimum (a zero of the gradient); the
       iterates differ at second order in the step. Compiled once per retraction.
     - `verbose`: print an iteration table (cost, cost change, the gradient and step norms that
       the stopping rules compare with their tolerances, gain ratio, damping) from inside the
@@ -222,8 +222,8 @@ def _tree_where(condition, new, old):
 
 
 def _parameter_magnitudes(x):
-    """$|x_j|$ per flattened tangent coordinate, for the step test: an array's entries' absolute
-    values; a group element's parameter norm over $\\sqrt{\\text{dof}}$ on each of its coordinates
+    r"""$|x_j|$ per flattened tangent coordinate, for the step test: an array's entries' absolute
+    values; a group element's parameter norm over $\sqrt{\text{dof}}$ on each of its coordinates
     (so that the squares sum to the squared norm of its parameters)."""
     leaves, _ = manifold_leaves(lax.stop_gradient(x), "x")
     parts = []
@@ -238,9 +238,9 @@ def _parameter_magnitudes(x):
 
 
 def _gain_ratio(values, trial_finite):
-    """$\\varrho = (c - c_t) / (-g^\\top\\delta - \\tfrac12 \\delta^\\top H \\delta)$, the actual
+    r"""$\varrho = (c - c_t) / (-g^\top\delta - \tfrac12 \delta^\top H \delta)$, the actual
     decrease $c - c_t$ ($c_t$ the cost at the trial point) and the predicted one (the
-    denominator); $\\varrho = -\\infty$ for a non-finite trial point. Below the rounding error
+    denominator); $\varrho = -\infty$ for a non-finite trial point. Below the rounding error
     of the cost the ratio is noise: it is taken as 1 (trust the model) unless the cost
     measurably rose, which lets the last Newton-like steps through."""
     cost, cost_trial, step, hessian, gradient = values

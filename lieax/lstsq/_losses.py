@@ -1,10 +1,10 @@
-"""Robust losses $\\rho(s)$ of the squared norm $s = \\|r_i\\|^2$ of one residual block.
+r"""Robust losses $\rho(s)$ of the squared norm $s = \|r_i\|^2$ of one residual block.
 
-The cost of a problem is $\\tfrac12 \\sum_i \\rho(\\|r_i\\|^2)$. Every loss here has
-$\\rho(s) \\approx s$ near zero ($\\rho'(0) = 1$), so inliers cost what they cost without a loss,
+The cost of a problem is $\tfrac12 \sum_i \rho(\|r_i\|^2)$. Every loss here has
+$\rho(s) \approx s$ near zero ($\rho'(0) = 1$), so inliers cost what they cost without a loss,
 and a `scale` $c$: the residual norm where the loss starts to discount a block. The solvers apply
 a loss by reweighting (iteratively reweighted least squares): block $i$ enters the normal
-equations with the weight $w_i = \\rho'(s_i)$, $J^\\top W J\\,\\delta = -J^\\top W r$, whose right
+equations with the weight $w_i = \rho'(s_i)$, $J^\top W J\,\delta = -J^\top W r$, whose right
 side is the exact gradient of the robust cost (Triggs et al., "Bundle adjustment: a modern
 synthesis", Sec. 3.3; Ceres' `LossFunction` without its second-order correction). Near a
 solution this converges linearly, at a rate set by how much the loss bends.
@@ -23,7 +23,7 @@ import numpy as np
 
 
 class AbstractLoss:
-    """A robust loss with a positive `scale` $c$; subclasses give $\\rho(s)$ and $\\rho'(s)$ (each
+    r"""A robust loss with a positive `scale` $c$; subclasses give $\rho(s)$ and $\rho'(s)$ (each
     passed through `_checked`, so that a traced scale that is not positive gives NaN)."""
 
     __slots__ = ("scale",)
@@ -70,17 +70,17 @@ class AbstractLoss:
         return f"{type(self).__name__}(scale={self.scale!r})"
 
     def __call__(self, s: jax.Array) -> jax.Array:
-        """$\\rho(s)$ for squared norms `s`."""
+        r"""$\rho(s)$ for squared norms `s`."""
         raise NotImplementedError
 
     def weight(self, s: jax.Array) -> jax.Array:
-        """$\\rho'(s)$, the weight of a block in the normal equations."""
+        r"""$\rho'(s)$, the weight of a block in the normal equations."""
         raise NotImplementedError
 
 
 class Huber(AbstractLoss):
-    """$\\rho(s) = s$ for $s \\le c^2$, $2c\\sqrt s - c^2$ beyond: quadratic, then linear in
-    $\\|r\\|$. Weight $\\min(1, c/\\|r\\|)$. Convex: it bounds the influence of outliers without
+    r"""$\rho(s) = s$ for $s \le c^2$, $2c\sqrt s - c^2$ beyond: quadratic, then linear in
+    $\|r\|$. Weight $\min(1, c/\|r\|)$. Convex: it bounds the influence of outliers without
     rejecting them."""
 
     def __call__(self, s):
@@ -96,8 +96,8 @@ class Huber(AbstractLoss):
 
 
 class Cauchy(AbstractLoss):
-    """$\\rho(s) = c^2 \\log(1 + s/c^2)$, weight $1 / (1 + s/c^2)$: the influence of a residual
-    decays like $1/\\|r\\|$ (Lorentzian)."""
+    r"""$\rho(s) = c^2 \log(1 + s/c^2)$, weight $1 / (1 + s/c^2)$: the influence of a residual
+    decays like $1/\|r\|$ (Lorentzian)."""
 
     def __call__(self, s):
         c2 = self.scale**2
@@ -108,7 +108,7 @@ class Cauchy(AbstractLoss):
 
 
 class Tukey(AbstractLoss):
-    """Tukey's biweight: $\\rho(s) = \\tfrac{c^2}{3}\\,(1 - (1 - s/c^2)^3)$ for $s \\le c^2$ and
+    r"""Tukey's biweight: $\rho(s) = \tfrac{c^2}{3}\,(1 - (1 - s/c^2)^3)$ for $s \le c^2$ and
     $c^2/3$ beyond; weight $(1 - s/c^2)^2$, zero beyond $c$: outliers are rejected outright.
     Not convex: start near the answer (a block beyond $c$ everywhere pulls on nothing)."""
 
@@ -124,7 +124,7 @@ class Tukey(AbstractLoss):
 
 
 class GemanMcClure(AbstractLoss):
-    """$\\rho(s) = c^2 s / (c^2 + s)$, weight $c^4 / (c^2 + s)^2$: bounded like Tukey's and
+    r"""$\rho(s) = c^2 s / (c^2 + s)$, weight $c^4 / (c^2 + s)^2$: bounded like Tukey's and
     smooth everywhere (Geman and McClure 1987; Black and Rangarajan 1996). Not convex."""
 
     def __call__(self, s):

@@ -1,4 +1,4 @@
-"""Dense normal equations: assembly $H = J^\\top W J$, $g = J^\\top W r$, and a symmetric
+r"""Dense normal equations: assembly $H = J^\top W J$, $g = J^\top W r$, and a symmetric
 positive-definite solve by Cholesky with a regularized fallback.
 
 The solvers use this for small states (one pose, a handful of variables): `H` is `n × n` with
@@ -16,7 +16,7 @@ _HIGHEST = lax.Precision.HIGHEST
 
 
 def normal_equations(jac, residual, weights=None):
-    """$H = J^\\top W J$ and $g = J^\\top W r$ for `jac` `(m, n)`, `residual` `(m,)` and optional
+    r"""$H = J^\top W J$ and $g = J^\top W r$ for `jac` `(m, n)`, `residual` `(m,)` and optional
     per-row weights `(m,)` ($W = I$ when `None`)."""
     weighted = jac if weights is None else jac * weights[:, None]
     hessian = jnp.matmul(weighted.T, jac, precision=_HIGHEST)
@@ -25,22 +25,22 @@ def normal_equations(jac, residual, weights=None):
 
 
 def cholesky_with_fallback(matrix):
-    """A lower Cholesky factor $L$ ($L L^\\top = A$) of `matrix`, or of `matrix`
-    $+ \\epsilon\\,\\mathrm{diag}(A)$ when the plain factorization fails or is numerically
+    r"""A lower Cholesky factor $L$ ($L L^\top = A$) of `matrix`, or of `matrix`
+    $+ \epsilon\,\mathrm{diag}(A)$ when the plain factorization fails or is numerically
     singular.
 
-    The factorization is of the Jacobi-scaled $\\tilde A = S^{-1} A S^{-1}$,
-    $S = \\mathrm{diag}(\\sqrt{A_{jj}})$ (1 for a zero diagonal), and $L = S \\tilde L$: the
+    The factorization is of the Jacobi-scaled $\tilde A = S^{-1} A S^{-1}$,
+    $S = \mathrm{diag}(\sqrt{A_{jj}})$ (1 for a zero diagonal), and $L = S \tilde L$: the
     tests below do not depend on the units of the unknowns, so a well-posed problem whose
     variables differ in size by many orders of magnitude is not taken for a singular one.
     Singular means a pivot
-    $\\tilde\\ell_{jj}^2 \\le 10\\,n\\,\\varepsilon \\max_i \\tilde A_{ii}$ (a state with a gauge
+    $\tilde\ell_{jj}^2 \le 10\,n\,\varepsilon \max_i \tilde A_{ii}$ (a state with a gauge
     freedom, a variable no residual touches). The fallback adds
-    $\\epsilon = \\sqrt{\\varepsilon} \\max_i \\tilde A_{ii}$ to the diagonal of $\\tilde A$: for a
-    positive semi-definite $A = J^\\top W J$ and a right side in its range ($J^\\top W r$), the
-    solution then has no component along the null space of $\\tilde A$ (it is the one of least
-    $\\|S x\\|$) and is shortened by $\\lambda / (\\lambda + \\epsilon)$ along each eigenvector of
-    $\\tilde A$ elsewhere. An indefinite or non-finite matrix gives NaN.
+    $\epsilon = \sqrt{\varepsilon} \max_i \tilde A_{ii}$ to the diagonal of $\tilde A$: for a
+    positive semi-definite $A = J^\top W J$ and a right side in its range ($J^\top W r$), the
+    solution then has no component along the null space of $\tilde A$ (it is the one of least
+    $\|S x\|$) and is shortened by $\lambda / (\lambda + \epsilon)$ along each eigenvector of
+    $\tilde A$ elsewhere. An indefinite or non-finite matrix gives NaN.
 
     Both factorizations are computed and one is selected (no `lax.cond`): for the small
     matrices this is for, a second factorization costs less than a branch in the compiled loop,
@@ -71,9 +71,9 @@ def solve_factored(factor, rhs):
 
 @jax.custom_jvp
 def solve_spd(matrix, rhs):
-    """$A^{-1} b$ for a symmetric positive (semi-)definite $A$, through `cholesky_with_fallback`.
+    r"""$A^{-1} b$ for a symmetric positive (semi-)definite $A$, through `cholesky_with_fallback`.
 
-    Its derivative is $\\dot x = A^{-1}(\\dot b - \\dot A x)$ with the same factor (the fallback's
+    Its derivative is $\dot x = A^{-1}(\dot b - \dot A x)$ with the same factor (the fallback's
     shift is held constant), so differentiating an unrolled solve never goes through a failed
     factorization.
     """

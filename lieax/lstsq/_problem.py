@@ -1,11 +1,11 @@
-"""The residual specification: how a residual pytree, a loss and a state become a cost and the
+r"""The residual specification: how a residual pytree, a loss and a state become a cost and the
 normal equations in tangent coordinates.
 
 `residual_fn(x, args)` returns an array or a pytree of arrays. A leaf of shape `(*batch, k)` with
 two or more axes is a batch of `k`-dimensional residual blocks (one per data element, as
 `jax.vmap` over the data produces them); a leaf with one axis or none is a batch of scalar
-blocks. A robust loss acts on each block's squared norm $s_i = \\|r_i\\|^2$, and the cost is
-$\\tfrac12 \\sum_i \\rho(s_i)$ ($\\rho(s) = s$ without a loss).
+blocks. A robust loss acts on each block's squared norm $s_i = \|r_i\|^2$, and the cost is
+$\tfrac12 \sum_i \rho(s_i)$ ($\rho(s) = s$ without a loss).
 
 `loss` is `None`, one loss for every leaf, or a pytree prefix of the residual with a loss or
 `None` at each of its leaves (e.g. `(Huber(0.1), None)` for `(data_residuals, prior_residual)`).
@@ -77,7 +77,7 @@ def _block_squared_norms(leaf):
 
 
 def cost(residuals, loss) -> jax.Array:
-    """$\\tfrac12 \\sum_i \\rho(\\|r_i\\|^2)$ over every block of every residual leaf."""
+    r"""$\tfrac12 \sum_i \rho(\|r_i\|^2)$ over every block of every residual leaf."""
     total = 0.0
     for leaf, leaf_loss in zip(residual_leaves(residuals), losses_per_leaf(loss, residuals)):
         squared = _block_squared_norms(leaf)
@@ -86,7 +86,7 @@ def cost(residuals, loss) -> jax.Array:
 
 
 def _leaf_row_weights(leaf, leaf_loss):
-    """$\\rho'(s_i)$ repeated over each block's rows of one residual leaf, raveled like it;
+    r"""$\rho'(s_i)$ repeated over each block's rows of one residual leaf, raveled like it;
     `None` without a loss."""
     if leaf_loss is None:
         return None
@@ -97,11 +97,11 @@ def _leaf_row_weights(leaf, leaf_loss):
 
 
 def linearize(residual_fn, x, args, loss):
-    """At `x`: the cost, $H = J^\\top W J$ and $g = J^\\top W r$ in flattened tangent coordinates
+    r"""At `x`: the cost, $H = J^\top W J$ and $g = J^\top W r$ in flattened tangent coordinates
     (layout of `lieax.flatten_tangents`), with $W$ the loss's weights. The Jacobian comes from
     `lieax.value_and_jacobian` (forward mode when there are more residuals than unknowns).
 
-    $H$ and $g$ are sums over the residual leaves, $\\sum_\\ell J_\\ell^\\top W_\\ell J_\\ell$, each
+    $H$ and $g$ are sums over the residual leaves, $\sum_\ell J_\ell^\top W_\ell J_\ell$, each
     leaf's rows reduced on their own: no Jacobian of all residuals is ever assembled, so a leaf
     split over devices along its rows (`lieax.sharding.shard_residuals`) is reduced where it
     lies and summed by one all-reduce."""

@@ -42,11 +42,11 @@ class NonFiniteStartError(SolveError, ValueError):
 
 
 class Solution(NamedTuple):
-    """The result of `lieax.lstsq.least_squares`, a pytree (so it batches under `vmap`).
+    r"""The result of `lieax.lstsq.least_squares`, a pytree (so it batches under `vmap`).
 
     **Fields:**
     - `value`: the solution, the same pytree as `x0` (groups and arrays mixed).
-    - `cost`: $\\tfrac12 \\sum_i \\rho(\\|r_i\\|^2)$ at `value` ($\\tfrac12\\|r\\|^2$ without a
+    - `cost`: $\tfrac12 \sum_i \rho(\|r_i\|^2)$ at `value` ($\tfrac12\|r\|^2$ without a
       loss).
     - `iterations`: iterations run, rejected Levenberg-Marquardt steps included.
     - `status`: an integer `Status` code; `status_name` reads it.

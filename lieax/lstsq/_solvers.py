@@ -1,4 +1,4 @@
-"""Gauss-Newton and Levenberg-Marquardt: how a step is computed from the normal equations and
+r"""Gauss-Newton and Levenberg-Marquardt: how a step is computed from the normal equations and
 whether it is kept.
 
 A solver is a pytree (its numeric settings are leaves, so they may be traced; settings that choose
@@ -6,14 +6,14 @@ a method, such as `LevenbergMarquardt.scaling`, are static) whose methods the lo
 `least_squares` calls:
 
 - `init(dimension, dtype)`: its state (damping, scaling and the like) at the first iterate;
-- `step(state, hessian, gradient)`: the step $\\delta$ in flattened tangent coordinates and the
+- `step(state, hessian, gradient)`: the step $\delta$ in flattened tangent coordinates and the
   state it was computed with;
-- `update(state, gain_ratio, finite)`: whether the trial point $x \\oplus \\delta$ is kept, and
-  the next state, from the gain ratio $\\varrho$ (actual over predicted decrease of the cost);
+- `update(state, gain_ratio, finite)`: whether the trial point $x \oplus \delta$ is kept, and
+  the next state, from the gain ratio $\varrho$ (actual over predicted decrease of the cost);
 - `diverged(state, cost, initial_cost)`: whether to stop with `Status.DIVERGED`;
 - `damping(state)`: the damping, for the iteration table;
 - `scale(state)`: the scaling $d$ of the variables (all ones for unscaled solvers): the stopping
-  rules measure the gradient as $D^{-1} g$ and the step as $D\\delta$, $D = \\mathrm{diag}(d)$,
+  rules measure the gradient as $D^{-1} g$ and the step as $D\delta$, $D = \mathrm{diag}(d)$,
   so that they do not depend on the units of the unknowns.
 
 `rejects_steps` says whether a rejected (non-finite) trial point is an ordinary event
@@ -58,7 +58,7 @@ class AbstractSolver:
         raise NotImplementedError
 
     def damping(self, state) -> jax.Array:
-        """The damping $\\mu$ of the current state (zero for undamped solvers), for the log."""
+        r"""The damping $\mu$ of the current state (zero for undamped solvers), for the log."""
         raise NotImplementedError
 
     def scale(self, state) -> jax.Array:
@@ -68,10 +68,10 @@ class AbstractSolver:
 
 
 class GaussNewton(AbstractSolver):
-    """Gauss-Newton: $J^\\top W J\\,\\delta = -J^\\top W r$, every step taken.
+    r"""Gauss-Newton: $J^\top W J\,\delta = -J^\top W r$, every step taken.
 
     Fast near a solution of a small-residual problem, with no safeguard far from one. A singular
-    $J^\\top W J$ (an unconstrained gauge, a variable no residual touches) is regularized (see
+    $J^\top W J$ (an unconstrained gauge, a variable no residual touches) is regularized (see
     `cholesky_with_fallback`) so the step is the minimum-norm one in Jacobi-scaled variables.
     The stopping rules see unscaled variables (`scale` is all ones).
 
@@ -103,30 +103,30 @@ class GaussNewton(AbstractSolver):
 
 
 class LevenbergMarquardt(AbstractSolver):
-    """Levenberg-Marquardt: $(J^\\top W J + \\mu D^2)\\,\\delta = -J^\\top W r$ with a diagonal
-    scaling $D$ of the variables, and the damping $\\mu$ adapted from the gain ratio $\\varrho$ by
-    Nielsen's rule: a step with $\\varrho \\ge$ `min_gain_ratio` is kept and
-    $\\mu \\leftarrow \\mu \\max(\\tfrac13, 1 - (2\\varrho - 1)^3)$, $\\nu \\leftarrow 2$;
-    otherwise it is rejected and $\\mu \\leftarrow \\nu\\mu$, $\\nu \\leftarrow 2\\nu$ (Madsen,
+    r"""Levenberg-Marquardt: $(J^\top W J + \mu D^2)\,\delta = -J^\top W r$ with a diagonal
+    scaling $D$ of the variables, and the damping $\mu$ adapted from the gain ratio $\varrho$ by
+    Nielsen's rule: a step with $\varrho \ge$ `min_gain_ratio` is kept and
+    $\mu \leftarrow \mu \max(\tfrac13, 1 - (2\varrho - 1)^3)$, $\nu \leftarrow 2$;
+    otherwise it is rejected and $\mu \leftarrow \nu\mu$, $\nu \leftarrow 2\nu$ (Madsen,
     Nielsen, Tingleff, "Methods for non-linear least squares problems", 2004, Sec. 3.2).
 
-    The system is solved in scaled variables $\\tilde\\delta = S^{-1}\\delta$:
-    $(S H S + \\mu \\tilde D)\\,\\tilde\\delta = -S g$, $\\delta = S\\tilde\\delta$
-    ($H = J^\\top W J$, $g = J^\\top W r$, $D^2 = S^{-1} \\tilde D S^{-1}$), so that its Cholesky
+    The system is solved in scaled variables $\tilde\delta = S^{-1}\delta$:
+    $(S H S + \mu \tilde D)\,\tilde\delta = -S g$, $\delta = S\tilde\delta$
+    ($H = J^\top W J$, $g = J^\top W r$, $D^2 = S^{-1} \tilde D S^{-1}$), so that its Cholesky
     factorization (and the regularization of a singular one) does not see the units of the
-    unknowns. With $c_j = \\|W^{1/2} J_{:,j}\\|$ the norms of
-    the Jacobian's columns, `scaling` chooses $S$ and $\\tilde D$:
+    unknowns. With $c_j = \|W^{1/2} J_{:,j}\|$ the norms of
+    the Jacobian's columns, `scaling` chooses $S$ and $\tilde D$:
 
-    - `"minpack"` (default): $S = \\mathrm{diag}(1/d)$, $\\tilde D = I$, with $d_j$ the largest
+    - `"minpack"` (default): $S = \mathrm{diag}(1/d)$, $\tilde D = I$, with $d_j$ the largest
       $c_j$ of every linearization so far ($d_j = 1$ while it is zero): MINPACK's `lmder` in
       mode 1 (Moré, "The Levenberg-Marquardt algorithm: implementation and theory", 1978,
-      Sec. 6), its damping rule replaced by Nielsen's. Invariant under $x_j \\to a_j x_j$.
-    - `"jacobi"`: $S = \\mathrm{diag}(1/(1 + c_j))$ and
-      $\\tilde D = \\mathrm{diag}(S H S)$ clipped to `[min_diagonal, max_diagonal]`: Ceres'
+      Sec. 6), its damping rule replaced by Nielsen's. Invariant under $x_j \to a_j x_j$.
+    - `"jacobi"`: $S = \mathrm{diag}(1/(1 + c_j))$ and
+      $\tilde D = \mathrm{diag}(S H S)$ clipped to `[min_diagonal, max_diagonal]`: Ceres'
       `jacobi_scaling` with its Levenberg-Marquardt strategy (`trust_region_minimizer.cc`,
       `levenberg_marquardt_strategy.cc`). The $1$ in $1 + c_j$ leaves columns of norm below
       about 1 unscaled.
-    - `"clipped"`: $S = I$, $\\tilde D = \\mathrm{diag}(H)$ clipped to
+    - `"clipped"`: $S = I$, $\tilde D = \mathrm{diag}(H)$ clipped to
       `[min_diagonal, max_diagonal]` (lieax's damping before the scaling option; Ceres without
       `jacobi_scaling`). The clip is absolute: it misjudges columns whose norms span many orders
       of magnitude (`tests/test_lstsq_scaling.py`).
@@ -142,12 +142,12 @@ class LevenbergMarquardt(AbstractSolver):
     would. Use them on residuals of order one.
 
     **Arguments:**
-    - `initial_damping`: $\\mu$ at the first iteration (Ceres' initial trust radius $10^4$ is
-      $\\mu = 10^{-4}$).
+    - `initial_damping`: $\mu$ at the first iteration (Ceres' initial trust radius $10^4$ is
+      $\mu = 10^{-4}$).
     - `min_gain_ratio`: the smallest gain ratio of an accepted step.
-    - `min_damping`, `max_damping`: bounds of $\\mu$; reaching `max_damping` without converging
+    - `min_damping`, `max_damping`: bounds of $\mu$; reaching `max_damping` without converging
       stops the solve with `Status.DIVERGED`.
-    - `min_diagonal`, `max_diagonal`: bounds of $\\tilde D$ for `"jacobi"` and `"clipped"`.
+    - `min_diagonal`, `max_diagonal`: bounds of $\tilde D$ for `"jacobi"` and `"clipped"`.
     - `scaling`: `"minpack"`, `"jacobi"` or `"clipped"` (static: each compiles its own solve).
     """
 
