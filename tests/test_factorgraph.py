@@ -139,6 +139,27 @@ def test_g2o_graph_matches_graph_optimize(tmp_path):
     assert int(result.iterations) == expected.iterations
 
 
+def test_to_factor_graph_without_a_fixed_pose_when_gps_anchors_it():
+    graph = noisy_pose_graph()
+    between, poses = lg.to_factor_graph(graph, fixed=None, check_gauge=False)
+    assert len(poses.fixed) == 0
+    with pytest.raises(ValueError, match="connected components"):
+        FactorGraph(between.factors)  # the gauge is free without the GPS factors
+    positions = graph.poses.translation() + 0.01
+    gps = Factor(
+        lambda pose, z: pose.translation() - z,
+        (poses[jnp.arange(graph.num_poses)],),
+        positions,
+        name="gps",
+    )
+    result = FactorGraph([*between.factors, gps]).solve()
+    assert result.status_name == "CONVERGED"
+    # pose 0 is free: the GPS offset moves it, where the default gauge would hold it
+    assert not np.allclose(result.values[0][0].parameters(), graph.poses[0].parameters())
+    with pytest.raises(ValueError, match="fixed must be"):
+        lg.to_factor_graph(graph, fixed="first")
+
+
 @needs_data
 @pytest.mark.parametrize(
     "name", ["tinyGrid3D", pytest.param("smallGrid3D", marks=pytest.mark.slow)]

@@ -36,7 +36,7 @@ _BLOCKS = {
 }
 
 
-def to_factor_graph(graph, *, closed_form=True, exact=True, check_gauge=True):
+def to_factor_graph(graph, *, closed_form=True, exact=True, fixed="auto", check_gauge=True):
     """`(factor_graph, poses)`: the `lieax.factorgraph.FactorGraph` of a `PoseGraph` and its
     pose `Var`, to add factors of other kinds to, or to solve with other options.
 
@@ -46,16 +46,23 @@ def to_factor_graph(graph, *, closed_form=True, exact=True, check_gauge=True):
       `lieax.jacobian` differentiate the residuals through the groups' `custom_jvp` rules.
     - `exact`: `False` drops $J_r^{-1}(e)$ from the closed-form blocks (`optimize`'s
       `jacobian="approximate"`, GTSAM's blocks "before the Log").
+    - `fixed`: the pose indices held constant. `"auto"` (default) is `optimize`'s gauge:
+      `graph.fixed`, else none with priors, else the first pose. Pass `None` (or indices) when
+      factors added later anchor the graph, e.g. GPS positions, with `check_gauge=False` here:
+      `FactorGraph([*factor_graph.factors, gps])` checks the gauge of the whole graph.
     - `check_gauge`: as `FactorGraph`'s.
     """
     if not closed_form and not exact:
         raise ValueError("exact=False selects approximate closed-form blocks: needs closed_form.")
-    if len(graph.fixed):
-        fixed = np.asarray(graph.fixed)
-    elif graph.priors is not None and len(graph.priors):
-        fixed = None
-    else:
-        fixed = [0]
+    if isinstance(fixed, str) and fixed == "auto":
+        if len(graph.fixed):
+            fixed = np.asarray(graph.fixed)
+        elif graph.priors is not None and len(graph.priors):
+            fixed = None
+        else:
+            fixed = [0]
+    elif isinstance(fixed, str):
+        raise ValueError(f"fixed must be 'auto', None or pose indices, got {fixed!r}.")
     poses = Var(graph.poses, fixed=fixed, name="poses")
     between_blocks, prior_blocks = _BLOCKS[bool(exact)]
     b = graph.between
