@@ -15,6 +15,7 @@ import numpy as np
 from .._runtime_error import raise_if
 from ..autodiff._tangents import check_retraction, manifold_leaves
 from ..lstsq import NonFiniteStartError, SolveError, Status
+from ..lstsq._solution import is_failure
 from ..retractions import exp
 from ._factors import Factor, linearize_one
 from ._implicit import solve_implicit
@@ -292,7 +293,7 @@ class FactorGraph:
             solution, summary = loop(values, data, params)
             result = _result(solution, np.asarray(summary))
         if throw and isinstance(result.status, jax.core.Tracer):
-            result = result._replace(status=raise_if(result.status, _failed, _traced_error))
+            result = result._replace(status=raise_if(result.status, is_failure, _traced_error))
         elif throw:
             status = Status(int(result.status))
             if status == Status.NONFINITE and int(result.iterations) == 0:
@@ -326,10 +327,6 @@ class FactorGraph:
                 raise ValueError(
                     f"values for {v.name!r} have shapes {shapes}, expected {expected}."
                 )
-
-
-def _failed(code) -> bool:
-    return code in (Status.DIVERGED, Status.NONFINITE)
 
 
 def _traced_error(code) -> SolveError:

@@ -6,6 +6,7 @@ import jax
 import numpy as np
 
 from ..lstsq import Status
+from ..lstsq._solution import status_names
 
 
 class SolveResult(NamedTuple):
@@ -32,9 +33,7 @@ class SolveResult(NamedTuple):
     @property
     def status_name(self):
         """The `Status` name, or an array of names for a batch (outside `jit`)."""
-        codes = np.asarray(self.status)
-        names = np.vectorize(lambda code: Status(int(code)).name, otypes=[object])(codes)
-        return names.item() if names.ndim == 0 else names
+        return status_names(self.status)
 
     @property
     def converged(self) -> jax.Array:

@@ -33,12 +33,6 @@ def between_jacobians(pose_i, pose_j, measured, exact=True):
     docstring; `exact=False` gives GTSAM's blocks $-\mathrm{Ad}(H^{-1})$ and $I$)."""
     relative = pose_i.between(pose_j)
     error = measured.between(relative).log()
-    return (error, *between_jacobians_at(relative, error, exact))
-
-
-def between_jacobians_at(relative, error, exact=True):
-    r"""`(J_e_pose_i, J_e_pose_j)` from $H = X_i^{-1} X_j$ and $e = \mathrm{Log}(Z^{-1} H)$, for
-    callers that already hold both (the optimizer evaluates the cost first)."""
     adjoint = relative.inverse().adjoint()
     if exact:
         J_e_pose_j = type(relative).right_jacobian_inverse(error)
@@ -46,7 +40,7 @@ def between_jacobians_at(relative, error, exact=True):
     else:
         J_e_pose_j = jnp.broadcast_to(jnp.eye(error.shape[-1], dtype=error.dtype), adjoint.shape)
         J_e_pose_i = -adjoint
-    return J_e_pose_i, J_e_pose_j
+    return error, J_e_pose_i, J_e_pose_j
 
 
 def prior_error(pose, measured):
@@ -57,15 +51,10 @@ def prior_error(pose, measured):
 def prior_jacobian(pose, measured, exact=True):
     """`(e, J_e_pose)` with $J = J_r^{-1}(e)$ (`exact`) or $I$ (GTSAM)."""
     error = prior_error(pose, measured)
-    return error, prior_jacobian_at(type(pose), error, exact)
-
-
-def prior_jacobian_at(group, error, exact=True):
-    """$J_r^{-1}(e)$ (`exact`) or $I$ for the prior error `e` of a pose of `group`."""
     if exact:
-        return group.right_jacobian_inverse(error)
+        return error, type(pose).right_jacobian_inverse(error)
     eye = jnp.eye(error.shape[-1], dtype=error.dtype)
-    return jnp.broadcast_to(eye, (*error.shape, error.shape[-1]))
+    return error, jnp.broadcast_to(eye, (*error.shape, error.shape[-1]))
 
 
 def whiten(sqrt_information, error):

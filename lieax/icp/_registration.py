@@ -53,6 +53,7 @@ from jax.scipy.linalg import cho_solve
 from .._linalg import quat_to_matrix
 from ..autodiff._jacobian import jacobian
 from ..groups._se3 import SE3
+from ..lstsq._solution import status_names
 from . import _neighbors, _search
 from ._batch import pad_to_bucket
 from ._centring import centred_pose, centroid
@@ -123,9 +124,7 @@ class ICPResult(NamedTuple):
     @property
     def status_name(self):
         """The `Status` name, or an array of names for a batch (needs a concrete status)."""
-        codes = np.asarray(self.status)
-        names = np.vectorize(lambda code: Status(int(code)).name, otypes=[object])(codes)
-        return names.item() if names.ndim == 0 else names
+        return status_names(self.status, Status)
 
     @property
     def converged(self) -> jax.Array:

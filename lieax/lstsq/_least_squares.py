@@ -33,7 +33,7 @@ from ..retractions import Retraction, exp
 from ._implicit import with_implicit_derivatives
 from ._losses import AbstractLoss
 from ._problem import linearize
-from ._solution import NonFiniteStartError, Solution, SolveError, Status
+from ._solution import NonFiniteStartError, Solution, SolveError, Status, is_failure
 from ._solvers import AbstractSolver, LevenbergMarquardt
 
 _DEFAULT_TOLERANCES = {  # (function, gradient, parameter) by dtype
@@ -428,7 +428,7 @@ def _raise_on_failure(solution: Solution, x0, args, loss) -> Solution:
         return solution._replace(
             status=raise_if(
                 status,
-                lambda code: code in (Status.DIVERGED, Status.NONFINITE),
+                is_failure,
                 lambda code: SolveError(
                     f"least_squares ended {Status(code).name} (raised from inside jit; pass "
                     "throw=False to read Solution.status instead)."

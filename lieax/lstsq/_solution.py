@@ -31,6 +31,19 @@ class Status(enum.IntEnum):
     NONFINITE = 3
 
 
+def status_names(status, enum=Status):
+    """The `enum` member names of integer status codes: one name, or an object array of names
+    for a batch (needs concrete codes, outside `jit`)."""
+    codes = np.asarray(status)
+    names = np.vectorize(lambda code: enum(int(code)).name, otypes=[object])(codes)
+    return names.item() if names.ndim == 0 else names
+
+
+def is_failure(code) -> bool:
+    """Whether a status code is one that `throw=True` raises for (`DIVERGED`, `NONFINITE`)."""
+    return code in (Status.DIVERGED, Status.NONFINITE)
+
+
 class SolveError(RuntimeError):
     """Raised by `least_squares(..., throw=True)` when a solve ends `DIVERGED` or `NONFINITE`."""
 
@@ -64,9 +77,7 @@ class Solution(NamedTuple):
     def status_name(self):
         """The `Status` name (`"CONVERGED"`, ...), or an array of names for a batch of solutions.
         Needs a concrete status (outside `jit`)."""
-        codes = np.asarray(self.status)
-        names = np.vectorize(lambda code: Status(int(code)).name, otypes=[object])(codes)
-        return names.item() if names.ndim == 0 else names
+        return status_names(self.status)
 
     @property
     def converged(self) -> jax.Array:
