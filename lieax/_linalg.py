@@ -82,3 +82,8 @@ def quat_to_matrix(q):
 def rotate_back(rotation, x):
     r"""$R^\top x$."""
     return jnp.einsum("...ji,...j->...i", rotation, x)
+
+
+def blocks(rows):
+    """A block matrix from a nested list of `(*batch, n_i, m_j)` blocks (rows of equal height)."""
+    return jnp.concatenate([jnp.concatenate(row, axis=-1) for row in rows], axis=-2)

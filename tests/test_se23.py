@@ -154,7 +154,9 @@ def test_a_missing_kernel_fails_at_class_creation():
             kernels = partial
 
 
-@pytest.mark.parametrize("group", [lieax.SO3, SE3, lieax.Sim3, SE23], ids=lambda g: g.__name__)
+@pytest.mark.parametrize(
+    "group", [lieax.SO2, lieax.SE2, lieax.SO3, SE3, lieax.Sim3, SE23], ids=lambda g: g.__name__
+)
 def test_second_derivatives_through_parameters(group):
     """The Hessian of a function of `parameters()` (and of a composition read through it) matches
     finite differences of its gradient. The carrier maps once normalized raw quaternions with the

@@ -1,8 +1,11 @@
 """The Lie groups and manifolds: SO2, SE2, SO3, SE3, SE23, Sim3 and the sphere S2.
 
-Each group module holds its kernels (module-level functions on parameter arrays, each with a
-closed-form `custom_jvp` rule) and its class; `_base` holds what every group shares (the kernel
-protocol), `_generic` the rules written once for every group, `_rules` the rule shapes that recur, `_series` the series coefficients of Exp, Log and their Jacobians near zero.
+Each group module holds its kernels (module-level functions on parameter arrays: the values of
+its operations, `ad`, `Jr`, `Jr⁻¹`, `hat`, `vee`, the carrier maps, its action on points) and its
+class; `_base` holds what every group shares (the kernel protocol and the one tangent-carrier
+convention), `_generic` the closed-form `custom_jvp` rules written once for every group, `_rules`
+the rule shapes that recur, `_series` the series coefficients of Exp, Log and their Jacobians near
+zero.
 """
 
 from ._base import AbstractGroup, AbstractManifold

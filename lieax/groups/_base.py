@@ -6,28 +6,35 @@ adjoint $X\,\mathrm{Exp}(\xi)\,X^{-1} = \mathrm{Exp}(\mathrm{Ad}_X \xi)$, and
 $\mathrm{Exp}(\xi + \delta) \approx \mathrm{Exp}(\xi)\,\mathrm{Exp}(J_r(\xi)\,\delta)$.
 
 The group protocol. A concrete group's kernel namespace is the module that defines its class:
-array functions on parameters and tangents named as in `KERNELS` (each operation a
-`jax.custom_jvp` function with a closed-form rule), bound to the class when it is created, so a
-missing kernel is a `TypeError` at import. The rules that are the same for every group
-(`compose`, `inverse`, `exp`, `log`, `adjoint`, `as_matrix`, `from_matrix`, `normalize`) are
-written once in `lieax.groups._generic` from a group's `ad`, `adjoint`, `right_jacobian`,
-`right_jacobian_inverse`, `hat` and `vee`; a group keeps a hand-written rule where its closed form
-is cheaper (SO3's and SE3's compose, inverse and act, which `benchmarks/chain.py` times). This
-base class validates inputs once, at trace time, and implements `between`, `rplus`, `rminus`,
-`interpolate` and the operators from the kernels, so their derivatives compose from the kernels'
-closed-form blocks.
+array functions on parameters and tangents named as in `KERNELS`, bound to the class when it is
+created, so a missing kernel is a `TypeError` at import. A group writes the values of its
+operations and a few kernels (`ad`, `right_jacobian`, `right_jacobian_inverse`, `hat`, `vee`, the
+carrier maps below) and `lieax.groups._generic.local_rules` turns them into `jax.custom_jvp`
+functions with the rules that are the same for every group (`compose`, `inverse`, `exp`, `log`,
+`adjoint`, `as_matrix`, `from_matrix`, `normalize`, `to_parameters`, `from_parameters`); a group
+keeps a hand-written rule where its closed form is cheaper (SO3's, SE3's and Sim3's compose and
+inverse, which avoid the adjoint matrix; SO3's exp and log, which avoid the 3×3 Jacobian; what
+`benchmarks/chain.py` times) or exact where the generic one is not (SO2's and SE2's `from_matrix`
+off the group), and writes its action on points (`act`) itself. This base class validates inputs
+once, at trace time, and implements `between`, `rplus`, `rminus`, `interpolate` and the operators
+from the kernels, so their derivatives compose from the kernels' closed-form blocks.
 
-The tangent carrier. JAX gives the parameter leaf a tangent of the leaf's shape; what fills it
-is the group's carrier, mapped to and from the right-local tangent by `to_local(params, carrier)`
-and `from_local(params, local)`. Two conventions exist:
-- the local carrier (SO3, SE3, Sim3, SE23): the carrier holds the local tangent itself (and the
-  quaternion's radial part), so kernels read and write local tangents and no rule converts
-  anything; `to_parameters` / `from_parameters` (identity on values, custom derivatives) convert
-  to the raw parameter derivative only where raw arrays cross the API (`G(params)`,
-  `parameters()`). This is the convention of new groups: every generic rule assumes it.
-- the raw carrier (SO2, SE2, and the manifold S2): the carrier is the derivative of the raw
-  parameters, `to_parameters` / `from_parameters` are the identity, and each rule converts with
-  `to_local` / `from_local` (cheap for unit complex numbers; not yet migrated).
+The tangent carrier (one convention for every group). JAX gives the parameter leaf a tangent of
+the leaf's shape; each group fills it with its *local carrier*: the right-local tangent itself,
+laid out in the parameter slots, plus the radial part of the unit rotation parameters (a quaternion
+derivative $\dot q = q \otimes (\rho, \omega/2)$, a complex one $\dot z = z\,(\rho + i\theta)$). Rules
+read and write local tangents with `to_local(params, carrier)` / `from_local(params, local)`, which
+only pick entries, so no rule converts anything and the generic rules hold for every group. The
+derivative of the raw parameters appears only where raw arrays cross the API (`G(params)`,
+`parameters()`, constructors from raw arrays), through `to_parameters` / `from_parameters`
+(identity on values), whose rules are the group's `raw_from_carrier(params, carrier)` and
+`carrier_from_raw(params, raw)`; inside rules, anything that depends on the parameters goes through
+kernels or `to_parameters`, so derivatives of every order stay consistent with the carrier.
+The manifold S2 (not a group) keeps the raw carrier, its tangent the derivative $\dot p$ of the
+unit vector: its operations are rational functions of $p$ with no `custom_jvp` rules, which JAX
+differentiates exactly only on raw derivatives, so a local carrier would need a hand-written rule
+on every one of them, and `to_local` / `from_local` ($B_p^\top \dot p$, $B_p \xi$) serve only
+`lieax.jacobian` and the solvers.
 """
 
 import sys
@@ -45,14 +52,12 @@ from .._checks import (
 )
 
 # The kernel namespace of a group: these names, bound to the class as `_exp`, `_log`, ...
-# (`to_local` as `_local_from_tangent`, `from_local` as `_tangent_from_local`); `to_parameters` and
-# `from_parameters` are optional (the raw carrier by default).
+# (`to_local` as `_local_from_tangent`, `from_local` as `_tangent_from_local`).
 KERNELS = (
     "exp", "log", "compose", "inverse", "act", "adjoint", "as_matrix", "from_matrix", "normalize",
-    "hat", "vee", "right_jacobian", "right_jacobian_inverse", "to_local", "from_local",
-    "sample_uniform",
+    "hat", "vee", "ad", "right_jacobian", "right_jacobian_inverse", "to_local", "from_local",
+    "raw_from_carrier", "carrier_from_raw", "to_parameters", "from_parameters", "sample_uniform",
 )  # fmt: skip
-_OPTIONAL_KERNELS = ("to_parameters", "from_parameters")
 _ATTRIBUTES = {"to_local": "_local_from_tangent", "from_local": "_tangent_from_local"}
 
 
@@ -100,8 +105,8 @@ class AbstractManifold:
     def __repr__(self):
         return f"{type(self).__name__}({self._params!r})"
 
-    # The carrier of the parameter leaf's JAX tangent (see AbstractGroup); by default the raw
-    # derivative of the parameters.
+    # The maps between the parameter leaf's JAX tangent and raw derivatives (the module docstring):
+    # the identity for a manifold whose carrier is the raw derivative (S2); groups bind their own.
     _from_parameters = staticmethod(lambda params: params)
     _to_parameters = staticmethod(lambda params: params)
 
@@ -158,7 +163,7 @@ class AbstractGroup(AbstractManifold):
                 f"namespace ({getattr(kernels, '__name__', kernels)!r}) must define every name of "
                 "lieax.groups._base.KERNELS."
             )
-        for name in KERNELS + tuple(n for n in _OPTIONAL_KERNELS if hasattr(kernels, n)):
+        for name in KERNELS:
             setattr(cls, _ATTRIBUTES.get(name, f"_{name}"), staticmethod(getattr(kernels, name)))
 
     # ---- construction ------------------------------------------------------------------------

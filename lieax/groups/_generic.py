@@ -13,8 +13,12 @@ operations; manif writes compose's as `J_mc_ma = Ad(m_b⁻¹)`, `J_mc_mb = I`):
 - `from_matrix`: $\delta = (M^{-1} \dot M)^\vee$; `normalize`: the radial part of the carrier dropped,
 
 with $\delta$ the local tangent read from the carrier by `kernels.to_local` and written back by
-`kernels.from_local`. `kernels` (the group's module) supplies `to_local`, `from_local`, `ad`,
-`right_jacobian`, `right_jacobian_inverse`, `hat` and `vee`, looked up when a rule runs. Inside
+`kernels.from_local`; and the two carrier maps where raw arrays cross the API, `to_parameters` and
+`from_parameters` (identity on values), whose rules are `kernels.raw_from_carrier(params, carrier)`
+(the raw derivative moved by a carrier) and its inverse `kernels.carrier_from_raw(params, raw)`,
+both evaluated at raw parameters. `kernels` (the group's module) supplies `to_local`,
+`from_local`, `raw_from_carrier`, `carrier_from_raw`, `ad`, `right_jacobian`,
+`right_jacobian_inverse`, `hat` and `vee`, looked up when a rule runs. Inside
 the rules everything that depends on the parameters goes through these same `custom_jvp`
 functions, so derivatives of every order are consistent with the carrier. An operation given as a
 `jax.custom_jvp` function already is a group's override (a cheaper closed form): it keeps its own
@@ -31,14 +35,16 @@ from . import _rules
 
 
 def local_rules(kernels, *, exp, log, compose, inverse, adjoint, as_matrix, from_matrix, normalize):
-    """The eight operations of a local-carrier group as `jax.custom_jvp` functions.
+    """The eight operations of a local-carrier group and its two carrier maps (`to_parameters`,
+    `from_parameters`) as `jax.custom_jvp` functions.
 
     **Arguments:**
     - `kernels`: the group's kernel namespace (see the module docstring).
     - `exp`, ..., `normalize`: the values of each operation, plain array functions, or
       `jax.custom_jvp` functions that keep their own rules (overrides).
 
-    **Returns:** a namespace with the same eight names, each with its closed-form rule."""
+    **Returns:** a namespace with the same eight names and the two carrier maps, each with its
+    closed-form rule."""
     values = dict(
         exp=exp, log=log, compose=compose, inverse=inverse, adjoint=adjoint, as_matrix=as_matrix,
         from_matrix=from_matrix, normalize=normalize,
@@ -96,6 +102,20 @@ def local_rules(kernels, *, exp, log, compose, inverse, adjoint, as_matrix, from
         local = kernels.to_local(params, carrier)
         return params_out, jnp.broadcast_to(kernels.from_local(params_out, local), carrier.shape)
 
+    def _to_parameters_jvp(primals, tangents):
+        (params,), (carrier,) = primals, tangents
+        raw = ops.to_parameters(params)
+        return raw, kernels.raw_from_carrier(raw, carrier)
+
+    def _from_parameters_jvp(primals, tangents):
+        (params,), (raw,) = primals, tangents
+        return ops.from_parameters(params), kernels.carrier_from_raw(params, raw)
+
+    ops.to_parameters = jax.custom_jvp(_identity)
+    ops.from_parameters = jax.custom_jvp(_identity)
+    ops.to_parameters.defjvp(_to_parameters_jvp)
+    ops.from_parameters.defjvp(_from_parameters_jvp)
+
     rules = dict(
         exp=_exp_jvp, log=_log_jvp, compose=_compose_jvp, inverse=_inverse_jvp,
         adjoint=_adjoint_jvp, as_matrix=_as_matrix_jvp, from_matrix=_from_matrix_jvp,
@@ -104,3 +124,8 @@ def local_rules(kernels, *, exp, log, compose, inverse, adjoint, as_matrix, from
     for name in generated:  # symbolic zeros for compose, whose rule skips a constant argument
         getattr(ops, name).defjvp(rules[name], symbolic_zeros=name == "compose")
     return ops
+
+
+def _identity(params):
+    """The carrier maps' values: the parameters themselves."""
+    return params

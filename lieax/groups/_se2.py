@@ -1,11 +1,14 @@
 r"""SE(2), rigid motions in the plane, stored as $(\cos\theta, \sin\theta, x, y)$.
 
 Tangent $\xi = (v_x, v_y, \omega)$, translation first; right perturbation
-$X \oplus \xi = X\,\mathrm{Exp}(\xi)$. The derivative of the parameters along a right-local tangent
-is $\dot t = R v$, $(\dot c, \dot s) = \omega\,(-s, c)$, and back $v = R^\top \dot t$,
-$\omega = c\,\dot s - s\,\dot c$: every kernel's rule converts the incoming parameter tangents to
-local tangents once, applies the closed-form block, and converts the result back, so code that
-touches the parameters itself still gets correct derivatives.
+$X \oplus \xi = X\,\mathrm{Exp}(\xi)$, so $\dot t = R v$ and $\dot z = z\,i\omega$.
+
+Tangent carrier (the local carrier of `lieax.groups._base`): the 4-vector tangent of the
+parameter leaf holds $(\rho, \omega, v)$, aligned with the parameter slots (SO2's carrier in the
+$(c, s)$ slot, the local translation $v$ in the translation slot), so kernels read and write local
+tangents without conversion; `SE2(params)`, `parameters()`, `translation()` and the constructors
+convert where raw arrays cross the API. Every rule but `act`'s and `from_matrix`'s is the generic
+one of `lieax.groups._generic`.
 
 Notation: $J = [[0, -1], [1, 0]]$ (the rotation by $+\pi/2$, `perp`), and the coefficients are the
 $g_n(s)$ of `lieax.groups._series` at $s = \omega^2$ ($g_1 = \sin\omega/\omega$,
@@ -15,11 +18,13 @@ Formulas: Solà, Deray, Atchuthan, "A micro Lie theory for state estimation in r
 App. C, rewritten with $J$ and the $g_n$ so that none divides by $\omega$.
 """
 
+import sys
+
 import jax
 import jax.numpy as jnp
 
 from .._checks import broadcast_batch, check_last_axis, common_float_arrays, match_dtype
-from . import _rules
+from . import _generic, _rules
 from . import _so2 as so2
 from ._base import AbstractGroup
 from ._series import g
@@ -32,21 +37,34 @@ def stack_matrix(rows):
     return jnp.stack([jnp.stack(row, axis=-1) for row in rows], axis=-2)
 
 
-def to_local(params, params_dot):
-    r"""$v = R^\top \dot t$, $\omega = c\,\dot s - s\,\dot c$."""
-    cs = params[..., :2]
-    v = unrotate(cs, params_dot[..., 2:])
-    return jnp.concatenate([v, so2.to_local(cs, params_dot[..., :2])], axis=-1)
+# ---- the carrier ---------------------------------------------------------------------------------
+
+
+def to_local(params, carrier):
+    r"""The local tangent $(v, \omega)$ held by a carrier $(\rho, \omega, v)$."""
+    return jnp.concatenate([carrier[..., 2:], carrier[..., 1:2]], axis=-1)
 
 
 def from_local(params, xi):
-    r"""$(\dot c, \dot s) = \omega\,(-s, c)$, $\dot t = R v$."""
+    r"""The carrier $(0, \omega, v)$ of a local tangent $(v, \omega)$."""
+    return jnp.concatenate([jnp.zeros_like(xi[..., 2:]), xi[..., 2:], xi[..., :2]], axis=-1)
+
+
+def raw_from_carrier(params, carrier):
+    r"""The raw derivative of a carrier: $\dot z = z\,(\rho + i\omega)$, $\dot t = R v$."""
     cs = params[..., :2]
-    cs_dot = so2.from_local(cs, xi[..., 2:])
-    return jnp.concatenate([cs_dot, rotate(cs, xi[..., :2])], axis=-1)
+    moved = rotate(so2.unit(cs), carrier[..., 2:])
+    return jnp.concatenate([so2.raw_from_carrier(cs, carrier[..., :2]), moved], axis=-1)
 
 
-# ---- coefficient matrices -----------------------------------------------------------------------
+def carrier_from_raw(params, params_dot):
+    r"""The carrier of a raw derivative: $(\rho, \omega)$ as in SO2, $v = R^\top \dot t$."""
+    cs = params[..., :2]
+    v = unrotate(so2.unit(cs), params_dot[..., 2:])
+    return jnp.concatenate([so2.carrier_from_raw(cs, params_dot[..., :2]), v], axis=-1)
+
+
+# ---- the kernels of the generic rules -------------------------------------------------------------
 
 
 def log_coefficient(s):
@@ -90,200 +108,12 @@ def right_jacobian_inverse(xi):
     )
 
 
-def apply_right_jacobian(xi, delta):
-    r"""$J_r(\xi)\,\delta = (A\,\delta_v + b\,\delta_\omega,\ \delta_\omega)$ without forming the matrix."""
-    v, w = xi[..., :2], xi[..., 2:]
-    dv, dw = delta[..., :2], delta[..., 2:]
-    s = w * w
-    g1, g2, g3 = g(1, s), g(2, s), g(3, s)
-    moved = g1 * dv - w * g2 * perp(dv) + dw * (w * g3 * v + g2 * perp(v))
-    return jnp.concatenate([moved, dw], axis=-1)
-
-
-def apply_right_jacobian_inverse(xi, local):
-    r"""$J_r^{-1}(\xi)\,u = (A^{-1} u_v - A^{-1} b\,u_\omega,\ u_\omega)$ without forming the matrix."""
-    v, w = xi[..., :2], xi[..., 2:]
-    uv, uw = local[..., :2], local[..., 2:]
-    s = w * w
-    moved = (
-        log_coefficient(s) * uv
-        + 0.5 * w * perp(uv)
-        + uw * (w * jr_inverse_coefficient(s) * v - 0.5 * perp(v))
-    )
-    return jnp.concatenate([moved, uw], axis=-1)
-
-
-def adjoint_matrix(params):
-    r"""$\mathrm{Ad}_X = [[R, -J t], [0, 1]] = [[c, -s, y], [s, c, -x], [0, 0, 1]]$ (Solà App. C)."""
-    c, s, x, y = (params[..., i] for i in range(4))
-    zero, one = jnp.zeros_like(c), jnp.ones_like(c)
-    return stack_matrix([[c, -s, y], [s, c, -x], [zero, zero, one]])
-
-
-def small_adjoint(xi):
+def ad(xi):
     r"""$\mathrm{ad}_\xi = [[\omega J, -J v], [0, 0]]$, the derivative of $\mathrm{Ad}_{\mathrm{Exp}(\xi)}$
     at zero."""
     vx, vy, w = xi[..., 0], xi[..., 1], xi[..., 2]
     zero = jnp.zeros_like(w)
     return stack_matrix([[zero, -w, vy], [w, zero, -vx], [zero, zero, zero]])
-
-
-# ---- kernels with closed-form rules -------------------------------------------------------------
-
-
-@jax.custom_jvp
-def exp(xi):
-    r"""$\mathrm{Exp}(v, \omega) = (\cos\omega, \sin\omega, V v)$ with $V = g_1 I + \omega g_2 J$
-    (Solà App. C)."""
-    v, w = xi[..., :2], xi[..., 2:]
-    s = w * w
-    g1 = g(1, s)
-    return jnp.concatenate([g(0, s), w * g1, g1 * v + w * g(2, s) * perp(v)], axis=-1)
-
-
-@exp.defjvp
-def _exp_jvp(primals, tangents):
-    r"""Local block: $J_r(\xi)$."""
-    (xi,), (xi_dot,) = primals, tangents
-    params = exp(xi)
-    return params, from_local(params, apply_right_jacobian(xi, xi_dot))
-
-
-@jax.custom_jvp
-def log(params):
-    r"""$\mathrm{Log}(X) = (V^{-1} t, \omega)$ with $\omega = \mathrm{atan2}(s, c) \in (-\pi, \pi]$ and
-    $V^{-1} = h I - \tfrac\omega2 J$, $h$ of `log_coefficient` (Solà App. C)."""
-    cs, t = params[..., :2], params[..., 2:]
-    w = jnp.arctan2(cs[..., 1:], cs[..., :1])
-    v = log_coefficient(w * w) * t - 0.5 * w * perp(t)
-    return jnp.concatenate([v, w], axis=-1)
-
-
-@log.defjvp
-def _log_jvp(primals, tangents):
-    r"""Local block: $J_r^{-1}(\xi)$."""
-    (params,), (params_dot,) = primals, tangents
-    xi = log(params)
-    return xi, apply_right_jacobian_inverse(xi, to_local(params, params_dot))
-
-
-@jax.custom_jvp
-def compose(params1, params2):
-    r"""$(R_1 R_2,\ R_1 t_2 + t_1)$."""
-    cs1, t1 = params1[..., :2], params1[..., 2:]
-    cs2, t2 = params2[..., :2], params2[..., 2:]
-    return jnp.concatenate([rotate(cs1, cs2), rotate(cs1, t2) + t1], axis=-1)
-
-
-@_rules.defjvp(compose)
-def _compose_jvp(primals, tangents):
-    r"""Local block: $\xi = \mathrm{Ad}_{X_2^{-1}} \xi_1 + \xi_2$, i.e.
-    $v = R_2^\top (v_1 + \omega_1 J t_2) + v_2$, $\omega = \omega_1 + \omega_2$ (Solà App. C)."""
-    (params1, params2), (params1_dot, params2_dot) = primals, tangents
-    params = compose(params1, params2)
-    xi1 = _rules.local_tangent(to_local, params1, params1_dot)
-    xi2 = _rules.local_tangent(to_local, params2, params2_dot)
-    moved = None
-    if xi1 is not None:
-        cs2, t2 = params2[..., :2], params2[..., 2:]
-        v1, w1 = xi1[..., :2], xi1[..., 2:]
-        v = unrotate(cs2, v1 + w1 * perp(t2))
-        moved = jnp.concatenate([v, jnp.broadcast_to(w1, (*v.shape[:-1], 1))], axis=-1)
-    xi = _rules.add(moved, xi2)
-    return _rules.finish(params, None if xi is None else from_local(params, xi))
-
-
-@jax.custom_jvp
-def inverse(params):
-    r"""$(R^\top, -R^\top t)$."""
-    cs, t = params[..., :2], params[..., 2:]
-    return jnp.concatenate([so2.inverse(cs), -unrotate(cs, t)], axis=-1)
-
-
-@inverse.defjvp
-def _inverse_jvp(primals, tangents):
-    r"""Local block: $-\mathrm{Ad}_X$, i.e. $v_{out} = \omega J t - R v$, $\omega_{out} = -\omega$."""
-    (params,), (params_dot,) = primals, tangents
-    params_inv = inverse(params)
-    xi = to_local(params, params_dot)
-    cs, t = params[..., :2], params[..., 2:]
-    v, w = xi[..., :2], xi[..., 2:]
-    xi_inv = jnp.concatenate([w * perp(t) - rotate(cs, v), -w], axis=-1)
-    return params_inv, from_local(params_inv, xi_inv)
-
-
-@jax.custom_jvp
-def act(params, points):
-    """$R p + t$."""
-    return rotate(params[..., :2], points) + params[..., 2:]
-
-
-@_rules.defjvp(act)
-def _act_jvp(primals, tangents):
-    r"""$\dot y = R(v + \omega J p + \dot p)$: blocks $[R,\ R J p]$ and $R$ (Solà App. C)."""
-    (params, points), (params_dot, points_dot) = primals, tangents
-    moved = act(params, points)
-    xi = _rules.local_tangent(to_local, params, params_dot)
-    direction = _rules.add(
-        None if xi is None else xi[..., :2] + xi[..., 2:] * perp(points),
-        None if _rules.is_zero(points_dot) else points_dot,
-    )
-    return _rules.finish(moved, None if direction is None else rotate(params[..., :2], direction))
-
-
-@jax.custom_jvp
-def adjoint(params):
-    r"""$\mathrm{Ad}_X$ of `adjoint_matrix`."""
-    return adjoint_matrix(params)
-
-
-@adjoint.defjvp
-def _adjoint_jvp(primals, tangents):
-    r"""$\dot{\mathrm{Ad}} = \mathrm{Ad}_X\,\mathrm{ad}_\xi$, from $\mathrm{Ad}_{X \mathrm{Exp}(\xi)} =
-    \mathrm{Ad}_X \mathrm{Ad}_{\mathrm{Exp}(\xi)}$."""
-    (params,), (params_dot,) = primals, tangents
-    matrix = adjoint(params)
-    return matrix, matrix @ small_adjoint(to_local(params, params_dot))
-
-
-@jax.custom_jvp
-def as_matrix(params):
-    """$T = [[R, t], [0, 1]]$."""
-    c, s, x, y = (params[..., i] for i in range(4))
-    zero, one = jnp.zeros_like(c), jnp.ones_like(c)
-    return stack_matrix([[c, -s, x], [s, c, y], [zero, zero, one]])
-
-
-@as_matrix.defjvp
-def _as_matrix_jvp(primals, tangents):
-    r"""$\dot T = T\,\mathrm{hat}(\xi)$."""
-    (params,), (params_dot,) = primals, tangents
-    matrix = as_matrix(params)
-    return matrix, matrix @ hat(to_local(params, params_dot))
-
-
-@jax.custom_jvp
-def from_matrix(matrix):
-    """The nearest rotation of the 2×2 block (`lieax.groups._so2.nearest_rotation`) and the last column."""
-    cs, _ = so2.nearest_rotation(matrix[..., :2, :2])
-    return jnp.concatenate([cs, matrix[..., :2, 2]], axis=-1)
-
-
-@from_matrix.defjvp
-def _from_matrix_jvp(primals, tangents):
-    r"""$v = R^\top \dot t$, $\omega$ of `lieax.groups._so2.nearest_rotation_tangent` (the skew part of
-    $R^\top \dot R$ at a rotation)."""
-    (matrix,), (matrix_dot,) = primals, tangents
-    cs, norm = so2.nearest_rotation(matrix[..., :2, :2])
-    params = jnp.concatenate([cs, matrix[..., :2, 2]], axis=-1)
-    w = so2.nearest_rotation_tangent(cs, norm, matrix_dot[..., :2, :2])
-    v = unrotate(cs, matrix_dot[..., :2, 2])
-    return params, from_local(params, jnp.concatenate([v, w], axis=-1))
-
-
-def normalize(params):
-    """Unit $(c, s)$; the translation as given."""
-    return jnp.concatenate([so2.normalize(params[..., :2]), params[..., 2:]], axis=-1)
 
 
 def hat(xi):
@@ -296,6 +126,117 @@ def hat(xi):
 def vee(matrix):
     r"""$(m_{02},\ m_{12},\ (m_{10} - m_{01}) / 2)$: the inverse of `hat` on the skew part."""
     return jnp.concatenate([matrix[..., :2, 2], so2.vee(matrix[..., :2, :2])], axis=-1)
+
+
+# ---- values of the generic operations -------------------------------------------------------------
+
+
+def _exp(xi):
+    r"""$\mathrm{Exp}(v, \omega) = (\cos\omega, \sin\omega, V v)$ with $V = g_1 I + \omega g_2 J$
+    (Solà App. C)."""
+    v, w = xi[..., :2], xi[..., 2:]
+    s = w * w
+    g1 = g(1, s)
+    return jnp.concatenate([g(0, s), w * g1, g1 * v + w * g(2, s) * perp(v)], axis=-1)
+
+
+def _log(params):
+    r"""$\mathrm{Log}(X) = (V^{-1} t, \omega)$ with $\omega = \mathrm{atan2}(s, c) \in (-\pi, \pi]$ and
+    $V^{-1} = h I - \tfrac\omega2 J$, $h$ of `log_coefficient` (Solà App. C)."""
+    cs, t = params[..., :2], params[..., 2:]
+    w = jnp.arctan2(cs[..., 1:], cs[..., :1])
+    v = log_coefficient(w * w) * t - 0.5 * w * perp(t)
+    return jnp.concatenate([v, w], axis=-1)
+
+
+def _compose(params1, params2):
+    r"""$(R_1 R_2,\ R_1 t_2 + t_1)$."""
+    cs1, t1 = params1[..., :2], params1[..., 2:]
+    cs2, t2 = params2[..., :2], params2[..., 2:]
+    return jnp.concatenate([rotate(cs1, cs2), rotate(cs1, t2) + t1], axis=-1)
+
+
+def _inverse(params):
+    r"""$(R^\top, -R^\top t)$."""
+    cs, t = params[..., :2], params[..., 2:]
+    return jnp.concatenate([cs * jnp.array([1.0, -1.0], dtype=cs.dtype), -unrotate(cs, t)], -1)
+
+
+def _adjoint(params):
+    r"""$\mathrm{Ad}_X = [[R, -J t], [0, 1]] = [[c, -s, y], [s, c, -x], [0, 0, 1]]$ (Solà App. C)."""
+    c, s, x, y = (params[..., i] for i in range(4))
+    zero, one = jnp.zeros_like(c), jnp.ones_like(c)
+    return stack_matrix([[c, -s, y], [s, c, -x], [zero, zero, one]])
+
+
+def _as_matrix(params):
+    """$T = [[R, t], [0, 1]]$."""
+    c, s, x, y = (params[..., i] for i in range(4))
+    zero, one = jnp.zeros_like(c), jnp.ones_like(c)
+    return stack_matrix([[c, -s, x], [s, c, y], [zero, zero, one]])
+
+
+@jax.custom_jvp
+def from_matrix(matrix):
+    """The nearest rotation of the 2×2 block (`lieax.groups._so2.nearest_rotation`) and the last column."""
+    cs, _ = so2.nearest_rotation(matrix[..., :2, :2])
+    return jnp.concatenate([cs, matrix[..., :2, 2]], axis=-1)
+
+
+@from_matrix.defjvp
+def _from_matrix_jvp(primals, tangents):
+    r"""$v = R^\top \dot t$, $\omega$ of `lieax.groups._so2.nearest_rotation_tangent`: the derivative
+    of the projection at any matrix (the generic rule is it only on the group)."""
+    (matrix,), (matrix_dot,) = primals, tangents
+    cs, norm = so2.nearest_rotation(matrix[..., :2, :2])
+    params = jnp.concatenate([cs, matrix[..., :2, 2]], axis=-1)
+    w = so2.nearest_rotation_tangent(cs, norm, matrix_dot[..., :2, :2])
+    v = unrotate(cs, matrix_dot[..., :2, 2])
+    return params, from_local(params, jnp.concatenate([v, w], axis=-1))
+
+
+def _normalize(params):
+    """Unit $(c, s)$; the translation as given."""
+    return jnp.concatenate([so2.normalize(params[..., :2]), params[..., 2:]], axis=-1)
+
+
+_ops = _generic.local_rules(
+    sys.modules[__name__], exp=_exp, log=_log, compose=_compose, inverse=_inverse,
+    adjoint=_adjoint, as_matrix=_as_matrix, from_matrix=from_matrix, normalize=_normalize,
+)  # fmt: skip
+exp, log, compose, inverse = _ops.exp, _ops.log, _ops.compose, _ops.inverse
+adjoint, as_matrix, normalize = _ops.adjoint, _ops.as_matrix, _ops.normalize
+to_parameters, from_parameters = _ops.to_parameters, _ops.from_parameters
+
+
+@jax.custom_jvp
+def act(params, points):
+    """$R p + t$."""
+    return rotate(params[..., :2], points) + params[..., 2:]
+
+
+@_rules.defjvp(act)
+def _act_jvp(primals, tangents):
+    r"""$\dot y = R(v + \omega J p + \dot p)$: blocks $[R,\ R J p]$ and $R$ (Solà App. C)."""
+    (params, points), (carrier, points_dot) = primals, tangents
+    moved = act(params, points)
+    direction = _rules.add(
+        None if _rules.is_zero(carrier) else carrier[..., 2:] + carrier[..., 1:2] * perp(points),
+        None if _rules.is_zero(points_dot) else points_dot,
+    )
+    if direction is None:
+        return _rules.finish(moved, None)
+    return _rules.finish(moved, rotate(so2.to_parameters(params[..., :2]), direction))
+
+
+def join(cs, translation):
+    """SE2 parameters from SO2 parameters and a raw translation, broadcasting batch shapes (through
+    the carrier maps, so the rotation's carrier and the translation's derivative both convert)."""
+    batch = jnp.broadcast_shapes(cs.shape[:-1], translation.shape[:-1])
+    parts = [jnp.broadcast_to(so2.to_parameters(cs), (*batch, 2))]
+    return from_parameters(
+        jnp.concatenate([*parts, jnp.broadcast_to(translation, (*batch, 2))], -1)
+    )
 
 
 def sample_uniform(key, batch_shape, dtype):
@@ -327,11 +268,10 @@ class SE2(AbstractGroup):
             )
         translation = match_dtype(translation, rotation.dtype, "SE2 translation", "the rotation")
         translation = check_last_axis(translation, 2, "SE2 translation", "x, y")
-        batch = broadcast_batch(
+        broadcast_batch(
             "SE2.from_rotation_and_translation", rotation.batch_shape, translation.shape[:-1]
         )
-        cs = jnp.broadcast_to(rotation.parameters(), (*batch, 2))
-        return cls._wrap(jnp.concatenate([cs, jnp.broadcast_to(translation, (*batch, 2))], axis=-1))
+        return cls._wrap(join(rotation._params, translation))
 
     @classmethod
     def from_xy_theta(cls, x, y, theta):
@@ -340,8 +280,7 @@ class SE2(AbstractGroup):
         x, y, theta = common_float_arrays("SE2.from_xy_theta", x, y, theta)
         batch = broadcast_batch("SE2.from_xy_theta", x.shape, y.shape, theta.shape)
         x, y, theta = (jnp.broadcast_to(a, batch) for a in (x, y, theta))
-        cs = so2.exp(theta[..., None])
-        return cls._wrap(jnp.concatenate([cs, x[..., None], y[..., None]], axis=-1))
+        return cls._wrap(join(so2.exp(theta[..., None]), jnp.stack([x, y], axis=-1)))
 
     def as_xy_theta(self) -> jax.Array:
         r"""`(x, y, theta)` on the last axis, theta in $(-\pi, \pi]$; inverse of `from_xy_theta`."""
@@ -353,4 +292,4 @@ class SE2(AbstractGroup):
 
     def translation(self) -> jax.Array:
         """$t$, shape `(*batch, 2)`."""
-        return self._params[..., 2:]
+        return self.parameters()[..., 2:]

@@ -6,14 +6,11 @@ Tangent $\xi = (\rho_p, \omega, \rho_v)$, shape `(*batch, 9)`: position, rotatio
 that the first six coordinates are SE3's $(v, \omega)$ and the first seven parameters are SE3's
 (`pose()`); the order and the matrix layout are manif's `SE_2_3`. GTSAM's `NavState` orders its
 tangent $(\delta R, \delta p, \delta v)$; `lieax.conventions.se23_tangent_to_gtsam` and
-`se23_tangent_from_gtsam` permute. Right perturbation, so $\dot p = R \rho_p$, $\dot v = R \rho_v$,
-$\dot q = q \otimes (0, \omega / 2)$.
-
-Local carrier (see `lieax.groups._base`): the 10-vector tangent of the parameter leaf holds
-$(\rho, \omega, \rho_p, \rho_v)$, so its first seven entries are SE3's carrier. The rules of
-`exp`, `log`, `compose`, `inverse`, `adjoint`, `as_matrix`, `from_matrix` and `normalize` are the
-generic ones of `lieax.groups._generic`; this module gives their values and the kernels `ad`,
-$J_r$, $J_r^{-1}$, `hat`, `vee`, and the action on points $X x = R x + p$.
+`se23_tangent_from_gtsam` permute. Right perturbation: $\dot p = R \rho_p$, $\dot v = R \rho_v$,
+$\dot q = q \otimes (0, \omega / 2)$. The local carrier (`lieax.groups._base`) holds
+$(\rho, \omega, \rho_p, \rho_v)$, so its first seven entries are SE3's carrier and the action on
+points is SE3's. Every other rule is generic (`lieax.groups._generic`): this module gives values
+and the kernels `ad`, $J_r$, $J_r^{-1}$, `hat`, `vee` and the carrier maps.
 
 Formulas: the group is two copies of SE(3)'s translation sharing one rotation (Barrau and
 Bonnabel, "The invariant extended Kalman filter as a stable observer" (2017), Sec. 3; Luo et al.,
@@ -27,40 +24,19 @@ import jax
 import jax.numpy as jnp
 
 from .._checks import broadcast_batch, check_last_axis, match_dtype
-from .._linalg import (
-    cross,
-    matvec,
-    quat_conjugate,
-    quat_multiply,
-    quat_rotate,
-    quat_to_matrix,
-    rotate_back,
-    skew,
-    unskew,
-)
-from . import _generic, _rules
+from .._linalg import blocks, matvec, quat_conjugate, quat_multiply, quat_rotate, rotate_back, skew
+from . import _generic
+from . import _se3 as se3
 from . import _so3 as so3
 from ._base import AbstractGroup
 from ._se3 import SE3, _coupling
 from ._so3 import SO3
 
 
-def _split(params):
-    return params[..., :4], params[..., 4:7], params[..., 7:]
-
-
 def _join(q, p, v):
     """Parameters from a quaternion, a position and a velocity, broadcasting their batch shapes."""
     batch = jnp.broadcast_shapes(q.shape[:-1], p.shape[:-1], v.shape[:-1])
-    parts = [jnp.broadcast_to(a, (*batch, a.shape[-1])) for a in (q, p, v)]
-    return jnp.concatenate(parts, axis=-1)
-
-
-def _blocks(rows):
-    return jnp.concatenate([jnp.concatenate(row, axis=-1) for row in rows], axis=-2)
-
-
-# ---- the carrier ---------------------------------------------------------------------------------
+    return jnp.concatenate([jnp.broadcast_to(a, (*batch, a.shape[-1])) for a in (q, p, v)], -1)
 
 
 def to_local(params, carrier):
@@ -74,46 +50,22 @@ def from_local(params, xi):
     return jnp.concatenate([zero, xi[..., 3:6], xi[..., :3], xi[..., 6:]], axis=-1)
 
 
-@jax.custom_jvp
-def to_parameters(params):
-    """The parameters as a raw array (identity on values)."""
-    return params
+def raw_from_carrier(params, carrier):
+    r"""The raw derivative of a carrier: SE3's, and $\dot v = R \rho_v$."""
+    moved = matvec(so3.unit_rotation(params[..., :4]), carrier[..., 7:])
+    return jnp.concatenate([se3.raw_from_carrier(params[..., :7], carrier[..., :7]), moved], -1)
 
 
-@to_parameters.defjvp
-def _to_parameters_jvp(primals, tangents):
-    r"""Carrier to raw derivative: $\dot q = q \otimes (\rho, \omega/2)$, $\dot p = R \rho_p$, $\dot v = R \rho_v$."""
-    (params,), (carrier,) = primals, tangents
-    raw = to_parameters(params)
-    rotation = so3.unit_rotation(raw[..., :4])
-    q_dot = so3.quaternion_derivative(raw[..., :4], carrier[..., :4])
-    moved = [matvec(rotation, carrier[..., 4:7]), matvec(rotation, carrier[..., 7:])]
-    return raw, jnp.concatenate([q_dot, *moved], axis=-1)
-
-
-@jax.custom_jvp
-def from_parameters(params):
-    """A raw parameter array as SE23 parameters (identity on values)."""
-    return params
-
-
-@from_parameters.defjvp
-def _from_parameters_jvp(primals, tangents):
-    r"""Raw derivative to carrier: $(\rho, \omega)$ as in SO3, $\rho_p = R^\top \dot p$, $\rho_v = R^\top \dot v$."""
-    (params,), (raw,) = primals, tangents
-    rotation = so3.unit_rotation(params[..., :4])
-    rotational = so3.radial_and_local(params[..., :4], raw[..., :4])
-    moved = [rotate_back(rotation, raw[..., 4:7]), rotate_back(rotation, raw[..., 7:])]
-    return from_parameters(params), jnp.concatenate([rotational, *moved], axis=-1)
-
-
-# ---- the kernels of the generic rules -------------------------------------------------------------
+def carrier_from_raw(params, raw):
+    r"""The carrier of a raw derivative: SE3's, and $\rho_v = R^\top \dot v$."""
+    moved = rotate_back(so3.unit_rotation(params[..., :4]), raw[..., 7:])
+    return jnp.concatenate([se3.carrier_from_raw(params[..., :7], raw[..., :7]), moved], -1)
 
 
 def ad(xi):
     r"""$\mathrm{ad}_\xi = [[\omega]_\times, [\rho_p]_\times, 0;\ 0, [\omega]_\times, 0;\ 0, [\rho_v]_\times, [\omega]_\times]$."""
     w, zero = skew(xi[..., 3:6]), jnp.zeros_like(skew(xi[..., 3:6]))
-    return _blocks([[w, skew(xi[..., :3]), zero], [zero, w, zero], [zero, skew(xi[..., 6:]), w]])
+    return blocks([[w, skew(xi[..., :3]), zero], [zero, w, zero], [zero, skew(xi[..., 6:]), w]])
 
 
 def right_jacobian(xi):
@@ -122,83 +74,68 @@ def right_jacobian(xi):
     omega, jr = xi[..., 3:6], so3.right_jacobian(xi[..., 3:6])
     zero = jnp.zeros_like(jr)
     coupling_p, coupling_v = _coupling(-xi[..., :3], -omega), _coupling(-xi[..., 6:], -omega)
-    return _blocks([[jr, coupling_p, zero], [zero, jr, zero], [zero, coupling_v, jr]])
+    return blocks([[jr, coupling_p, zero], [zero, jr, zero], [zero, coupling_v, jr]])
 
 
 def right_jacobian_inverse(xi):
     r"""$J_r^{-1} = [J^{-1}, -J^{-1} Q_p J^{-1}, 0;\ 0, J^{-1}, 0;\ 0, -J^{-1} Q_v J^{-1}, J^{-1}]$."""
-    omega, inverse_ = xi[..., 3:6], so3.right_jacobian_inverse(xi[..., 3:6])
-    zero = jnp.zeros_like(inverse_)
-    coupling_p = -inverse_ @ _coupling(-xi[..., :3], -omega) @ inverse_
-    coupling_v = -inverse_ @ _coupling(-xi[..., 6:], -omega) @ inverse_
-    return _blocks(
-        [[inverse_, coupling_p, zero], [zero, inverse_, zero], [zero, coupling_v, inverse_]]
-    )
+    omega, inv = xi[..., 3:6], so3.right_jacobian_inverse(xi[..., 3:6])
+    zero = jnp.zeros_like(inv)
+    coupling_p = -inv @ _coupling(-xi[..., :3], -omega) @ inv
+    coupling_v = -inv @ _coupling(-xi[..., 6:], -omega) @ inv
+    return blocks([[inv, coupling_p, zero], [zero, inv, zero], [zero, coupling_v, inv]])
 
 
 def hat(xi):
     r"""$\xi^\wedge = [[\omega]_\times, \rho_p, \rho_v;\ 0, 0, 0;\ 0, 0, 0]$."""
-    top = jnp.concatenate([skew(xi[..., 3:6]), xi[..., :3, None], xi[..., 6:, None]], axis=-1)
+    top = jnp.concatenate([se3.hat(xi[..., :6])[..., :3, :], xi[..., 6:, None]], axis=-1)
     return jnp.concatenate([top, jnp.zeros_like(top[..., :2, :])], axis=-2)
 
 
 def vee(matrix):
-    return jnp.concatenate(
-        [matrix[..., :3, 3], unskew(matrix[..., :3, :3]), matrix[..., :3, 4]], -1
-    )
+    return jnp.concatenate([se3.vee(matrix[..., :4, :4]), matrix[..., :3, 4]], axis=-1)
 
 
 # ---- values of the generic operations -------------------------------------------------------------
 
 
 def _exp(xi):
-    r"""$(\mathrm{Exp}(\omega),\ J_l(\omega)\rho_p,\ J_l(\omega)\rho_v)$ with $J_l(\omega) = J_r(-\omega)$."""
-    omega = xi[..., 3:6]
-    moved = [
-        so3.apply_right_jacobian(-omega, xi[..., :3]),
-        so3.apply_right_jacobian(-omega, xi[..., 6:]),
-    ]
-    return jnp.concatenate([so3.exp(omega), *moved], axis=-1)
+    r"""$(\mathrm{Exp}_{SE3}(\rho_p, \omega),\ J_l(\omega)\rho_v)$ with $J_l(\omega) = J_r(-\omega)$."""
+    velocity = so3.apply_right_jacobian(-xi[..., 3:6], xi[..., 6:])
+    return jnp.concatenate([se3._exp(xi[..., :6]), velocity], axis=-1)
 
 
 def _log(params):
-    r"""$(J_l^{-1}(\omega) p,\ \omega,\ J_l^{-1}(\omega) v)$, $\omega = \mathrm{Log}(q)$."""
-    q, p, v = _split(params)
-    omega = so3.log(q)
-    moved = [so3.apply_right_jacobian_inverse(-omega, t) for t in (p, v)]
-    return jnp.concatenate([moved[0], omega, moved[1]], axis=-1)
+    r"""$(\mathrm{Log}_{SE3}(q, p),\ J_l^{-1}(\omega) v)$, $\omega = \mathrm{Log}(q)$."""
+    pose = se3._log(params[..., :7])
+    velocity = so3.apply_right_jacobian_inverse(-pose[..., 3:], params[..., 7:])
+    return jnp.concatenate([pose, velocity], axis=-1)
 
 
 def _compose(params1, params2):
     r"""$(q_1 \otimes q_2,\ p_1 + R_1 p_2,\ v_1 + R_1 v_2)$."""
-    (q1, p1, v1), (q2, p2, v2) = _split(params1), _split(params2)
-    return _join(quat_multiply(q1, q2), quat_rotate(q1, p2) + p1, quat_rotate(q1, v2) + v1)
+    q1, q2 = params1[..., :4], params2[..., :4]
+    moved = [quat_rotate(q1, params2[..., i:j]) + params1[..., i:j] for i, j in ((4, 7), (7, 10))]
+    return _join(quat_multiply(q1, q2), *moved)
 
 
 def _inverse(params):
     r"""$(\bar q,\ -R^\top p,\ -R^\top v)$."""
-    q, p, v = _split(params)
-    q_inverse = quat_conjugate(q)
-    return _join(q_inverse, -quat_rotate(q_inverse, p), -quat_rotate(q_inverse, v))
+    q_inverse = quat_conjugate(params[..., :4])
+    moved = [-quat_rotate(q_inverse, params[..., i:j]) for i, j in ((4, 7), (7, 10))]
+    return _join(q_inverse, *moved)
 
 
 def _adjoint(params):
     r"""$\mathrm{Ad}_X = [R, [p]_\times R, 0;\ 0, R, 0;\ 0, [v]_\times R, R]$."""
-    q, p, v = _split(params)
-    rotation = quat_to_matrix(q)
-    zero = jnp.zeros_like(rotation)
-    rows = [
-        [rotation, skew(p) @ rotation, zero],
-        [zero, rotation, zero],
-        [zero, skew(v) @ rotation, rotation],
-    ]
-    return _blocks(rows)
+    pose, v = se3._adjoint(params[..., :7]), params[..., 7:]
+    rotation, zero = pose[..., :3, :3], jnp.zeros_like(pose[..., :3, :3])
+    return blocks([[pose, jnp.zeros_like(pose[..., :3])], [zero, skew(v) @ rotation, rotation]])
 
 
 def _as_matrix(params):
     r"""$[R, p, v;\ 0, 1, 0;\ 0, 0, 1]$."""
-    q, p, v = _split(params)
-    top = jnp.concatenate([quat_to_matrix(q), p[..., None], v[..., None]], axis=-1)
+    top = jnp.concatenate([se3._as_matrix(params[..., :7])[..., :3, :], params[..., 7:, None]], -1)
     bottom = jnp.broadcast_to(jnp.eye(5, dtype=params.dtype)[3:], (*top.shape[:-2], 2, 5))
     return jnp.concatenate([top, bottom], axis=-2)
 
@@ -220,26 +157,12 @@ _ops = _generic.local_rules(
 exp, log, compose, inverse = _ops.exp, _ops.log, _ops.compose, _ops.inverse
 adjoint, as_matrix = _ops.adjoint, _ops.as_matrix
 from_matrix, normalize = _ops.from_matrix, _ops.normalize
+to_parameters, from_parameters = _ops.to_parameters, _ops.from_parameters
 
 
-@jax.custom_jvp
 def act(params, points):
-    """$X x = R x + p$ (the pose part acts; the velocity does not move points)."""
-    return matvec(quat_to_matrix(params[..., :4]), points) + params[..., 4:7]
-
-
-@_rules.defjvp(act)
-def _act_jvp(primals, tangents):
-    r"""$\dot y = R(\rho_p + \omega \times x + \dot x)$, as SE3's action."""
-    (params, points), (carrier, points_dot) = primals, tangents
-    moved = act(params, points)
-    direction = _rules.add(
-        None if _rules.is_zero(carrier) else carrier[..., 4:7] + cross(carrier[..., 1:4], points),
-        None if _rules.is_zero(points_dot) else points_dot,
-    )
-    if direction is None:
-        return _rules.finish(moved, None)
-    return _rules.finish(moved, matvec(so3.as_matrix(params[..., :4]), direction))
+    """$X x = R x + p$: SE3's action (and rule) on the pose part; the velocity does not move points."""
+    return se3.act(params[..., :7], points)
 
 
 def sample_uniform(key, batch_shape, dtype):

@@ -65,36 +65,18 @@ def from_local(params, xi):
     return jnp.concatenate([jnp.zeros_like(xi[..., :1]), xi[..., 3:], xi[..., :3]], axis=-1)
 
 
-@jax.custom_jvp
-def to_parameters(params):
-    """The parameters as a raw array (identity on values)."""
-    return params
-
-
-@to_parameters.defjvp
-def _to_parameters_jvp(primals, tangents):
-    r"""Carrier to raw derivative: $\dot q = q \otimes (\rho, \omega/2)$, $\dot t = R v$."""
-    (params,), (carrier,) = primals, tangents
-    raw = to_parameters(params)
-    q = raw[..., :4]
-    q_dot = so3.quaternion_derivative(q, carrier[..., :4])
-    return raw, jnp.concatenate([q_dot, matvec(so3.unit_rotation(q), carrier[..., 4:])], axis=-1)
-
-
-@jax.custom_jvp
-def from_parameters(params):
-    """A raw parameter array as SE3 parameters (identity on values)."""
-    return params
-
-
-@from_parameters.defjvp
-def _from_parameters_jvp(primals, tangents):
-    r"""Raw derivative to carrier: $(\rho, \omega)$ as in SO3, $v = R^\top \dot t$."""
-    (params,), (params_dot,) = primals, tangents
+def raw_from_carrier(params, carrier):
+    r"""The raw derivative of a carrier: $\dot q = q \otimes (\rho, \omega/2)$, $\dot t = R v$."""
     q = params[..., :4]
-    rotational = so3.radial_and_local(q, params_dot[..., :4])
+    q_dot = so3.raw_from_carrier(q, carrier[..., :4])
+    return jnp.concatenate([q_dot, matvec(so3.unit_rotation(q), carrier[..., 4:])], axis=-1)
+
+
+def carrier_from_raw(params, params_dot):
+    r"""The carrier of a raw derivative: $(\rho, \omega)$ as in SO3, $v = R^\top \dot t$."""
+    q = params[..., :4]
     v = rotate_back(so3.unit_rotation(q), params_dot[..., 4:])
-    return from_parameters(params), jnp.concatenate([rotational, v], axis=-1)
+    return jnp.concatenate([so3.carrier_from_raw(q, params_dot[..., :4]), v], axis=-1)
 
 
 @jax.custom_jvp
@@ -305,6 +287,7 @@ _ops = _generic.local_rules(
 )  # fmt: skip
 exp, log, adjoint, as_matrix = _ops.exp, _ops.log, _ops.adjoint, _ops.as_matrix
 from_matrix, normalize = _ops.from_matrix, _ops.normalize
+to_parameters, from_parameters = _ops.to_parameters, _ops.from_parameters
 
 
 def sample_uniform(key, batch_shape, dtype):

@@ -51,6 +51,7 @@ import numpy as np
 
 from .._checks import as_float_array, broadcast_batch, check_last_axis, check_positive, match_dtype
 from .._linalg import (
+    blocks,
     cross,
     dot,
     matvec,
@@ -215,38 +216,21 @@ def from_local(params, xi):
     )
 
 
-@jax.custom_jvp
-def to_parameters(params):
-    """The parameters as a raw array (identity on values)."""
-    return params
-
-
-@to_parameters.defjvp
-def _to_parameters_jvp(primals, tangents):
-    r"""Carrier to raw derivative: $\dot q = q \otimes (\rho, \omega/2)$, $\dot t = s R v$,
+def raw_from_carrier(params, carrier):
+    r"""The raw derivative of a carrier: $\dot q = q \otimes (\rho, \omega/2)$, $\dot t = s R v$,
     $\dot\sigma = \sigma_\xi$."""
-    (params,), (carrier,) = primals, tangents
-    raw = to_parameters(params)
-    q, sigma = raw[..., :4], raw[..., 7:]
-    q_dot = so3.quaternion_derivative(q, carrier[..., :4])
-    t_dot = jnp.exp(sigma) * matvec(so3.unit_rotation(q), carrier[..., 4:7])
-    return raw, jnp.concatenate([q_dot, t_dot, carrier[..., 7:]], axis=-1)
-
-
-@jax.custom_jvp
-def from_parameters(params):
-    """A raw parameter array as Sim3 parameters (identity on values)."""
-    return params
-
-
-@from_parameters.defjvp
-def _from_parameters_jvp(primals, tangents):
-    r"""Raw derivative to carrier: $(\rho, \omega)$ as in SO3, $v = R^\top \dot t / s$, $\dot\sigma$."""
-    (params,), (params_dot,) = primals, tangents
     q, sigma = params[..., :4], params[..., 7:]
-    rotational = so3.radial_and_local(q, params_dot[..., :4])
+    q_dot = so3.raw_from_carrier(q, carrier[..., :4])
+    t_dot = jnp.exp(sigma) * matvec(so3.unit_rotation(q), carrier[..., 4:7])
+    return jnp.concatenate([q_dot, t_dot, carrier[..., 7:]], axis=-1)
+
+
+def carrier_from_raw(params, params_dot):
+    r"""The carrier of a raw derivative: $(\rho, \omega)$ as in SO3, $v = R^\top \dot t / s$, $\dot\sigma$."""
+    q, sigma = params[..., :4], params[..., 7:]
+    rotational = so3.carrier_from_raw(q, params_dot[..., :4])
     v = rotate_back(so3.unit_rotation(q), params_dot[..., 4:7]) * jnp.exp(-sigma)
-    return from_parameters(params), jnp.concatenate([rotational, v, params_dot[..., 7:]], axis=-1)
+    return jnp.concatenate([rotational, v, params_dot[..., 7:]], axis=-1)
 
 
 @jax.custom_jvp
@@ -287,10 +271,6 @@ def vee(matrix):
     return jnp.concatenate([matrix[..., :3, 3], unskew(linear), trace[..., None] / 3.0], axis=-1)
 
 
-def _blocks(rows):
-    return jnp.concatenate([jnp.concatenate(row, axis=-1) for row in rows], axis=-2)
-
-
 def ad(xi):
     r"""$\mathrm{ad}_\xi = [[[\omega]_\times + \sigma I, [v]_\times, -v], [0, [\omega]_\times, 0],
     [0, 0, 0]]$, with $[\xi^\wedge, \eta^\wedge] = (\mathrm{ad}_\xi \eta)^\wedge$."""
@@ -300,7 +280,7 @@ def ad(xi):
     zero33, zero31 = jnp.zeros_like(w), jnp.zeros_like(v[..., None])
     zero13 = jnp.zeros_like(v[..., None, :])
     zero11 = jnp.zeros_like(sigma[..., None])
-    return _blocks(
+    return blocks(
         [
             [w + sigma[..., None] * eye, skew(v), -v[..., None]],
             [zero33, w, zero31],
@@ -451,7 +431,7 @@ def _adjoint(params):
     zero31 = jnp.zeros_like(t[..., None])
     zero13 = jnp.zeros_like(t[..., None, :])
     one = jnp.ones_like(sigma[..., None])
-    return _blocks(
+    return blocks(
         [
             [s * rotation, skew(t) @ rotation, -t[..., None]],
             [zero33, rotation, zero31],
@@ -499,6 +479,7 @@ _ops = _generic.local_rules(
 )  # fmt: skip
 exp, log, adjoint, as_matrix = _ops.exp, _ops.log, _ops.adjoint, _ops.as_matrix
 from_matrix, normalize = _ops.from_matrix, _ops.normalize
+to_parameters, from_parameters = _ops.to_parameters, _ops.from_parameters
 
 
 def sample_uniform(key, batch_shape, dtype):

@@ -1,21 +1,25 @@
-r"""SO(2), rotations in the plane, stored as unit complex numbers $(\cos\theta, \sin\theta)$.
+r"""SO(2), rotations in the plane, stored as unit complex numbers $z = (\cos\theta, \sin\theta)$.
 
 Tangent $\theta \in \mathbb{R}^1$, right perturbation $X \oplus \theta = X\,\mathrm{Exp}(\theta)$.
-The derivative of the parameters along a right-local tangent is
-$(\dot c, \dot s) = \dot\theta\,(-s, c)$, and back $\dot\theta = c\,\dot s - s\,\dot c$: every
-kernel's rule converts the incoming parameter tangents to local tangents once, applies the
-closed-form block, and converts the result back, so code that touches $(\cos, \sin)$ itself still
-gets correct derivatives. SO(2) is commutative: its adjoint and Jacobians of Exp are $[1]$.
+
+Tangent carrier (the local carrier of `lieax.groups._base`, as SO3's): the 2-vector tangent of
+the parameter leaf holds $(\rho, \theta)$ with $\dot z = z\,(\rho + i\theta)$ ($\rho$ the radial
+part, zero on the circle), so kernels read and write $\theta$ directly; `SO2(cs)` and
+`parameters()` convert to and from the raw derivative, $(\rho, \theta) = \bar z \dot z / |z|^2$.
+SO(2) is commutative: its adjoint and Jacobians of Exp are $[1]$, $\mathrm{ad} = [0]$, so every
+rule but `act`'s and `from_matrix`'s is the generic one of `lieax.groups._generic`.
 
 Formulas: Solà, Deray, Atchuthan, "A micro Lie theory for state estimation in robotics" (2018),
 App. A; the coefficients are the $g_n$ of `lieax.groups._series`.
 """
 
+import sys
+
 import jax
 import jax.numpy as jnp
 
 from .._checks import as_float_array
-from . import _rules
+from . import _generic, _rules
 from ._base import AbstractGroup
 from ._series import g
 
@@ -37,8 +41,13 @@ def rotate(cs, p):
 
 
 def unrotate(cs, p):
-    r"""$R^\top p = c\,p - s\,J p$."""
+    r"""$R^\top p = c\,p - s\,J p$; also the complex product $(c - is)(p_x + ip_y)$."""
     return cs[..., :1] * p - cs[..., 1:] * perp(p)
+
+
+def unit(cs):
+    r"""$z / |z|$ by plain array operations (the carrier maps read raw parameters)."""
+    return cs / jnp.sqrt(dot(cs, cs))[..., None]
 
 
 def rotation_matrix(cs):
@@ -68,118 +77,55 @@ def nearest_rotation_tangent(cs, norm, m_dot):
     r"""The local derivative of `nearest_rotation`: with $(a, b)$ = `rotation_part(m)`,
     $\theta = \mathrm{atan2}(b, a)$ gives $\dot\theta = (c\,\dot b - s\,\dot a) / |(a, b)|$
     (for a rotation matrix, the skew part of $R^\top \dot R$)."""
-    return to_local(cs, rotation_part(m_dot)) / norm
+    return dot(perp(cs), rotation_part(m_dot))[..., None] / norm
 
 
-def to_local(cs, cs_dot):
-    r"""$\dot\theta = c\,\dot s - s\,\dot c = (J\,(c, s)) \cdot (\dot c, \dot s)$, shape `(*batch, 1)`."""
-    return dot(perp(cs), cs_dot)[..., None]
+# ---- the carrier ---------------------------------------------------------------------------------
+
+
+def to_local(cs, carrier):
+    r"""The right-local tangent $\theta$ held by a carrier $(\rho, \theta)$."""
+    return carrier[..., 1:]
 
 
 def from_local(cs, theta):
-    r"""$(\dot c, \dot s) = \dot\theta\,(-s, c) = \dot\theta\,J\,(c, s)$."""
-    return theta * perp(cs)
+    r"""The carrier $(0, \theta)$ of a right-local tangent."""
+    return jnp.concatenate([jnp.zeros_like(theta), theta], axis=-1)
 
 
-# ---- kernels with closed-form rules -------------------------------------------------------------
+def raw_from_carrier(cs, carrier):
+    r"""The raw derivative $\dot z = z\,(\rho + i\theta)$ of a carrier."""
+    return rotate(cs, carrier)
 
 
-@jax.custom_jvp
-def exp(theta):
+def carrier_from_raw(cs, cs_dot):
+    r"""The carrier $(\rho, \theta) = \bar z \dot z / |z|^2$ of a raw derivative."""
+    return unrotate(cs, cs_dot) / dot(cs, cs)[..., None]
+
+
+# ---- kernels: values (the generic rules of `lieax.groups._generic`) and the action --------------
+
+
+def _exp(theta):
     r"""$\mathrm{Exp}(\theta) = (\cos\theta, \sin\theta) = (g_0(s),\ \theta\,g_1(s))$, $s = \theta^2$
     (Solà App. A)."""
     s = theta * theta
     return jnp.concatenate([g(0, s), theta * g(1, s)], axis=-1)
 
 
-@exp.defjvp
-def _exp_jvp(primals, tangents):
-    """Local block: $J_r = 1$."""
-    (theta,), (theta_dot,) = primals, tangents
-    cs = exp(theta)
-    return cs, from_local(cs, theta_dot)
-
-
-@jax.custom_jvp
-def log(cs):
+def _log(cs):
     r"""$\mathrm{Log}(c, s) = \mathrm{atan2}(s, c) \in (-\pi, \pi]$ (Solà App. A)."""
     return jnp.arctan2(cs[..., 1:], cs[..., :1])
 
 
-@log.defjvp
-def _log_jvp(primals, tangents):
-    """Local block: $J_r^{-1} = 1$."""
-    (cs,), (cs_dot,) = primals, tangents
-    return log(cs), to_local(cs, cs_dot)
-
-
-@jax.custom_jvp
-def compose(cs1, cs2):
-    r"""$R_1 R_2$: the complex product $(c_1 c_2 - s_1 s_2,\ s_1 c_2 + c_1 s_2)$."""
-    return rotate(cs1, cs2)
-
-
-@_rules.defjvp(compose)
-def _compose_jvp(primals, tangents):
-    r"""Local block: $\dot\theta = \dot\theta_1 + \dot\theta_2$ (Solà App. A: SO(2) is commutative)."""
-    (cs1, cs2), (cs1_dot, cs2_dot) = primals, tangents
-    cs = compose(cs1, cs2)
-    theta = _rules.add(
-        _rules.local_tangent(to_local, cs1, cs1_dot), _rules.local_tangent(to_local, cs2, cs2_dot)
-    )
-    return _rules.finish(cs, None if theta is None else from_local(cs, theta))
-
-
-@jax.custom_jvp
-def inverse(cs):
+def _inverse(cs):
     r"""$R^\top = (c, -s)$."""
     return cs * jnp.array([1.0, -1.0], dtype=cs.dtype)
 
 
-@inverse.defjvp
-def _inverse_jvp(primals, tangents):
-    r"""Local block: $\dot\theta_{out} = -\dot\theta$ (Solà App. A)."""
-    (cs,), (cs_dot,) = primals, tangents
-    cs_inv = inverse(cs)
-    return cs_inv, from_local(cs_inv, -to_local(cs, cs_dot))
-
-
-@jax.custom_jvp
-def act(cs, points):
-    r"""$R\,p$."""
-    return rotate(cs, points)
-
-
-@_rules.defjvp(act)
-def _act_jvp(primals, tangents):
-    r"""$\dot y = R(\dot\theta\,J p + \dot p)$: blocks $R J p$ and $R$ (Solà App. A)."""
-    (cs, points), (cs_dot, points_dot) = primals, tangents
-    moved = act(cs, points)
-    theta = _rules.local_tangent(to_local, cs, cs_dot)
-    direction = _rules.add(
-        None if theta is None else theta * perp(points),
-        None if _rules.is_zero(points_dot) else points_dot,
-    )
-    return _rules.finish(moved, None if direction is None else rotate(cs, direction))
-
-
-def adjoint(cs):
+def _adjoint(cs):
     r"""$\mathrm{Ad} = [1]$ (Solà App. A), shape `(*batch, 1, 1)`."""
     return jnp.ones_like(cs[..., :1, None])
-
-
-@jax.custom_jvp
-def as_matrix(cs):
-    """$R = [[c, -s], [s, c]]$."""
-    return rotation_matrix(cs)
-
-
-@as_matrix.defjvp
-def _as_matrix_jvp(primals, tangents):
-    r"""$\dot R = R\,\mathrm{hat}(\dot\theta) = \dot\theta\,R J$."""
-    (cs,), (cs_dot,) = primals, tangents
-    rotation = as_matrix(cs)
-    return rotation, rotation @ hat(to_local(cs, cs_dot))
 
 
 @jax.custom_jvp
@@ -192,13 +138,14 @@ def from_matrix(rotation):
 
 @from_matrix.defjvp
 def _from_matrix_jvp(primals, tangents):
-    r"""$\dot\theta$ of `nearest_rotation_tangent` (the skew part of $R^\top \dot R$ at a rotation)."""
+    r"""$\dot\theta$ of `nearest_rotation_tangent`: the derivative of the projection at any matrix
+    (the generic rule, the skew part of $R^\top \dot M$, is it only at rotation matrices)."""
     (rotation,), (rotation_dot,) = primals, tangents
     cs, norm = nearest_rotation(rotation)
     return cs, from_local(cs, nearest_rotation_tangent(cs, norm, rotation_dot))
 
 
-def normalize(cs):
+def _normalize(cs):
     return cs / jnp.linalg.norm(cs, axis=-1, keepdims=True)
 
 
@@ -214,12 +161,45 @@ def vee(matrix):
     return 0.5 * (matrix[..., 1, 0] - matrix[..., 0, 1])[..., None]
 
 
+def ad(theta):
+    r"""$\mathrm{ad}_\theta = [0]$ (SO(2) is commutative), shape `(*batch, 1, 1)`."""
+    return jnp.zeros_like(theta[..., None])
+
+
 def right_jacobian(theta):
     """$J_r = [1]$ (Solà App. A), shape `(*batch, 1, 1)`."""
     return jnp.ones_like(theta[..., None])
 
 
 right_jacobian_inverse = right_jacobian  # [1] as well
+
+_ops = _generic.local_rules(
+    sys.modules[__name__], exp=_exp, log=_log, compose=rotate, inverse=_inverse,
+    adjoint=_adjoint, as_matrix=rotation_matrix, from_matrix=from_matrix, normalize=_normalize,
+)  # fmt: skip
+exp, log, compose, inverse = _ops.exp, _ops.log, _ops.compose, _ops.inverse
+adjoint, as_matrix, normalize = _ops.adjoint, _ops.as_matrix, _ops.normalize
+to_parameters, from_parameters = _ops.to_parameters, _ops.from_parameters
+
+
+@jax.custom_jvp
+def act(cs, points):
+    r"""$R\,p$."""
+    return rotate(cs, points)
+
+
+@_rules.defjvp(act)
+def _act_jvp(primals, tangents):
+    r"""$\dot y = R(\dot\theta\,J p + \dot p)$: blocks $R J p$ and $R$ (Solà App. A)."""
+    (cs, points), (carrier, points_dot) = primals, tangents
+    moved = act(cs, points)
+    direction = _rules.add(
+        None if _rules.is_zero(carrier) else carrier[..., 1:] * perp(points),
+        None if _rules.is_zero(points_dot) else points_dot,
+    )
+    if direction is None:
+        return _rules.finish(moved, None)
+    return _rules.finish(moved, rotate(to_parameters(cs), direction))
 
 
 def sample_uniform(key, batch_shape, dtype):

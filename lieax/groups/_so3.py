@@ -7,7 +7,8 @@ coordinates themselves, $(\rho, \omega)$ with $\dot q = q \otimes (\rho, \omega/
 part, zero on the manifold). Kernels therefore read and write local tangents directly and no rule
 converts anything; the conversion to and from the derivative of the raw quaternion happens only
 where raw parameters cross the API: `SO3(wxyz)` (`from_parameters`) and `X.parameters()`
-(`to_parameters`). Code that differentiates the raw quaternion still gets exact derivatives.
+(`to_parameters`), the generic maps of `lieax.groups._generic` from `carrier_from_raw` and
+`raw_from_carrier`. Code that differentiates the raw quaternion still gets exact derivatives.
 Inside rules, anything that depends on $q$ is computed by kernels (`as_matrix`) or from
 `to_parameters(q)`, so second derivatives stay consistent with the carrier.
 
@@ -37,10 +38,16 @@ from ._base import AbstractGroup
 from ._series import g
 
 
-def radial_and_local(q, q_dot):
-    r"""The carrier of a quaternion derivative: $(\rho, \omega) = (\mathrm{Re}, 2\,\mathrm{Im})(q^{-1} \otimes \dot q)$."""
+def carrier_from_raw(q, q_dot):
+    r"""The carrier of a raw quaternion derivative: $(\rho, \omega) = (\mathrm{Re}, 2\,\mathrm{Im})(q^{-1} \otimes \dot q)$."""
     product = quat_multiply(quat_conjugate(q), q_dot) / dot(q, q)[..., None]
     return product * jnp.array([1.0, 2.0, 2.0, 2.0], dtype=product.dtype)
+
+
+def raw_from_carrier(q, carrier):
+    r"""The raw quaternion derivative of a carrier: $\dot q = q \otimes (\rho, \omega / 2)$, inverse of
+    `carrier_from_raw`."""
+    return quat_multiply(q, carrier * jnp.array([1.0, 0.5, 0.5, 0.5], dtype=carrier.dtype))
 
 
 def unit_rotation(q):
@@ -48,11 +55,6 @@ def unit_rotation(q):
     parameters, whose derivatives are raw (the `normalize` and `as_matrix` kernels would read them
     as carriers, and second derivatives through `parameters()` would be wrong)."""
     return quat_to_matrix(q / jnp.sqrt(dot(q, q))[..., None])
-
-
-def quaternion_derivative(q, carrier):
-    r"""$\dot q = q \otimes (\rho, \omega / 2)$, inverse of `radial_and_local`."""
-    return quat_multiply(q, carrier * jnp.array([1.0, 0.5, 0.5, 0.5], dtype=carrier.dtype))
 
 
 def to_local(q, carrier):
@@ -63,33 +65,6 @@ def to_local(q, carrier):
 def from_local(q, omega):
     r"""The carrier of a right-local tangent: $(0, \omega)$."""
     return jnp.concatenate([jnp.zeros_like(omega[..., :1]), omega], axis=-1)
-
-
-@jax.custom_jvp
-def to_parameters(q):
-    """The quaternion as a raw array (identity on values)."""
-    return q
-
-
-@to_parameters.defjvp
-def _to_parameters_jvp(primals, tangents):
-    r"""Carrier to raw derivative: $\dot q = q \otimes (\rho, \omega/2)$."""
-    (q,), (carrier,) = primals, tangents
-    raw = to_parameters(q)
-    return raw, quaternion_derivative(raw, carrier)
-
-
-@jax.custom_jvp
-def from_parameters(q):
-    """A raw quaternion array as SO3 parameters (identity on values)."""
-    return q
-
-
-@from_parameters.defjvp
-def _from_parameters_jvp(primals, tangents):
-    r"""Raw derivative to carrier: $(\rho, \omega) = (\mathrm{Re}, 2\,\mathrm{Im})(q^{-1} \otimes \dot q)$."""
-    (q,), (q_dot,) = primals, tangents
-    return from_parameters(q), radial_and_local(q, q_dot)
 
 
 # ---- coefficient matrices -----------------------------------------------------------------------
@@ -300,6 +275,7 @@ _ops = _generic.local_rules(
     normalize=_normalize,
 )  # fmt: skip
 as_matrix, from_matrix, normalize = _ops.as_matrix, _ops.from_matrix, _ops.normalize
+to_parameters, from_parameters = _ops.to_parameters, _ops.from_parameters
 adjoint = as_matrix  # Ad_R = R
 
 
