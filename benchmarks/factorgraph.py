@@ -12,7 +12,11 @@ closed-form between blocks (`lieax.graph.to_factor_graph`'s default), `factorgra
 `lieax.jacobian` differentiate the residual through the groups' `custom_jvp` rules.
 
 The second table is the first call on a generated 2D problem of about 10k poses as factor kinds
-are added (odometry; loop closures; GPS positions; a pose prior): analysis, trace and compile.
+are added (odometry; loop closures; GPS positions; a pose prior; compass headings): analysis
+(`FactorGraph(...)`), the first `solve` less a warm one split into XLA compilation (JAX's
+monitoring events) and the rest (tracing, lowering, host-side setup), the first call's total in
+wall and in this process's CPU seconds (a loaded machine inflates the wall time), and the warm
+solve.
 
     python benchmarks/factorgraph.py --data ../shared/data [--rounds 5] [--sets intel,sphere2500]
 """
@@ -84,8 +88,8 @@ def benchmark_set(name, path, is3d, rounds):
 
 def generated_problem(n, kinds, seed=0):
     """A 2D pose graph of `n` poses with the first `kinds` of: odometry, loop closures, GPS
-    positions every 10th pose, a prior on the first pose (the first pose is fixed when there are
-    neither GPS nor prior factors)."""
+    positions every 10th pose, a prior on the first pose, compass headings (the rotation alone)
+    every 10th pose (the first pose is fixed when there are neither GPS nor prior factors)."""
     rng = np.random.default_rng(seed)
     xi = rng.normal(size=(n, 3)) * 0.2
     xi[:, 0] += np.arange(n) * 0.5
@@ -102,6 +106,9 @@ def generated_problem(n, kinds, seed=0):
     def prior(x, z):
         return z.between(x).log()
 
+    def heading(x, z):
+        return z.between(x.rotation()).log()
+
     i = np.arange(n - 1)
     factors = [Factor(between, (poses[i], poses[i + 1]), truth[i].between(truth[i + 1]),
                       name="odometry")]  # fmt: skip
@@ -115,32 +122,76 @@ def generated_problem(n, kinds, seed=0):
         factors.append(Factor(gps, (poses[k],), truth.translation()[k], name="gps"))
     if kinds >= 4:
         factors.append(Factor(prior, (poses[np.zeros(1, int)],), truth[:1], name="prior"))
+    if kinds >= 5:
+        k = np.arange(5, n, 10)
+        factors.append(Factor(heading, (poses[k],), truth.rotation()[k], name="heading"))
     return factors, poses
 
 
-def first_calls(n, max_kinds):
-    rows = []
-    for kinds in range(1, max_kinds + 1):
+class _CompileClock:
+    """Seconds of XLA compilation (JAX's `backend_compile_duration` events, which never nest),
+    summed since the clock was made."""
+
+    EVENT = "/jax/core/compile/backend_compile_duration"
+
+    def __init__(self):
+        self.seconds = 0.0
+        self.compiles = []  # (function name, seconds), in order
+        jax.monitoring.register_event_duration_secs_listener(self._record)
+
+    def _record(self, event, duration, fun_name="?", **kwargs):
+        if event == self.EVENT:
+            self.seconds += duration
+            self.compiles.append((fun_name, duration))
+
+
+def first_calls(n, counts):
+    """One row per number of factor kinds in `counts`: factors, analysis (`FactorGraph(...)`),
+    the first solve less a warm one split into XLA compilation and the rest (tracing, lowering,
+    host-side setup), the first call's total in wall and CPU seconds (CPU: this process's, so
+    other processes' load does not count), the warm solve, iterations; and per row the largest
+    XLA compilations of the first call (name, seconds, how many)."""
+    clock = _CompileClock()
+    rows, largest = [], []
+    for kinds in counts:
         factors, poses = generated_problem(n, kinds)
-        start = time.perf_counter()
+        compiled, first_compile = clock.seconds, len(clock.compiles)
+        start, start_cpu = time.perf_counter(), time.process_time()
         graph = FactorGraph(factors, [poses])
         analysed = time.perf_counter()
         result = graph.solve(max_iterations=20)
         jax.block_until_ready(result)
-        first = time.perf_counter()
+        first, first_cpu = time.perf_counter(), time.process_time()
+        compile_s = clock.seconds - compiled
+        largest.append(_largest(clock.compiles[first_compile:]))
         jax.block_until_ready(graph.solve(max_iterations=20))
-        warm = time.perf_counter() - first
+        warm, warm_cpu = time.perf_counter() - first, time.process_time() - first_cpu
         rows.append(
             [
                 kinds,
                 sum(f.count for f in factors),
                 format_seconds(analysed - start),
-                format_seconds(first - analysed - warm),
+                format_seconds(first - analysed - warm - compile_s),
+                format_seconds(compile_s),
+                format_seconds(first - start - warm),
+                format_seconds(first_cpu - start_cpu - warm_cpu),
                 format_seconds(warm),
                 int(result.iterations),
             ]
         )
-    return rows
+    return rows, largest
+
+
+def _largest(compiles, count=3):
+    """The `count` function names that took the most compile time, with their seconds and
+    number of compilations, and the total number of compilations."""
+    seconds, calls = {}, {}
+    for name, duration in compiles:
+        seconds[name] = seconds.get(name, 0.0) + duration
+        calls[name] = calls.get(name, 0) + 1
+    top = sorted(seconds, key=seconds.get, reverse=True)[:count]
+    described = ", ".join(f"{name} {seconds[name]:.2f} s ({calls[name]}x)" for name in top)
+    return f"{len(compiles)} compilations; largest: {described}"
 
 
 def bundle_adjustment(cameras, points, observations, rounds):
@@ -193,7 +244,7 @@ def main(argv=None):
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--sets", default=",".join(pgo.SETS))
     parser.add_argument("--poses", type=int, default=10000)
-    parser.add_argument("--kinds", type=int, default=4)
+    parser.add_argument("--kinds", default="1,2,3,4,5", help="numbers of factor kinds ('')")
     parser.add_argument("--ba", default="20,400,2400", help="cameras,points,observations ('')")
     args = parser.parse_args(argv)
     try:
@@ -232,11 +283,19 @@ def main(argv=None):
             "factor kinds",
             "factors",
             "analysis",
-            "trace + compile",
+            "trace + lower + setup",
+            "XLA compile",
+            "first call",
+            "first call (CPU)",
             "warm solve",
             "iterations",
         ]
-        print(markdown_table(headers, first_calls(args.poses, args.kinds)))
+        counts = [int(k) for k in args.kinds.split(",")]
+        rows, largest = first_calls(args.poses, counts)
+        print(markdown_table(headers, rows))
+        print()
+        for kinds, described in zip(counts, largest):
+            print(f"- {kinds} factor kinds: {described}")
         print()
     if args.ba:
         cameras, points, observations = (int(x) for x in args.ba.split(","))

@@ -6,6 +6,8 @@ README's "Conventions" section.
 Layers, bottom up: `groups` (the Lie groups and their kernels), `autodiff` (tangents of pytrees,
 manifold-local Jacobians, implicit derivatives) and `retractions`, the solvers (`lstsq`, `optax`,
 `factorgraph`, `graph`), and the applications (`icp`, `ba`, `imu`, `align`, `io`, `conventions`).
+The solvers share one `Status` enum, one `SolverResult` base of their results and one `SolveError`
+base of their errors.
 """
 
 from importlib.metadata import version as _version
@@ -42,6 +44,7 @@ from .autodiff import (
 )
 from .groups import S2, SE2, SE3, SE23, SO2, SO3, AbstractGroup, AbstractManifold, Sim3
 from .io import read_pcd, read_ply, read_point_cloud, write_pcd, write_ply
+from .lstsq import SolveError, SolverResult, Status
 
 __version__ = _version("lieax")
 
@@ -55,6 +58,9 @@ __all__ = [
     "SO2",
     "SO3",
     "Sim3",
+    "SolveError",
+    "SolverResult",
+    "Status",
     "align",
     "ba",
     "conventions",

@@ -322,6 +322,35 @@ def test_too_few_correspondences_is_degenerate(pair):
     assert np.all(np.isfinite(np.asarray(result.transform.parameters())))
 
 
+def test_throw_under_jit_raises_when_the_program_runs(pair):
+    """Under `jit`, `throw=True` raises the `ICPError` when the compiled program runs (a
+    `JaxRuntimeError` carrying its message); under `vmap` a batch reports its statuses."""
+    source, target, _, _ = pair
+    s, sm = padded(source)
+    t, tm = padded(target)
+
+    @jax.jit
+    def run(t, distance):
+        return icp.point_to_point(
+            s, t, source_mask=sm, target_mask=tm, max_correspondence_distance=distance
+        )
+
+    assert run(t, RADIUS).status_name == "CONVERGED"
+    runtime_error = jax.errors.JaxRuntimeError
+    with pytest.raises(
+        runtime_error, match=r"ICPError: ICP is degenerate \(raised from inside jit"
+    ):
+        jax.block_until_ready(run(t + 50.0, RADIUS))
+    with pytest.raises(runtime_error, match=r"ICPInputError: ICP input is not finite"):
+        jax.block_until_ready(run(t.at[3].set(jnp.nan), RADIUS))
+    with pytest.raises(runtime_error, match=r"ICPInputError: ICP parameter out of range"):
+        jax.block_until_ready(run(t, -1.0))
+    targets = jnp.stack([t, t + 50.0, t.at[3].set(jnp.nan), t])
+    distances = jnp.array([RADIUS, RADIUS, RADIUS, -1.0])
+    batch = jax.vmap(run)(targets, distances)
+    assert list(batch.status_name) == ["CONVERGED", "DEGENERATE", "NONFINITE", "INVALID"]
+
+
 # ---- real scans ---------------------------------------------------------------------------------
 
 needs_data = pytest.mark.skipif(DATA_DIR is None, reason="set LIEAX_DATA_DIR to the shared data")

@@ -3,14 +3,23 @@
 from typing import NamedTuple
 
 import jax
-import numpy as np
 
-from ..lstsq import Status
-from ..lstsq._solution import status_names
+from ..lstsq._solution import SolverResult
 
 
-class SolveResult(NamedTuple):
-    r"""The result of `FactorGraph.solve`, a pytree (so it batches under `vmap`).
+class _SolveResultFields(NamedTuple):
+    values: tuple
+    cost: jax.Array
+    iterations: jax.Array
+    linear_solves: jax.Array
+    status: jax.Array
+    cost_history: jax.Array
+    lambda_: jax.Array
+
+
+class SolveResult(SolverResult, _SolveResultFields):
+    r"""The result of `FactorGraph.solve`, a pytree (so it batches under `vmap`); a
+    `lieax.lstsq.SolverResult`.
 
     **Fields:**
     - `values`: the solution, a tuple in the order of the graph's `variables`.
@@ -22,29 +31,5 @@ class SolveResult(NamedTuple):
     - `lambda_`: the damping at the end.
     """
 
-    values: tuple
-    cost: jax.Array
-    iterations: jax.Array
-    linear_solves: jax.Array
-    status: jax.Array
-    cost_history: jax.Array
-    lambda_: jax.Array
-
-    @property
-    def status_name(self):
-        """The `Status` name, or an array of names for a batch (outside `jit`)."""
-        return status_names(self.status)
-
-    @property
-    def converged(self) -> jax.Array:
-        return self.status == Status.CONVERGED
-
-    def __repr__(self):
-        """One line (the values and the NaN-padded history are long): status, cost, counts."""
-        if isinstance(self.status, jax.core.Tracer) or np.ndim(self.status):
-            return f"SolveResult(status={self.status!r}, cost={self.cost!r}, ...)"
-        return (
-            f"SolveResult(status={self.status_name}, cost={float(self.cost):.10g}, "
-            f"iterations={int(self.iterations)}, linear_solves={int(self.linear_solves)}, "
-            f"lambda_={float(self.lambda_):.3g}, values=<{len(self.values)} variable kinds>)"
-        )
+    __slots__ = ()
+    _repr_fields = ("cost", "iterations", "linear_solves", "lambda_")

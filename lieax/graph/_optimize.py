@@ -22,21 +22,22 @@ import numpy as np
 
 from .. import retractions
 from ..lstsq import Status
+from ..lstsq._solution import SolverResult
 from ._factor_graph import to_factor_graph
 
 _SOLVERS = ("cholesky", "cg")
 
 
-@dataclasses.dataclass(frozen=True)
-class OptimizeResult:
-    r"""What `optimize` returns.
+@dataclasses.dataclass(frozen=True, repr=False)
+class OptimizeResult(SolverResult):
+    r"""What `optimize` returns (concrete NumPy and Python values); a `lieax.lstsq.SolverResult`.
 
     **Fields:**
     - `poses`: the optimized poses, in the order of `graph.vertex_ids`.
     - `cost`: $\tfrac12 \sum \rho(r^\top \Omega r)$ at `poses` (GTSAM's `graph.error`).
     - `iterations`: outer iterations (linearizations), as GTSAM counts them.
     - `linear_solves`: factorizations (or conjugate-gradient solves), rejected steps included.
-    - `status`: a `Status`.
+    - `status`: a `Status` (`status_name` reads its name).
     - `cost_history`: `(iterations + 1,)` numpy array: the initial cost, then after each iteration.
     - `lambda_`: the damping at the end.
     """
@@ -49,9 +50,7 @@ class OptimizeResult:
     cost_history: np.ndarray
     lambda_: float
 
-    @property
-    def converged(self) -> bool:
-        return self.status == Status.CONVERGED
+    _repr_fields = ("cost", "iterations", "linear_solves", "lambda_")
 
 
 def optimize(

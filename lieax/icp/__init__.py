@@ -3,7 +3,8 @@
 - `point_to_point`, `point_to_plane`, `gicp` (generalized ICP, plane-to-plane): register a
   source cloud to a target, returning an `ICPResult` with `transform = T_target_source` (a
   `lieax.SE3`), `fitness`, `inlier_rmse`, `iterations` and `status`; `multi_scale` runs one of
-  them coarse to fine on a voxel pyramid.
+  them coarse to fine on a voxel pyramid. `Status` is `lieax.lstsq.Status` (the one enum of every
+  solver), `ICPResult` a `lieax.lstsq.SolverResult` and `ICPError` a `lieax.lstsq.SolveError`.
 - `build_index`, `nearest`: the nearest-neighbour searches they use, built once per target and
   exact within a radius: `search="kdtree"` (a host k-d tree called from the compiled loop, the
   CPU default), `"graph"` (a k-d tree of equal leaves and a neighbour graph, in JAX), `"grid"` (a

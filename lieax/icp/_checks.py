@@ -8,12 +8,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import as_float_array
+from ..lstsq._solution import SolveError
 
 
-class ICPError(RuntimeError):
-    """Raised outside `jit`/`vmap` (with `throw=True`) when a run ends `NONFINITE`, `INVALID` or
-    `DEGENERATE`, and when a run that did not converge is differentiated (its derivative is
-    undefined)."""
+class ICPError(SolveError):
+    """The `lieax.lstsq.SolveError` of ICP (so also a `RuntimeError`): raised with `throw=True`
+    when a run ends `NONFINITE`, `INVALID` or `DEGENERATE` (at once outside `jit`, when the
+    compiled program runs inside it, never under `vmap`: read `status`), and when a run that
+    did not converge is differentiated (its derivative is undefined)."""
 
 
 class ICPInputError(ICPError, ValueError):

@@ -284,8 +284,8 @@ def gicp(
     - `covariances_k`: neighbours for the default covariances (small_gicp's default, 20), found
       as `search` says (`"auto"`: see `estimate_covariances`).
     - `verbose`: print the fitness and inlier RMSE after every iteration.
-    - `throw`: raise `ICPError` for a `NONFINITE` or `DEGENERATE` result when called outside
-      `jit`/`vmap` (inside, read `status`).
+    - `throw`: as for `point_to_plane` (raise `ICPError` for a `NONFINITE`, `INVALID` or
+      `DEGENERATE` result; under `jit` when the program runs, under `vmap` never).
     - `search`: the correspondence search, as for `point_to_plane`.
     - `buckets`: pad the clouds (and the default covariances' clouds) to capacity buckets, as for
       `point_to_plane`.

@@ -16,7 +16,7 @@ from ..groups._se3 import SE3
 from ._checks import ICPInputError, check_cloud, check_count, check_mask
 from ._downsample import voxel_downsample
 from ._gicp import gicp
-from ._registration import ICPError, Status, point_to_plane, point_to_point
+from ._registration import ICPError, Status, _raise_on_failure, point_to_plane, point_to_point
 
 _METHODS = {"point_to_point": point_to_point, "point_to_plane": point_to_plane, "gicp": gicp}
 
@@ -50,9 +50,9 @@ def multi_scale(
     - `loss`, `source_mask`, `target_mask`: as for the method, at every level.
     - `return_levels`: also return the result of every level.
     - `throw`: raise `ICPError` when the finest level ends `NONFINITE`, `INVALID` or `DEGENERATE`
-      (outside `jit`/`vmap`); a coarse level that fails hands its last pose on. A valid input
-      point that is not finite makes the result `NONFINITE` (with `init`), whatever the levels
-      (whose voxels drop such points) reached.
+      (under `jit` when the program runs, as the methods; never under `vmap`); a coarse level
+      that fails hands its last pose on. A valid input point that is not finite makes the result
+      `NONFINITE` (with `init`), whatever the levels (whose voxels drop such points) reached.
     - `options`: further keyword arguments of the method (`relative_fitness`, `normals_k`,
       `covariances_k`, `exact`, ...), the same at every level.
 
@@ -100,7 +100,9 @@ def multi_scale(
         pose = result.transform
     finite = _finite(source, source_mask) & _finite(target, target_mask)
     result = results[-1] = _unless_finite(finite, result, init)
-    if throw and concrete:
+    if throw and not concrete:  # under jit: raised when the program runs (never under vmap)
+        result = results[-1] = _raise_on_failure(result, distances[-1])
+    elif throw:
         status = Status(int(result.status))
         if status in (Status.NONFINITE, Status.INVALID, Status.DEGENERATE):
             error = ICPError if status == Status.DEGENERATE else ICPInputError

@@ -41,7 +41,6 @@ Derivatives: the loop runs on constants; `transform` and `inlier_rmse` get the i
 derivative of the converged pose (`lieax.icp._implicit`).
 """
 
-import enum
 import functools
 from typing import NamedTuple
 
@@ -51,10 +50,11 @@ import numpy as np
 from jax.scipy.linalg import cho_solve
 
 from .._linalg import quat_to_matrix
+from .._runtime_error import raise_if
 from ..autodiff._jacobian import jacobian
 from ..groups._se3 import SE3
-from ..lstsq._solution import status_names
-from . import _neighbors, _search
+from ..lstsq._solution import SolverResult, Status, is_failure
+from . import _host_kdtree, _neighbors, _search
 from ._batch import pad_to_bucket
 from ._centring import centred_pose, centroid
 from ._checks import (
@@ -75,45 +75,7 @@ _IDENTITY = (1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 _DESCENT_STEPS = 2
 
 
-class Status(enum.IntEnum):
-    """Why an ICP run stopped; `ICPResult.status` holds the integer code (shared with
-    `lieax.lstsq.Status` where the meaning is the same).
-
-    - `CONVERGED`: fitness and inlier RMSE changed by less than their tolerances.
-    - `MAX_ITERATIONS`: `max_iterations` updates ran.
-    - `NONFINITE`: a valid source or target point (or target normal, or covariance, or `init`)
-      is NaN or infinite; `transform` is `init` unchanged, `iterations` 0.
-    - `DEGENERATE`: fewer than 6 pairs lay within `max_correspondence_distance` (empty or
-      non-overlapping clouds), or the update was not finite; `transform` is the last pose reached.
-    - `INVALID`: a traced parameter is out of range: `max_correspondence_distance` or the loss's
-      scale not positive and finite, or a tolerance negative or not finite (concrete ones raise
-      `ICPInputError` when called); `transform` is `init` unchanged, `iterations` 0.
-
-    `RUNNING` is the state inside the loop and is never returned.
-    """
-
-    RUNNING = -1
-    CONVERGED = 0
-    MAX_ITERATIONS = 1
-    NONFINITE = 3
-    DEGENERATE = 4
-    INVALID = 5
-
-
-class ICPResult(NamedTuple):
-    """The result of `point_to_point` / `point_to_plane`, a pytree (it batches under `vmap`).
-
-    **Fields:**
-    - `transform`: `SE3`, `T_target_source`, mapping source coordinates into the target frame.
-    - `fitness`: fraction of (valid) source points with a target point within
-      `max_correspondence_distance` at `transform`.
-    - `inlier_rmse`: root mean square distance of those pairs (0 when there are none).
-    - `iterations`: pose updates made.
-    - `status`: an integer `Status` code; `status_name` reads it.
-    - `correspondences`: `(n,)` int32, index of each source point's match in the target, `-1`
-      where it has none (rejected, or masked out).
-    """
-
+class _ICPResultFields(NamedTuple):
     transform: SE3
     fitness: jax.Array
     inlier_rmse: jax.Array
@@ -121,14 +83,31 @@ class ICPResult(NamedTuple):
     status: jax.Array
     correspondences: jax.Array
 
-    @property
-    def status_name(self):
-        """The `Status` name, or an array of names for a batch (needs a concrete status)."""
-        return status_names(self.status, Status)
 
-    @property
-    def converged(self) -> jax.Array:
-        return self.status == Status.CONVERGED
+class ICPResult(SolverResult, _ICPResultFields):
+    """The result of `point_to_point` / `point_to_plane` / `gicp`, a pytree (it batches under
+    `vmap`); a `lieax.lstsq.SolverResult`.
+
+    **Fields:**
+    - `transform`: `SE3`, `T_target_source`, mapping source coordinates into the target frame.
+    - `fitness`: fraction of (valid) source points with a target point within
+      `max_correspondence_distance` at `transform`.
+    - `inlier_rmse`: root mean square distance of those pairs (0 when there are none).
+    - `iterations`: pose updates made.
+    - `status`: an integer `Status` code (`lieax.icp.Status`, which is `lieax.lstsq.Status`);
+      `status_name` reads it. For ICP: `CONVERGED`, fitness and inlier RMSE changed by less
+      than their tolerances; `MAX_ITERATIONS`, `max_iterations` updates ran; `NONFINITE`, a
+      valid point, target normal, covariance or `init` is NaN or infinite (`transform` is
+      `init`, `iterations` 0); `DEGENERATE`, fewer than 6 pairs within
+      `max_correspondence_distance` or an update not finite (`transform` is the last pose
+      reached); `INVALID`, a traced parameter out of range (`transform` is `init`,
+      `iterations` 0).
+    - `correspondences`: `(n,)` int32, index of each source point's match in the target, `-1`
+      where it has none (rejected, or masked out).
+    """
+
+    __slots__ = ()
+    _repr_fields = ("fitness", "inlier_rmse", "iterations")
 
 
 class _State(NamedTuple):
@@ -143,6 +122,7 @@ class _State(NamedTuple):
     checked_rmse: jax.Array
     earlier_fitness: jax.Array  # the statistics one iteration before the last
     earlier_rmse: jax.Array
+    warm: object = None  # search="kdtree": the KDTreeWarmStart of the last match
 
 
 # ---- public entry points ------------------------------------------------------------------------
@@ -188,8 +168,10 @@ def point_to_plane(
     - `normals_k`: neighbours for the default normals.
     - `verbose`: print the fitness and inlier RMSE after every iteration, from inside the compiled
       loop (`jax.debug.print`; under `vmap` one line per problem).
-    - `throw`: raise `ICPError` for a `NONFINITE` or `DEGENERATE` result when called outside
-      `jit`/`vmap` (inside, read `status`).
+    - `throw`: raise `ICPError` (`ICPInputError` for bad input) when the run ends `NONFINITE`,
+      `INVALID` or `DEGENERATE`: at once outside `jit`; under `jit` when the compiled program
+      runs (a `JaxRuntimeError` carrying the `ICPError`'s message, through
+      `lieax._runtime_error.raise_if`); under `vmap` never (read the per-problem `status`).
     - `search`: the correspondence search, `"auto"`, `"graph"`, `"grid"`, `"kdtree"` or
       `"brute"` (see `lieax.icp._search`), or an index prebuilt on `target` (and `target_mask`)
       by `build_index`, to reuse across calls (a `"grid"` one with a cell of at least
@@ -285,17 +267,19 @@ def _register(
     check_parameter(relative_rmse, "relative_rmse", positive=False)
 
     search, prebuilt = _search.check_icp_search(search, target, max_distance)
-    options = (kind, max_iterations, bool(exact), _DESCENT_STEPS, bool(verbose), search)
     dynamic_loss, static_loss = _split_loss(loss)
+    loss_kind = None if dynamic_loss is None else dynamic_loss[0]  # (static: one loop per kind)
+    options = (kind, max_iterations, bool(exact), _DESCENT_STEPS, bool(verbose), search, loss_kind)
     if loss is not None and dynamic_loss is not None:
         check_parameter(dynamic_loss[1], f"the scale of {type(loss).__name__}", positive=True)
     # The loop sees constants; the derivatives come from the implicit function theorem.
     data = (source, target, target_normals, (source_covariances, target_covariances))
     constant = jax.tree.map(_constant, (data, init_params, max_distance, dynamic_loss))
     (source_c, target_c, normals_c, covariances_c), init_c, max_distance_c, loss_c = constant
+    loss_scale_c = None if loss_c is None else loss_c[1]
     result = _solve(
         source_c, source_mask, target_c, target_mask, normals_c, init_c, max_distance_c,
-        _constant(relative_fitness), _constant(relative_rmse), loss_c, options=options,
+        _constant(relative_fitness), _constant(relative_rmse), loss_scale_c, options=options,
         static_loss=static_loss, index=prebuilt, source_covariances=covariances_c[0],
         target_covariances=covariances_c[1],
     )  # fmt: skip
@@ -307,25 +291,45 @@ def _register(
             (source_mask, loss_kind),
         )  # fmt: skip
     result = result._replace(correspondences=_first_rows(result.correspondences, n))
-    if throw and not isinstance(result.status, jax.core.Tracer):
-        status = Status(int(result.status))
-        if status == Status.NONFINITE:
-            raise ICPInputError(
-                "ICP input is not finite: a valid source or target point, a target normal or init "
-                "holds NaN or inf (mask such rows out, or pass throw=False)."
-            )
-        if status == Status.INVALID:
-            raise ICPInputError(
-                "ICP parameter out of range: max_correspondence_distance or the loss's scale is "
-                "not positive and finite, or a tolerance is negative or not finite."
-            )
-        if status == Status.DEGENERATE:
-            raise ICPError(
-                f"ICP is degenerate: fewer than {MIN_CORRESPONDENCES} source points had a target "
-                f"point within max_correspondence_distance={float(max_distance):g} (or the update "
-                "was singular); check the initial guess and the distance, or pass throw=False."
-            )
+    return _raise_on_failure(result, max_distance) if throw else result
+
+
+def _raise_on_failure(result, max_distance):
+    """`result`, after raising the `ICPError` its status calls for (`is_failure`): now when the
+    status is concrete, when the compiled program runs under `jit` (`raise_if`), never under
+    `vmap` (the statuses are the report)."""
+    if isinstance(result.status, jax.core.Tracer):
+        if isinstance(max_distance, jax.core.Tracer):
+            max_distance = None
+        traced = lambda code: _icp_error(code, max_distance, " (raised from inside jit)")
+        return result._replace(status=raise_if(result.status, is_failure, traced))
+    code = int(result.status)
+    if is_failure(code):
+        raise _icp_error(code, max_distance)
     return result
+
+
+def _icp_error(code, max_distance, where=""):
+    """The `ICPError` of a failure status `code`: `ICPInputError` for `NONFINITE` and `INVALID`
+    (the input is at fault). `max_distance` is named when it is known (not None or traced)."""
+    if code == Status.NONFINITE:
+        return ICPInputError(
+            f"ICP input is not finite{where}: a valid source or target point, a target normal, a "
+            "covariance or init holds NaN or inf (mask such rows out, or pass throw=False)."
+        )
+    if code == Status.INVALID:
+        return ICPInputError(
+            f"ICP parameter out of range{where}: max_correspondence_distance or the loss's scale "
+            "is not positive and finite, or a tolerance is negative or not finite (or pass "
+            "throw=False)."
+        )
+    known = max_distance is not None and not isinstance(max_distance, jax.core.Tracer)
+    distance = f"={float(max_distance):g}" if known else ""
+    return ICPError(
+        f"ICP is degenerate{where}: fewer than {MIN_CORRESPONDENCES} source points had a target "
+        f"point within max_correspondence_distance{distance} (or the update was singular); "
+        "check the initial guess and the distance, or pass throw=False."
+    )
 
 
 def _first_rows(array, n):
@@ -359,7 +363,8 @@ def _solve(
     relative_fitness, relative_rmse, loss, *, options, static_loss, index=None,
     source_covariances=None, target_covariances=None,
 ):  # fmt: skip
-    kind, max_iterations, exact, steps, verbose, search = options
+    kind, max_iterations, exact, steps, verbose, search, loss_kind = options
+    loss = None if loss is None else (loss_kind, loss)  # (the kind static, the scale traced)
     dtype = source.dtype
     n = source.shape[0]
     if target_normals is None:
@@ -469,14 +474,17 @@ def _solve(
         ok = enough & jnp.all(jnp.isfinite(candidate))
         params = jnp.where(ok & ~first, candidate, state.params)
         queries = moved(params)
+        warm = state.warm
         if search == "graph":
             slot, d2, _ = _neighbors.track(
                 index, in_index(queries), state.slot, max_steps=steps, mask=source_mask
             )
-        else:  # exact in every iteration
-            slot, d2 = _search.match(
-                index, in_index(queries), max_distance, source_mask, previous=state.slot
+        elif search == "kdtree":  # exact; the host sees only queries whose match may change
+            slot, d2, warm = _host_kdtree.track_in_kdtree(
+                index, in_index(queries), max_distance, state.warm, mask=source_mask
             )
+        else:  # exact in every iteration
+            slot, d2 = _search.match(index, in_index(queries), max_distance, source_mask)
         d2 = jnp.where(source_mask, centred(queries, slot, d2), jnp.inf)
         _, fitness, rmse = statistics(d2)
         iterations = state.iterations + (ok | first).astype(jnp.int32)
@@ -510,7 +518,7 @@ def _solve(
             fitness=keep(fitness, state.fitness), rmse=keep(rmse, state.rmse),
             iterations=iterations, status=status.astype(jnp.int32),
             earlier_fitness=keep(state.fitness, state.earlier_fitness),
-            earlier_rmse=keep(state.rmse, state.earlier_rmse),
+            earlier_rmse=keep(state.rmse, state.earlier_rmse), warm=warm,
         )  # fmt: skip
 
     def running(state):
@@ -556,6 +564,8 @@ def _solve(
         start, jnp.zeros((n,), jnp.int32), jnp.full((n,), jnp.inf, dtype), minus_one, minus_one,
         jnp.asarray(-1, jnp.int32), start_status, minus_one, minus_one, minus_one, minus_one,
     )  # fmt: skip
+    if search == "kdtree":
+        state = state._replace(warm=_host_kdtree.cold_start(n, dtype))
     if exact:
         state = jax.lax.while_loop(running, verified, state)
     else:

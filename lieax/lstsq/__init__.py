@@ -7,7 +7,7 @@ Conventions (right perturbation $x \oplus \delta$, tangent layouts): the README'
 
 from ._least_squares import least_squares
 from ._losses import AbstractLoss, Cauchy, GemanMcClure, Huber, Tukey
-from ._solution import NonFiniteStartError, Solution, SolveError, Status
+from ._solution import NonFiniteStartError, Solution, SolveError, SolverResult, Status
 from ._solvers import AbstractSolver, GaussNewton, LevenbergMarquardt
 
 __all__ = [
@@ -21,6 +21,7 @@ __all__ = [
     "NonFiniteStartError",
     "Solution",
     "SolveError",
+    "SolverResult",
     "Status",
     "Tukey",
     "least_squares",
