@@ -7,8 +7,10 @@ problem (`lieax.ba.SYNTHETIC_PRESETS`: `ladybug-49`, `trafalgar-138`) or a real
 
     python benchmarks/ba.py [--problem ladybug-49|trafalgar-138|PATH] [--iterations 20]
                             [--loss trivial|huber] [--huber-delta 2.0] [--outliers 0.0]
-                            [--solvers ceres,ceres-colmap,gtsam,gtsam-schur,lieax]
+                            [--solvers ceres,ceres-colmap,gtsam,gtsam-schur,lieax,
+                                       lieax-gtsam-rule]
                             [--lieax-damping identity|marquardt]
+                            [--lieax-lambda-update nielsen|gtsam] [--rounds 1]
 
 Every solver minimizes $\tfrac12\sum_i \rho(\|u_i - u_{obs,i}\|^2)$ over Snavely's camera
 (`lieax.ba.project`; Huber $\rho$ as Ceres' `HuberLoss(δ)` and GTSAM's `mEstimator.Huber(δ)`),
@@ -51,12 +53,20 @@ them mirrored.
 - **lieax**: `lieax.factorgraph` with `lieax.ba.camera_residual` and the closed-form
   `lieax.ba.camera_jacobians`, points eliminated by the Schur complement, LM damped by the clipped
   diagonal of $J^\top J$ as Ceres (`--lieax-damping identity` for GTSAM's $\lambda I$, which
-  stalls on Trafalgar-size problems as GTSAM's own LM does); a warm solve is timed, the first call
-  (analysis and compilation) is in the notes.
+  stalls on Trafalgar-size problems as GTSAM's own LM does) and, by default, Ceres'
+  `LevenbergMarquardtStrategy` for the damping (`lambda_update="nielsen"`: $\lambda_0 = 10^{-4}$,
+  Ceres' `1 / initial_trust_region_radius`; on success $\lambda \leftarrow \lambda
+  \max(\tfrac13, 1 - (2\rho - 1)^3)$, on failure $\lambda \leftarrow \lambda\nu$,
+  $\nu \leftarrow 2\nu$; `--lieax-lambda-update gtsam` for GTSAM's ×10 / ÷10 from $10^{-5}$,
+  which rejected 21 of 41 tries on synthetic ladybug-49 with Huber and 5% outliers, against 12 of
+  32 with Ceres' rule); a warm solve is timed, the first call (analysis and
+  compilation) and the linear solves are in the notes.
 
 Iterations are not counted alike: Ceres counts every step tried (successful or not), GTSAM one
-per outer LM iteration (which may try several λ). The process pins itself to one CPU before the
-libraries start their thread pools (`LIEAX_BENCH_PIN=0` leaves it unpinned), as `pgo.py`.
+per outer LM iteration (which may try several λ); lieax as GTSAM (its linear solves, rejected
+steps included, are in the notes). `--rounds R` runs every solver R times, interleaved, and
+reports the median. `lieax-gtsam-rule` is lieax with GTSAM's λ rule (same damping). The
+process pins itself to one CPU before the libraries start their thread pools (`LIEAX_BENCH_PIN=0` leaves it unpinned), as `pgo.py`.
 """
 
 import argparse
@@ -74,6 +84,7 @@ os.environ.setdefault(
 )
 
 import dataclasses
+import statistics
 import time
 
 import jax
@@ -509,12 +520,13 @@ def run_gtsam(problem, iterations, loss, delta, schur=False):
 # --- lieax -------------------------------------------------------------------------------
 
 
-def run_lieax(problem, iterations, loss, delta, damping="identity"):
+def run_lieax(problem, iterations, loss, delta, damping="identity", lambda_update="gtsam"):
     r"""`lieax.factorgraph` (the general sparse solver) with `lieax.ba.camera_residual` and its
     closed-form `camera_jacobians`: cameras one `(SE3, intrinsics)` variable kind, points
-    another, eliminated by the Schur complement, GTSAM's LM rules with `damping` (`"marquardt"`:
+    another, eliminated by the Schur complement, LM with `damping` (`"marquardt"`:
     $\lambda\,\mathrm{diag}(H)$, as Ceres and GTSAM's `ceresDefaults`; `"identity"`:
-    $\lambda I$) and the iteration cap, no gauge prior (`check_gauge=False`: the damping handles
+    $\lambda I$), the $\lambda$ rule `lambda_update` (`"nielsen"`: Ceres', from Ceres' initial
+    $\lambda = 10^{-4}$; `"gtsam"`: GTSAM's, from $10^{-5}$) and the iteration cap, no gauge prior (`check_gauge=False`: the damping handles
     it, as for the others). `total` is a warm solve; the first one (structure analysis and XLA
     compilation) is in the note."""
     try:
@@ -541,7 +553,14 @@ def run_lieax(problem, iterations, loss, delta, damping="identity"):
 
     def solve():
         result = graph.solve(
-            eliminate=points, max_iterations=iterations, damping=damping, throw=False
+            eliminate=points,
+            max_iterations=iterations,
+            damping=damping,
+            lambda_update=lambda_update,
+            lambda_initial=1e-4 if lambda_update == "nielsen" else 1e-5,
+            # with Ceres' rule, Ceres' stopping test too: function_tolerance 1e-6 (relative)
+            relative_tolerance=1e-6 if lambda_update == "nielsen" else 1e-5,
+            throw=False,
         )
         return jax.block_until_ready(result)
 
@@ -556,13 +575,16 @@ def run_lieax(problem, iterations, loss, delta, damping="identity"):
     final = cost(problem, cameras_bal, np.asarray(solved), loss, delta)
     initial = cost(problem, problem.cameras, problem.points, loss, delta)
     return Run(
-        "lieax.factorgraph, Schur" + (", diag damping" if damping == "marquardt" else ""),
+        "lieax.factorgraph, Schur"
+        + (", diag damping" if damping == "marquardt" else "")
+        + (", Ceres' λ rule" if lambda_update == "nielsen" else ""),
         total,
         int(result.iterations),
         initial,
         final,
         float(result.cost),
-        note=f"first call {format_seconds(first)}, {lstsq.Status(int(result.status)).name}",
+        note=f"first call {format_seconds(first)}, {int(result.linear_solves)} linear solves, "
+        f"{lstsq.Status(int(result.status)).name}",
     )
 
 
@@ -576,6 +598,7 @@ SOLVERS = {
     "gtsam": run_gtsam,
     "gtsam-schur": lambda *args: run_gtsam(*args, schur=True),
     "lieax": run_lieax,
+    "lieax-gtsam-rule": lambda *args: run_lieax(*args, damping="marquardt", lambda_update="gtsam"),
 }
 
 
@@ -587,8 +610,10 @@ def main(argv=None):
     parser.add_argument("--huber-delta", type=float, default=2.0)
     parser.add_argument("--outliers", type=float, default=0.0, help="synthetic problems only")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--rounds", type=int, default=1, help="interleaved runs per solver")
     parser.add_argument("--solvers", default="ceres,ceres-colmap,gtsam,gtsam-schur,lieax")
     parser.add_argument("--lieax-damping", choices=("identity", "marquardt"), default="marquardt")
+    parser.add_argument("--lieax-lambda-update", choices=("nielsen", "gtsam"), default="nielsen")
     args = parser.parse_args(argv)
     solvers = args.solvers.split(",")
     unknown = [s for s in solvers if s not in SOLVERS]
@@ -618,18 +643,41 @@ def main(argv=None):
             f"{abs(own - ours) / ours:.2g})\n",
             flush=True,
         )
-    runs, failures = [], []
-    for solver in solvers:
-        try:
-            options = {"damping": args.lieax_damping} if solver == "lieax" else {}
-            run = SOLVERS[solver](problem, args.iterations, args.loss, args.huber_delta, **options)
-        except RuntimeError as error:  # GTSAM raises with an empty message where it fails
-            failures.append(f"{solver}: failed ({type(error).__name__}: {error or 'no message'})")
-            print(failures[-1], flush=True)
-            continue
-        if run is not None:
-            runs.append(run)
-            print(f"{run.solver}: {format_seconds(run.total_s)} {run.note}", flush=True)
+    # rounds: every solver once per round, in an order rotated from round to round (machine
+    # noise falls on all alike); each row is the median round
+    samples, failures = {}, []
+    for r in range(args.rounds):
+        shift = r % len(solvers)
+        for solver in solvers[shift:] + solvers[:shift]:
+            if any(f.startswith(f"{solver}:") for f in failures):
+                continue
+            try:
+                options = (
+                    {"damping": args.lieax_damping, "lambda_update": args.lieax_lambda_update}
+                    if solver == "lieax"
+                    else {}
+                )
+                run = SOLVERS[solver](
+                    problem, args.iterations, args.loss, args.huber_delta, **options
+                )
+            except RuntimeError as error:  # GTSAM raises with an empty message where it fails
+                failures.append(
+                    f"{solver}: failed ({type(error).__name__}: {error or 'no message'})"
+                )
+                print(failures[-1], flush=True)
+                continue
+            if run is not None:
+                samples.setdefault(solver, []).append(run)
+                print(f"{run.solver}: {format_seconds(run.total_s)} {run.note}", flush=True)
+    runs = [
+        dataclasses.replace(
+            samples[s][0],
+            total_s=statistics.median(run.total_s for run in samples[s]),
+            without_evaluation_s=statistics.median(run.without_evaluation_s for run in samples[s]),
+        )
+        for s in solvers
+        if s in samples
+    ]
     headers = [
         "solver", "total", "iterations", "per iteration", "Ceres w/o eval.", "initial cost",
         "final cost", "solver's own final cost",

@@ -26,6 +26,14 @@ from ._variables import Var, instance
 # padded unknowns up to which `solver="auto"` factors the dense matrix in JAX (the crossover
 # `lieax.graph.optimize` measured for its pose graphs)
 _DENSE_LIMIT = 300
+# ... and up to which it does so when the sparse factor would be nearly dense anyway (its
+# multiply-adds at least `_DENSE_FILL` of the dense factorization's): a reduced camera system,
+# where the fronts' fixed costs buy nothing (ladybug-49's: 441 unknowns, 68% of the block pairs
+# present, a fully dense factor of 83% of the dense multiply-adds; its whole Schur solve took
+# 0.7-0.85x the time dense, interleaved, load 8; the crossover for 9x9 blocks was measured
+# between 441 and 1242 unknowns)
+_DENSE_FILLED_LIMIT = 800
+_DENSE_FILL = 0.5
 _SOLVERS = ("auto", "dense", "cholesky", "cg")
 _CACHE = {}
 _CACHE_SIZE = 16
@@ -94,6 +102,12 @@ class FactorGraph:
             _CACHE[key] = cached
         self.layout, self.plans, self._schur, self._loops = cached
         self._linearize = self._implicit = self._default_data = None
+        # what `solve` checks a call against: its options (to the loop), the values' leaves
+        self._prepared = {}
+        self._initial_leaves, self._initial_treedef = jax.tree_util.tree_flatten(
+            self.initial_values
+        )
+        self._initial_shapes = [np.shape(x) for x in self._initial_leaves]
 
     def __repr__(self):
         return (
@@ -186,7 +200,8 @@ class FactorGraph:
           factor's own (see `FactorGraph.data`); may be traced, batched under `vmap` and
           differentiated (implicit derivatives, `_implicit`).
         - `solver`: `"dense"`, `"cholesky"` (host multifrontal), `"cg"` (block-Jacobi PCG) or
-          `"auto"` (dense up to 300 padded unknowns, else cholesky); with `eliminate`, the
+          `"auto"` (dense up to 300 padded unknowns, or up to 800 when the sparse factor would be
+          at least half dense, else cholesky); with `eliminate`, the
           solver of the reduced system.
         - `eliminate`: a `Var` to eliminate by the Schur complement (its instances must not
           share factors: points in bundle adjustment).
@@ -208,6 +223,79 @@ class FactorGraph:
 
         **Returns:** a `SolveResult`.
         """
+        try:
+            key = (solver, eliminate, type(max_iterations), max_iterations, algorithm, damping,
+                   lambda_update, retraction, verbose, type(cg_max_iterations), cg_max_iterations)  # fmt: skip
+            prepared = self._prepared.get(key)
+        except TypeError:  # an unhashable argument: checked (and refused) below
+            key, prepared = None, None
+        # `"auto"` is decided again at every call (cheap), so that the limits stay live
+        if prepared is None or (solver == "auto" and _auto_method(prepared[1]) != prepared[2]):
+            prepared = self._prepare(
+                solver, eliminate, max_iterations, algorithm, damping, lambda_update, retraction,
+                verbose, cg_max_iterations,
+            )  # fmt: skip
+            if key is not None:
+                self._prepared[key] = prepared
+        loop = prepared[0]
+        if values is None:
+            values = self.initial_values  # checked by the `Var`s
+            leaves = self._initial_leaves
+        else:
+            values = tuple(values)
+            leaves = self._checked_leaves(values)
+        data = self._data(data)
+        dtype = np.result_type(*(x.dtype for x in leaves))
+        params = np.asarray(
+            [
+                lambda_initial,
+                lambda_factor,
+                lambda_max,
+                relative_tolerance,
+                absolute_tolerance,
+                min_model_fidelity,
+                cg_tolerance,
+                max_iterations,
+                diagonal_min,
+                diagonal_max,
+            ],
+            dtype=dtype,
+        )
+        traced = any(isinstance(x, jax.core.Tracer) for x in leaves) or any(
+            isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(data)
+        )
+        if traced:  # under a transformation: the solve with its implicit derivatives
+            result = _result(*solve_implicit(self, loop, values, data, params))
+        else:  # one dispatch, one transfer of the scalars: they come back as NumPy values
+            solution, summary = loop(values, data, params)
+            result = _result(solution, np.asarray(summary))
+        if throw and isinstance(result.status, jax.core.Tracer):
+            result = result._replace(status=raise_if(result.status, is_failure, _traced_error))
+        elif throw:
+            status = Status(int(result.status))
+            if status == Status.NONFINITE and int(result.iterations) == 0:
+                inputs = _nonfinite_inputs(self, values, data)
+                if inputs:
+                    raise NonFiniteStartError(
+                        "the factor graph solve ended NONFINITE at its start: "
+                        f"{'; '.join(inputs)}. The result holds the values unchanged (pass "
+                        "throw=False to get it back)."
+                    )
+            if status in (Status.DIVERGED, Status.NONFINITE):
+                raise SolveError(
+                    f"the factor graph solve ended {status.name} after {int(result.iterations)} "
+                    f"iterations (cost {float(result.cost):.6g}); pass throw=False to get the "
+                    "result back."
+                )
+        return result
+
+    def _prepare(
+        self, solver, eliminate, max_iterations, algorithm, damping, lambda_update, retraction,
+        verbose, cg_max_iterations,
+    ):  # fmt: skip
+        """`(loop, layout, method)`: the compiled loop of `solve`'s options, each checked, the
+        layout its linear solver works on and that solver (`solve` keeps them by the options, so
+        a repeated call skips the checks)."""
         if solver not in _SOLVERS:
             raise ValueError(f"solver must be one of {_SOLVERS}, got {solver!r}.")
         if algorithm not in ("levenberg_marquardt", "gauss_newton"):
@@ -220,12 +308,6 @@ class FactorGraph:
         if cg_max_iterations is not None:
             cg_max_iterations = _count(cg_max_iterations, "cg_max_iterations")
         retraction = exp if retraction is None else check_retraction(retraction)
-        if values is None:
-            values = self.initial_values  # checked by the `Var`s
-        else:
-            values = tuple(values)
-            self._check_values(values)
-        data = self._data(data)
         schur = None
         layout = self.layout
         if eliminate is not None:
@@ -237,7 +319,7 @@ class FactorGraph:
                 )
             layout = schur.layout
         if solver == "auto":
-            solver = "dense" if layout.padded_unknowns <= _DENSE_LIMIT else "cholesky"
+            solver = _auto_method(layout)
         options = {
             "method": solver,
             "schur": schur,
@@ -269,48 +351,19 @@ class FactorGraph:
         loop = self._loops.get(key)
         if loop is None:
             loop = self._loops[key] = make_loop(self, options)
-        leaves = [getattr(x, "_params", x) for x in jax.tree_util.tree_leaves(values)]
-        dtype = np.result_type(*(x.dtype for x in leaves))
-        params = np.asarray(
-            [
-                lambda_initial,
-                lambda_factor,
-                lambda_max,
-                relative_tolerance,
-                absolute_tolerance,
-                min_model_fidelity,
-                cg_tolerance,
-                max_iterations,
-                diagonal_min,
-                diagonal_max,
-            ],
-            dtype=dtype,
-        )
-        if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves((values, data))):
-            # under a transformation: the solve with its implicit derivatives
-            result = _result(*solve_implicit(self, loop, values, data, params))
-        else:  # one dispatch, one transfer of the scalars: they come back as NumPy values
-            solution, summary = loop(values, data, params)
-            result = _result(solution, np.asarray(summary))
-        if throw and isinstance(result.status, jax.core.Tracer):
-            result = result._replace(status=raise_if(result.status, is_failure, _traced_error))
-        elif throw:
-            status = Status(int(result.status))
-            if status == Status.NONFINITE and int(result.iterations) == 0:
-                inputs = _nonfinite_inputs(self, values, data)
-                if inputs:
-                    raise NonFiniteStartError(
-                        "the factor graph solve ended NONFINITE at its start: "
-                        f"{'; '.join(inputs)}. The result holds the values unchanged (pass "
-                        "throw=False to get it back)."
-                    )
-            if status in (Status.DIVERGED, Status.NONFINITE):
-                raise SolveError(
-                    f"the factor graph solve ended {status.name} after {int(result.iterations)} "
-                    f"iterations (cost {float(result.cost):.6g}); pass throw=False to get the "
-                    "result back."
-                )
-        return result
+        return loop, layout, solver
+
+    def _checked_leaves(self, values):
+        """The array leaves of `values` when they have the structure, shapes and floating
+        dtypes of the `Var`s' (one flatten); otherwise `_check_values` names the problem."""
+        leaves, treedef = jax.tree_util.tree_flatten(values)
+        if treedef == self._initial_treedef and all(
+            getattr(x, "dtype", None) is not None and x.dtype.kind == "f" and np.shape(x) == shape
+            for x, shape in zip(leaves, self._initial_shapes)
+        ):
+            return leaves
+        self._check_values(values)
+        return leaves
 
     def _check_values(self, values):
         if len(values) != len(self.variables):
@@ -327,6 +380,17 @@ class FactorGraph:
                 raise ValueError(
                     f"values for {v.name!r} have shapes {shapes}, expected {expected}."
                 )
+
+
+def _auto_method(layout):
+    """The solver `solver="auto"` picks for `layout`: `"dense"` when it is small, or small enough
+    and its factor nearly dense (see `_DENSE_FILLED_LIMIT`), else `"cholesky"`."""
+    n = layout.padded_unknowns
+    if n <= _DENSE_LIMIT or (
+        n <= _DENSE_FILLED_LIMIT and layout.plan().stats["flops"] >= _DENSE_FILL * n**3 / 3
+    ):
+        return "dense"
+    return "cholesky"
 
 
 def _traced_error(code) -> SolveError:
