@@ -58,17 +58,17 @@ def test_padding_does_not_change_results(pair, kind):
 
 def test_a_stream_of_sizes_compiles_one_loop():
     """20 clouds of 321 to 384 points (one bucket), target normals estimated: at most one new
-    compilation of the loop and of the normals, where exact shapes would need up to twenty of
+    compilation of the loop and of the normals (their neighbourhoods and their eigenvectors), where exact shapes would need up to twenty of
     each. (A stream of 3000 to 4500 points spans four buckets: `benchmarks/icp_buckets.py`.)"""
     rng = np.random.default_rng(0)
     sizes = rng.integers(321, 385, size=20)
     assert len(set(sizes)) > 10 and {bucket_size(int(n)) for n in sizes} == {384}
-    loops, normals = _registration._solve._cache_size(), _normals._estimate._cache_size()
+    compiled = (_registration._solve, _normals._normals, _normals._host_neighbourhoods_call)
+    before = [f._cache_size() for f in compiled]
     for k, n in enumerate(sizes):
         source, target, _, _ = icp.synthetic_pair(
             int(n), rotation_deg=5.0, translation=0.05, seed=int(k)
         )
         result = icp.point_to_plane(source, target, max_correspondence_distance=0.4)
         assert result.status_name == "CONVERGED" and result.correspondences.shape == (n,)
-    assert _registration._solve._cache_size() - loops <= 1
-    assert _normals._estimate._cache_size() - normals <= 1
+    assert all(f._cache_size() - n <= 1 for f, n in zip(compiled, before))

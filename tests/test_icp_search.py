@@ -121,6 +121,58 @@ def test_kdtree_warm_start_keeps_only_provably_nearest_matches():
     np.testing.assert_allclose(index.spacing, spacing[:, 1], rtol=0, atol=1e-12)
 
 
+def test_normals_from_the_host_tree_and_the_graph_agree():
+    """`estimate_normals` with its neighbourhoods from the host k-d tree (the CPU default) and
+    from the graph: the same normals on a dense sphere (up to the graph's rare approximate
+    neighbourhoods), both within 10 degrees of the true normals (the irregular sampling tilts a
+    few by up to 8), masked rows zero."""
+    rng = np.random.default_rng(3)
+    points = rng.normal(size=(2000, 3))
+    points /= np.linalg.norm(points, axis=1, keepdims=True)
+    mask = np.arange(2000) % 10 != 0
+    normals = {
+        search: np.asarray(icp.estimate_normals(points, k=12, mask=mask, search=search))
+        for search in ("kdtree", "graph")
+    }
+    same = np.sum(normals["kdtree"] * normals["graph"], axis=1)
+    assert np.mean(same[mask] > 1 - 1e-9) > 0.98
+    for found in normals.values():
+        assert np.all(found[~mask] == 0)
+        # viewpoint at the origin: the normals face inward
+        assert np.all(np.sum(found[mask] * -points[mask], axis=1) > np.cos(np.radians(10)))
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_kdtree_tracking_stays_exact_and_keeps_queries_that_barely_move(dtype):
+    """`track_in_kdtree` over a sequence of shrinking moves (ICP's iterations): every answer is
+    the exact nearest point within the radius (SciPy's), masked queries get none, and once the
+    moves are small most queries are answered without the host."""
+    rng = np.random.default_rng(7)
+    target = rng.uniform(-1, 1, (3000, 3)).astype(dtype)
+    queries = rng.uniform(-1.2, 1.2, (900, 3)).astype(dtype)
+    mask = rng.uniform(size=900) > 0.1
+    radius = 0.08
+    index = _search.build_index(jnp.asarray(target), search="kdtree")
+    track = jax.jit(
+        lambda q, w: _host_kdtree.track_in_kdtree(index, q, radius, w, mask=jnp.asarray(mask))
+    )
+    warm = _host_kdtree.cold_start(len(queries), dtype)
+    tree = cKDTree(target.astype(np.float64))
+    for step in range(10):
+        slot, d2, new = track(jnp.asarray(queries), warm)
+        distance, nearest = tree.query(queries.astype(np.float64))
+        within = (distance <= radius) & mask
+        assert np.array_equal(np.isfinite(d2), within)
+        tolerance = 1e-12 if dtype == np.float64 else 1e-6
+        np.testing.assert_allclose(np.sqrt(d2[within]), distance[within], atol=tolerance)
+        kept = np.all(np.asarray(new.queries) != queries, axis=1)  # (not re-sent: old positions)
+        warm = new
+        queries = queries + rng.normal(scale=0.02 / (step + 1) ** 2, size=queries.shape).astype(
+            dtype
+        )
+    assert np.mean(kept[mask]) > 0.8
+
+
 @pytest.mark.parametrize("search", EXACT_BACKENDS)
 def test_distance_derivatives_forward_and_reverse(search):
     """d|q - p|/dq = (q - p)/|q - p| at the match p, against central differences (the match is

@@ -12,8 +12,10 @@ in a few microseconds. So the tree lives on the host:
 - `nearest_in_kdtree` sends the queries and the id each time, and gets the nearest valid target
   point within the radius back (under `vmap`, one host call per element).
 
-Warm start (ICP's iterations): the build also records each target point's `spacing`, the distance
-to its nearest other valid point. A query at distance $d$ from its previous match $c$ keeps it
+Warm starts. ICP's iterations use `track_in_kdtree`, which keeps the answer of a query that moved
+less than half the gap between its nearest and second-nearest distances (see there).
+For `nearest_in_kdtree(previous=...)` the build also records each target point's `spacing`, the
+distance to its nearest other valid point. A query at distance $d$ from its previous match $c$ keeps it
 when $2d \le$ `spacing[c]`: every other point $p$ has $|q - p| \ge |p - c| - d \ge$
 `spacing[c]` $- d \ge d$ (the triangle inequality), so $c$ is still the nearest. Only the other
 queries are sent to the tree (40-80% of the source points are kept near convergence on the
@@ -63,7 +65,7 @@ class KDTreeIndex(NamedTuple):
     spacing: jax.Array
 
 
-def _check_on_host(points, what):
+def check_on_host(points, what):
     platforms = (
         {jax.default_backend()}
         if isinstance(points, jax.core.Tracer) or not isinstance(points, jax.Array)
@@ -89,13 +91,13 @@ def build_kdtree(points, mask=None, *, library=None) -> KDTreeIndex:
     **Returns:** a `KDTreeIndex`.
     """
     if library is None:
-        library = "pykdtree" if _has_pykdtree() else "scipy"
+        library = "pykdtree" if has_pykdtree() else "scipy"
     if library not in _LIBRARIES:
         raise ValueError(f"library must be one of {_LIBRARIES}, got {library!r}.")
     if library == "pykdtree":
         import pykdtree.kdtree  # noqa: F401  (fail here, at trace time, when it is missing)
     points = jnp.asarray(points)
-    _check_on_host(points, "the target")
+    check_on_host(points, "the target")
     n = points.shape[0]
     if n >= 2**24:
         raise ValueError(f"search='kdtree' handles fewer than {2**24} points, got {n}.")
@@ -108,7 +110,7 @@ def build_kdtree(points, mask=None, *, library=None) -> KDTreeIndex:
     return KDTreeIndex(points, jnp.arange(n, dtype=jnp.int32), valid, tree, spacing)
 
 
-def _has_pykdtree():
+def has_pykdtree():
     try:
         import pykdtree.kdtree  # noqa: F401
     except ImportError:
@@ -213,7 +215,7 @@ def nearest_in_kdtree(index: KDTreeIndex, queries, radius=jnp.inf, *, mask=None,
     none) and its squared distance (`inf` where there is none).
     """
     queries = jnp.asarray(queries)
-    _check_on_host(queries, "the queries")
+    check_on_host(queries, "the queries")
     m = queries.shape[0]
     active = jnp.ones((m,), bool) if mask is None else jnp.asarray(mask, bool)
     active = active & jnp.all(jnp.isfinite(queries), axis=1)
@@ -235,3 +237,98 @@ def nearest_in_kdtree(index: KDTreeIndex, queries, radius=jnp.inf, *, mask=None,
         slot = jnp.where(hit, previous, jnp.where(kept, 0, slot))
         d2 = jnp.where(hit, previous_d2, jnp.where(kept, jnp.inf, d2))
     return slot, d2
+
+
+class KDTreeWarmStart(NamedTuple):
+    r"""What `track_in_kdtree` knows from its last call, per query (ICP carries it through its
+    iterations).
+
+    **Fields:**
+    - `queries`: `(m, 3)` where each query was last sent to the tree.
+    - `slot`: `(m,)` int32, its nearest valid target point there, `-1` for none within twice
+      the radius.
+    - `allowance`: `(m,)` how far the query may move from `queries` with that answer standing:
+      $(\min(d_2, 2r) - d_1)/2$ for nearest and second-nearest distances $d_1, d_2$, $r$ for none
+      within $2r$, `-inf` before the first call.
+    """
+
+    queries: jax.Array
+    slot: jax.Array
+    allowance: jax.Array
+
+
+def cold_start(m, dtype) -> KDTreeWarmStart:
+    """A `KDTreeWarmStart` for `m` queries that keeps nothing (every query goes to the tree)."""
+    return KDTreeWarmStart(
+        jnp.zeros((m, 3), dtype), jnp.full((m,), -1, jnp.int32), jnp.full((m,), -jnp.inf, dtype)
+    )
+
+
+def track_in_kdtree(index: KDTreeIndex, queries, radius, warm: KDTreeWarmStart, *, mask=None):
+    r"""`nearest_in_kdtree` for queries that move a little between calls (ICP's iterations):
+    exact (up to ties), sending to the host only the queries whose last answer may have changed.
+
+    A query $q$ whose nearest point $c$ lay at $d_1$ and every other point at least
+    $d_2' = \min(d_2, 2r)$ away, now at $q'$ with $\delta = |q' - q|$, still has $c$ nearest when
+    $\delta < (d_2' - d_1)/2$: $|q' - c| \le d_1 + \delta < d_2' - \delta \le |q' - p|$ for every
+    other $p$ (the triangle inequality). A query with no point within $2r$ still has none within
+    $r$ when $\delta < r$. (Slack for rounding: 16 ulps of the largest coordinate.) Near
+    convergence the steps are tiny and almost every query is kept, where the spacing test of
+    `nearest_in_kdtree(previous=...)` keeps 40-80%.
+
+    **Returns:** `(slot, squared_distance, warm)`: the match's index in the target (0 where there
+    is none), its squared distance (`inf` where there is none, or beyond `radius`), and the
+    `KDTreeWarmStart` for the next call.
+    """
+    queries = jnp.asarray(queries)
+    check_on_host(queries, "the queries")
+    m, dtype = queries.shape[0], queries.dtype
+    active = jnp.ones((m,), bool) if mask is None else jnp.asarray(mask, bool)
+    active = active & jnp.all(jnp.isfinite(queries), axis=1)
+    radius = jnp.asarray(radius, dtype)
+    moved = jnp.sqrt(jnp.sum((queries - warm.queries) ** 2, axis=1))
+    scale = jnp.max(jnp.where(active[:, None], jnp.abs(queries), 0.0))
+    slack = 16 * jnp.finfo(dtype).eps * scale
+    kept = active & (moved + slack < warm.allowance.astype(dtype))
+    out = host_call(
+        _track_query, jax.ShapeDtypeStruct((m, 2), dtype), index.tree, queries, radius,
+        active & ~kept,
+    )  # fmt: skip
+    fresh_slot, fresh_allowance = out[:, 0].astype(jnp.int32), out[:, 1]  # (slots below 2**24)
+    nearest = jnp.where(kept, warm.slot, fresh_slot)
+    allowance = jnp.where(kept, warm.allowance.astype(dtype), fresh_allowance)
+    reference = jnp.where(kept[:, None], warm.queries.astype(dtype), queries)
+    found = active & (nearest >= 0)
+    slot = jnp.where(found, nearest, 0)
+    d2 = jnp.sum((index.points[slot].astype(dtype) - queries) ** 2, axis=1)
+    d2 = jnp.where(found & (d2 <= radius * radius), d2, jnp.inf)
+    return slot, d2, KDTreeWarmStart(reference, nearest, allowance)
+
+
+def _track_query(tree_id, queries, radius, active):
+    """Host side of `track_in_kdtree`: `(m, 2)` rows of (slot or -1, allowance); rows not
+    `active` get (-1, -inf)."""
+    _, tree, dtype, kept, _ = _entry(tree_id)
+    m = queries.shape[0]
+    out = np.empty((m, 2), queries.dtype)
+    out[:, 0], out[:, 1] = -1, -np.inf
+    rows = np.flatnonzero(active)
+    if rows.size == 0:
+        return out
+    reach = 2 * float(radius)
+    if tree is None:  # no valid target point: none within any distance
+        out[rows, 1] = float(radius)
+        return out
+    count = min(2, kept.size)
+    # Both libraries test `d < bound`: widen the bound by rounding (the allowance caps at 2r).
+    bound = reach * (1 + 8 * np.finfo(queries.dtype).eps)
+    d, i = tree.query(np.ascontiguousarray(queries[rows], dtype), count, distance_upper_bound=bound)
+    d = np.asarray(d, np.float64).reshape(rows.size, count)
+    i = np.asarray(i).reshape(rows.size, count)
+    first = d[:, 0]
+    second = np.minimum(d[:, 1], reach) if count == 2 else np.full(rows.size, reach)
+    found = np.isfinite(first)
+    out[rows[found], 0] = kept[i[found, 0]]
+    out[rows[found], 1] = 0.5 * (second[found] - first[found])
+    out[rows[~found], 1] = float(radius)
+    return out

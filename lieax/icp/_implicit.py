@@ -52,9 +52,8 @@ import jax.numpy as jnp
 
 from .._linalg import quat_to_matrix
 from ..groups._se3 import SE3
-from . import _neighbors
 from ._centring import centred_pose, centroid, uncentred_tangent
-from ._normals import estimate_normals
+from ._normals import neighbourhood_covariances, neighbourhoods, normals_from_neighbourhoods
 from ._robust import loss_weights
 
 _CONVERGED = 0  # Status.CONVERGED (lieax.icp._registration, which imports this module)
@@ -171,44 +170,35 @@ def estimated_normals(target, mask, k):
     neighbourhood covariance $C$, $\dot n = -(C - \lambda I)^{+}\,\dot C\,n$ (first-order
     perturbation theory of a simple eigenvalue; e.g. Magnus, "On differentiating eigenvalues and
     eigenvectors", 1985), with the neighbourhoods and the viewpoint flip held fixed."""
-    normals = estimate_normals(jax.lax.stop_gradient(target), k=k, mask=mask)
-    return _normals_of(k, target, mask, normals)
+    fixed = jax.lax.stop_gradient(target)
+    found = neighbourhoods(fixed, mask, k)
+    normals = normals_from_neighbourhoods(fixed, mask, found)
+    return _normals_of(target, mask, found, normals)
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
-def _normals_of(k, target, mask, normals):
+@jax.custom_jvp
+def _normals_of(target, mask, found, normals):
     return normals
 
 
 @_normals_of.defjvp
-def _normals_of_jvp(k, primals, tangents):
-    target, mask, normals = primals
+def _normals_of_jvp(primals, tangents):
+    target, mask, found, normals = primals
     target_dot = tangents[0]
-    return normals, _normals_tangent(target, mask, normals, target_dot, k=k)
+    return normals, _normals_tangent(target, mask, found, normals, target_dot)
 
 
-@functools.partial(jax.jit, static_argnames=("k",))
-def _normals_tangent(target, mask, normals, target_dot, *, k):
-    r"""$\dot n$ for every point, over the neighbourhoods `estimate_normals` uses (the same index:
-    the point and its `k - 1` graph neighbours); rows with fewer than 3 valid neighbours (the
-    constant fallback normal) and padding get zero."""
+@jax.jit
+def _normals_tangent(target, mask, found, normal, target_dot):
+    r"""$\dot n$ for every point, over the neighbourhoods `found` (from `neighbourhoods`, as
+    `estimate_normals` uses them); rows with fewer than 3 valid neighbours (the constant fallback
+    normal) and padding get zero."""
     valid_rows = mask & jnp.all(jnp.isfinite(target), axis=1)
     safe = jnp.where(valid_rows[:, None], target, 0.0)
-    index = _neighbors.build_index(
-        safe, mask, degree=k - 1, links=0, adjacent_leaves=16 if k <= 16 else 24
-    )
-    slots = jnp.arange(index.points.shape[0])
-    members = jnp.concatenate([slots[:, None], index.graph], axis=1)  # (slots, k), itself first
-    inside = index.valid[members]
-    rows = index.order[members]
-    count = jnp.maximum(jnp.sum(inside, axis=1), 1)[:, None]
-    normal = jnp.where(index.valid[:, None], normals[index.order], 0.0)
+    count = jnp.sum(found >= 0, axis=1)
 
     def covariance(points):
-        points = jnp.where(inside[:, :, None], points[rows], 0.0)
-        centred = points - jnp.sum(points, axis=1, keepdims=True) / count[:, :, None]
-        centred = jnp.where(inside[:, :, None], centred, 0.0)
-        return jnp.einsum("ski,skj->sij", centred, centred) / count[:, :, None]
+        return neighbourhood_covariances(points, found)[0]
 
     matrix, matrix_dot = jax.jvp(
         covariance, (safe,), (jnp.where(valid_rows[:, None], target_dot, 0.0),)
@@ -217,7 +207,7 @@ def _normals_tangent(target, mask, normals, target_dot, *, k):
     # c = tr C (any c > 0; this one keeps the matrix at the scale of C).
     eigenvalue = jnp.einsum("si,sij,sj->s", normal, matrix, normal)
     scale = jnp.trace(matrix, axis1=1, axis2=2)
-    usable = index.valid & (jnp.sum(inside, axis=1) >= 3) & (scale > 0)
+    usable = valid_rows & (count >= 3) & (scale > 0)
     scale = jnp.where(usable, scale, 1.0)
     outer = normal[:, :, None] * normal[:, None, :]
     eye = jnp.eye(3, dtype=target.dtype)
@@ -228,6 +218,4 @@ def _normals_tangent(target, mask, normals, target_dot, *, k):
     pushed = jnp.einsum("sij,sj->si", matrix_dot, normal)
     normal_dot = -(jnp.linalg.solve(shifted, pushed[:, :, None])[:, :, 0]
                    - normal * jnp.sum(normal * pushed, axis=1, keepdims=True) / scale[:, None])  # fmt: skip
-    normal_dot = jnp.where(usable[:, None], normal_dot, 0.0)
-    destination = jnp.where(index.valid, index.order, target.shape[0])
-    return jnp.zeros_like(target).at[destination].add(normal_dot, mode="drop")  # (unique rows)
+    return jnp.where(usable[:, None], normal_dot, 0.0)

@@ -5,18 +5,32 @@ neighbourhood (the point and its `k - 1` nearest neighbours, optionally only tho
 `radius`: Open3D's `KDTreeSearchParamHybrid(radius, max_nn=k)`), computed in closed form
 (Smith, "Eigenvalues of a symmetric 3x3 matrix", CACM 1961, then the largest cross product of
 two rows of $A - \lambda I$), and flipped to face `viewpoint`.
+
+The neighbourhoods (`neighbourhoods`) come from a k-d tree on the host on a CPU (pykdtree's, or
+SciPy's `cKDTree`, through `host_call`: exact, and no search to compile; under `jit` and `vmap`
+too), or from the fixed-shape neighbour graph of `lieax.icp._neighbors` elsewhere (the graph's
+build compiles for seconds; 99.96% of the bunny's neighbourhoods exact). The covariances and
+eigenvectors are computed in JAX from those neighbourhoods (`normals_from_neighbourhoods`), so
+that `lieax.icp._implicit` can differentiate them with the neighbourhoods held fixed.
 """
 
 import functools
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-from . import _neighbors
+from .._host_call import host_call
+from . import _host_kdtree, _neighbors, _search
 from ._checks import check_cloud, check_count, check_mask
 
+NORMAL_SEARCHES = ("auto", "kdtree", "graph")
+_UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
-def estimate_normals(points, *, k=30, radius=None, mask=None, viewpoint=(0.0, 0.0, 0.0)):
+
+def estimate_normals(
+    points, *, k=30, radius=None, mask=None, viewpoint=(0.0, 0.0, 0.0), search="auto"
+):
     r"""Unit normals of a point cloud, shape `(n, 3)`.
 
     **Arguments:**
@@ -26,45 +40,114 @@ def estimate_normals(points, *, k=30, radius=None, mask=None, viewpoint=(0.0, 0.
     - `mask`: `(n,)` bools, False for padding; those rows get `(0, 0, 0)`.
     - `viewpoint`: each normal is flipped to point toward it ($n^\top (v - p) \ge 0$), e.g. the
       sensor position; `None` leaves the sign the eigen solver gives.
+    - `search`: how the neighbourhoods are found: `"kdtree"` (a host k-d tree, exact; CPU only),
+      `"graph"` (the fixed-shape neighbour graph, any backend) or `"auto"` (`"kdtree"` on a CPU).
 
     Neighbourhoods with fewer than 3 points give `(0, 0, 1)`. Runs under `jit` and `vmap`.
     """
     points = check_cloud(points, "points")
     mask = check_mask(mask, points, "mask")
     k = check_count(k, "k", minimum=3)
-    view = None if viewpoint is None else jnp.asarray(viewpoint, points.dtype)
-    return _estimate(
-        points, mask, jnp.asarray(jnp.inf if radius is None else radius, points.dtype), view, k=k
-    )
+    found = neighbourhoods(points, mask, k, search=search)
+    return normals_from_neighbourhoods(points, mask, found, radius=radius, viewpoint=viewpoint)
+
+
+def neighbourhoods(points, mask, k, *, search="auto"):
+    """The `k` nearest valid points of every valid point of `points` `(n, 3)` (itself among them),
+    `(n, k)` int32 indices, `-1` where there are fewer and in the rows of invalid points (`mask`
+    False, or not finite). `search` as `estimate_normals`'s."""
+    if search not in NORMAL_SEARCHES:
+        raise ValueError(f"search must be one of {NORMAL_SEARCHES}, got {search!r}.")
+    if search == "auto":
+        search = "kdtree" if _search.platform_of(points) == "cpu" else "graph"
+    if search == "kdtree":
+        _host_kdtree.check_on_host(points, "the points")
+        return _host_neighbourhoods_call(points, mask, k=k)
+    return _graph_neighbourhoods(points, mask, k=k)
 
 
 @functools.partial(jax.jit, static_argnames=("k",))
-def _estimate(points, mask, radius, viewpoint, *, k):
+def _host_neighbourhoods_call(points, mask, *, k):
+    valid = mask & jnp.all(jnp.isfinite(points), axis=1)
+    result = jax.ShapeDtypeStruct((points.shape[0], k), jnp.int32)
+    return host_call(functools.partial(_host_neighbourhoods, k=k), result, points, valid)
+
+
+def _host_neighbourhoods(points, valid, *, k):
+    """Host side: the k-d tree of the valid points (pykdtree's where installed, else SciPy's),
+    queried for each of them."""
+    found = np.full((points.shape[0], k), -1, np.int32)
+    rows = np.flatnonzero(valid)
+    if rows.size == 0:
+        return found
+    count = min(k, rows.size)
+    cloud = np.ascontiguousarray(points[rows])
+    if _host_kdtree.has_pykdtree():
+        from pykdtree.kdtree import KDTree
+
+        _, nearest = KDTree(cloud).query(cloud, k=count)
+    else:
+        from scipy.spatial import cKDTree
+
+        _, nearest = cKDTree(cloud).query(cloud, k=count)
+    found[rows, :count] = rows[np.asarray(nearest, np.int64).reshape(rows.size, count)]
+    return found
+
+
+@functools.partial(jax.jit, static_argnames=("k",))
+def _graph_neighbourhoods(points, mask, *, k):
+    """The point and its `k - 1` neighbours in the graph of `_neighbors.build_index`, in the
+    cloud's own order."""
     safe = jnp.where(mask[:, None] & jnp.isfinite(points), points, 0.0)
     index = _neighbors.build_index(
         safe, mask, degree=k - 1, links=0, adjacent_leaves=16 if k <= 16 else 24
     )
-    centre = index.points  # slot order
-    neighbours = jnp.concatenate(
-        [centre[:, :, None], index.graph_points], axis=2
-    )  # (slots, 3, k), the point first
-    offsets = neighbours - centre[:, :, None]
-    distance2 = jnp.sum(offsets * offsets, axis=1)
-    member_valid = jnp.concatenate([index.valid[:, None], index.valid[index.graph]], axis=1)
-    inside = member_valid & (distance2 <= radius * radius)
+    slots = jnp.arange(index.points.shape[0], dtype=jnp.int32)
+    members = jnp.concatenate([slots[:, None], index.graph], axis=1)  # (slots, k), itself first
+    rows = jnp.where(index.valid[members], index.order[members], -1)
+    destination = jnp.where(index.valid, index.order, points.shape[0])
+    empty = jnp.full((points.shape[0], k), -1, jnp.int32)
+    return empty.at[destination].set(rows, mode="drop")
+
+
+def normals_from_neighbourhoods(points, mask, found, *, radius=None, viewpoint=(0.0, 0.0, 0.0)):
+    """`estimate_normals` of `points` over the neighbourhoods `found` (from `neighbourhoods`)."""
+    view = None if viewpoint is None else jnp.asarray(viewpoint, points.dtype)
+    radius = jnp.asarray(jnp.inf if radius is None else radius, points.dtype)
+    return _normals(points, mask, found, radius, view)
+
+
+@jax.jit
+def _normals(points, mask, found, radius, viewpoint):
+    valid = mask & jnp.all(jnp.isfinite(points), axis=1)
+    safe = jnp.where(valid[:, None], points, 0.0)
+    covariance, count = neighbourhood_covariances(safe, found, radius)
+    normals = smallest_eigenvector(covariance)
+    normals = jnp.where((count >= 3)[:, None], normals, jnp.array([0.0, 0.0, 1.0], points.dtype))
+    if viewpoint is not None:
+        facing = jnp.sum(normals * (viewpoint - safe), axis=1)
+        normals = jnp.where((facing < 0)[:, None], -normals, normals)
+    return jnp.where(valid[:, None], normals, 0.0)
+
+
+def neighbourhood_covariances(points, found, radius=jnp.inf):
+    r"""The covariance $\frac1c \sum_j (p_j - \bar p)(p_j - \bar p)^\top$ of each neighbourhood
+    (`found` `(n, k)`, `-1` for none; only members within `radius` of the point), `(n, 3, 3)`,
+    and the count $c$ of its members, `(n,)`. The six products are written out (batched 3x3
+    products run slowly on the CPU)."""
+    inside = found >= 0
+    members = jnp.transpose(points[jnp.maximum(found, 0)], (0, 2, 1))  # (n, 3, k)
+    offsets = members - points[:, :, None]
+    inside = inside & (jnp.sum(offsets * offsets, axis=1) <= radius * radius)
     count = jnp.sum(inside, axis=1)
     offsets = jnp.where(inside[:, None, :], offsets, 0.0)
     mean = jnp.sum(offsets, axis=2) / jnp.maximum(count, 1)[:, None]
     centred = jnp.where(inside[:, None, :], offsets - mean[:, :, None], 0.0)
-    covariance = jnp.einsum("sik,sjk->sij", centred, centred) / jnp.maximum(count, 1)[:, None, None]
-    normals = smallest_eigenvector(covariance)
-    normals = jnp.where((count >= 3)[:, None], normals, jnp.array([0.0, 0.0, 1.0], points.dtype))
-    if viewpoint is not None:
-        facing = jnp.sum(normals * (viewpoint - centre), axis=1)
-        normals = jnp.where((facing < 0)[:, None], -normals, normals)
-    normals = jnp.where(index.valid[:, None], normals, 0.0)
-    slots = jnp.where(index.valid, index.order, points.shape[0])
-    return jnp.zeros_like(points).at[slots].set(normals, mode="drop")
+    rows = [centred[:, a, :] for a in range(3)]
+    products = {(a, b): jnp.sum(rows[a] * rows[b], axis=1) for a, b in _UPPER}
+    entries = [[products[min(a, b), max(a, b)] for b in range(3)] for a in range(3)]
+    covariance = jnp.stack([jnp.stack(row, -1) for row in entries], -2)
+    return covariance / jnp.maximum(count, 1)[:, None, None], count
 
 
 def smallest_eigenvector(matrix):
