@@ -174,10 +174,13 @@ def main(argv=None):
         ],
     ))  # fmt: skip
 
-    graph, _ = example.build_graph(data, sequential, params)
     start = time.perf_counter()
+    graph, _ = example.build_graph(data, sequential, params)
+    build = time.perf_counter() - start
+    start, compiled = time.perf_counter(), compile_seconds()
     ours = jax.block_until_ready(graph.solve(max_iterations=100))
     first_call = time.perf_counter() - start
+    compiled = compile_seconds() - compiled
     g_graph, g_initial = gtsam_problem(example, data, pims)
     initial_gtsam = g_graph.error(g_initial)
     gtsam_cost, gtsam_iterations = run_gtsam(g_graph, g_initial)
@@ -197,11 +200,50 @@ def main(argv=None):
              f"{initial_gtsam:.6g}", f"{gtsam_cost:.10g}", ""],
         ],
     ))  # fmt: skip
+    linearize, linear_solve = solve_parts(graph)
+    parts = time_interleaved(
+        {"linearize": linearize, "linear solve": linear_solve}, args.rounds, min_sample_s=0.05
+    )
     print(
         f"\nlieax / GTSAM solve time: "
         f"{format_ratio(solve_timings['lieax'].median, solve_timings['gtsam'].median)}; "
-        f"lieax first call (analysis, trace, compile): {format_seconds(first_call)}"
+        f"lieax per solve: {int(ours.linear_solves)} linear solves of "
+        f"{format_seconds(parts['linear solve'].median)} (host Cholesky), "
+        f"{int(ours.iterations) + 1} linearizations of {format_seconds(parts['linearize'].median)}"
+        f"\nlieax first call: graph construction {format_seconds(build)}, first solve "
+        f"(analysis, trace, compile) {format_seconds(first_call)} of which XLA compilation "
+        f"{format_seconds(compiled)}"
     )
+
+
+_COMPILE_SECONDS = [0.0]
+
+
+def _record(name, seconds, **_):
+    if name == "/jax/core/compile/backend_compile_duration":
+        _COMPILE_SECONDS[0] += seconds
+
+
+jax.monitoring.register_event_duration_secs_listener(_record)
+
+
+def compile_seconds():
+    """Seconds spent in XLA compilation in this process so far."""
+    return _COMPILE_SECONDS[0]
+
+
+def solve_parts(graph):
+    """Callables timing one linearization (residuals, Jacobians, normal equations) and one
+    damped linear solve of `graph` at its start, the two halves of an LM iteration."""
+    from lieax.factorgraph._assembly import linearize
+    from lieax.factorgraph._linear import solve_system
+
+    values, data = graph.initial_values, graph.data
+    lin = jax.jit(lambda v, d: linearize(graph.layout, graph.factors, graph.plans, v, d))
+    _, diag, off, grad = lin(values, data)
+    damped = tuple(d + 1e-5 * jnp.eye(d.shape[-1]) for d in diag)
+    solve = jax.jit(lambda d, o, g: solve_system(graph.layout, "cholesky", d, o, g))
+    return (lambda: lin(values, data)[0]), (lambda: solve(damped, off, grad)[0])
 
 
 if __name__ == "__main__":

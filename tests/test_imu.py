@@ -103,8 +103,9 @@ def test_preintegration_matches_gtsam(with_arm):
 
 
 def test_predict_and_factor_match_gtsam():
-    r"""`predict` as `PreintegrationBase::predict`; the residual and all five Jacobians as
-    `ImuFactor.evaluateError` (ComponentWise), pose columns permuted to lieax's $(v, \omega)$."""
+    r"""`predict` as `PreintegrationBase::predict`; the residual and all five Jacobians, by
+    autodiff and in closed form (`imu_jacobians`), as `ImuFactor.evaluateError` (ComponentWise),
+    pose columns permuted to lieax's $(v, \omega)$."""
     gtsam = pytest.importorskip("gtsam")
     gyro, accel, dt = stream(1)
     reference = gtsam_pim(gtsam, gyro, accel, dt)
@@ -130,11 +131,16 @@ def test_predict_and_factor_match_gtsam():
     value, jacobians = residual_and_jacobians(
         pose_i, velocity_i, pose_j, velocity_j, bias_i, pim, PARAMS
     )
+    closed_value, closed = imu.imu_jacobians(
+        pose_i, velocity_i, pose_j, velocity_j, bias_i, pim, PARAMS
+    )
     assert relative(value, error) < 1e-12
-    for k, (ours, theirs) in enumerate(zip(jacobians, h)):
+    assert relative(closed_value, error) < 1e-12
+    for k, (ours, mine, theirs) in enumerate(zip(jacobians, closed, h)):
         if shapes[k] == 6 and k != 4:
             theirs = np.asarray(cv.se3_jacobian_from_gtsam(theirs, rows=False))
         assert relative(ours, theirs) < 1e-9, k
+        assert relative(mine, theirs) < 1e-9, k
 
 
 # ---- lieax only -----------------------------------------------------------------------------------
@@ -239,34 +245,137 @@ def test_bad_input():
 
 # ---- factor Jacobians by finite differences ----------------------------------------------------
 
+closed_form = jax.jit(imu.imu_jacobians)
+# regime -> (gyro rate scale, rotation error r_θ imposed on pose_j, velocities, rotations of poses)
+REGIMES = {
+    "random": (1.0, None, "random", "random"),
+    "zero_rate": (0.0, None, "random", "random"),
+    "identity": (1.0, 0.0, "random", "random"),
+    "near_identity_1e-9": (1.0, 1e-9, "random", "random"),
+    "small_1e-4": (1.0, 1e-4, "random", "random"),
+    "near_pi_1e-4": (1.0, np.pi - 1e-4, "random", "random"),
+    "near_pi_1e-6": (1.0, np.pi - 1e-6, "random", "random"),
+    "large_interval_rotation": (8.0, None, "random", "random"),
+    "pure_translation": (0.0, None, "random", "identity"),
+    "at_rest": (0.0, 0.0, "zero", "identity"),
+}
 
-@pytest.mark.parametrize("regime", ["random", "zero_rate_zero_velocity"])
-def test_factor_jacobians_by_finite_differences(regime):
-    rng = np.random.default_rng(6)
-    gyro, accel, dt = stream(7)
-    if regime == "random":
-        args = (SE3.exp(jnp.asarray(rng.normal(size=6))), rng.normal(size=3),
-                SE3.exp(jnp.asarray(rng.normal(size=6))), rng.normal(size=3),
-                BIAS + 0.01 * rng.normal(size=6))  # fmt: skip
-    else:  # the vehicle at rest: zero rates, zero velocities, the prediction equal to pose_j
-        gyro = np.tile(BIAS[3:], (SAMPLES, 1))
+
+def factor_state(regime, seed=6):
+    r"""`(args, pim)` of one IMU factor in a regime: the interval's rate scale (0: the corrected
+    rate is exactly zero), $\|r_\theta\|$ imposed through `pose_j`'s rotation (`None`: random),
+    zero or random velocities, identity or random pose rotations. `at_rest`: a vehicle standing
+    still, its prediction equal to `pose_j` (zero residual)."""
+    rate_scale, angle, velocities, rotations = REGIMES[regime]
+    rng = np.random.default_rng(seed)
+    gyro, accel, dt = stream(7, rate_scale=rate_scale)
+    gyro = gyro + BIAS[3:] * (rate_scale == 0.0)
+    if regime == "at_rest":
         accel = np.tile(BIAS[:3] + [0.0, 0.0, 9.81], (SAMPLES, 1))
-        pose = SE3.identity()
-        args = (pose, np.zeros(3), pose, np.zeros(3), BIAS)
     pim = sequential(gyro, accel, dt, BIAS, PARAMS)
-    value, jacobians = residual_and_jacobians(*args, pim, PARAMS)
-    if regime != "random":
-        np.testing.assert_allclose(value, 0.0, atol=1e-12)
+    bias_i = BIAS if regime == "at_rest" else BIAS + 0.01 * rng.normal(size=6)
+    tangents = rng.normal(size=(2, 6))
+    if rotations == "identity":
+        tangents[:, 3:] = 0.0
+    pose_i, pose_j = SE3.exp(jnp.asarray(tangents[0])), SE3.exp(jnp.asarray(tangents[1]))
+    v_i, v_j = (np.zeros(3), np.zeros(3)) if velocities == "zero" else rng.normal(size=(2, 3))
+    if regime == "at_rest":
+        pose_j, v_j = imu.predict(pim, pose_i, v_i, bias_i, PARAMS)
+    elif angle is not None:  # R_j = R_i R_c Exp(r_θ)^{-1}: the rotation error is r_θ
+        axis = rng.normal(size=3)
+        error = SO3.exp(jnp.asarray(angle * axis / np.linalg.norm(axis)))
+        rotation_c = SO3.exp(pim.bias_corrected(bias_i)[:3])
+        rotation_j = pose_i.rotation() @ rotation_c @ error.inverse()
+        pose_j = SE3.from_rotation_and_translation(rotation_j, pose_j.translation())
+    return (pose_i, v_i, pose_j, v_j, bias_i), pim
+
+
+def numeric_jacobian(args, pim, eps):
+    """Central differences of `imu_residual` in the right-local tangents of `args`, `(9, 24)`."""
 
     def f(delta):
         return imu.imu_residual(*rplus(args, unflatten_tangents(args, delta)), pim, PARAMS)
 
-    eps = 1e-6
     steps = eps * np.eye(tangent_dim(args))
     differences = jax.jit(jax.vmap(f))(np.concatenate([steps, -steps]))
-    numeric = (differences[: len(steps)] - differences[len(steps) :]).T / (2 * eps)
-    analytic = np.concatenate([np.asarray(j).reshape(9, -1) for j in jacobians], 1)
-    np.testing.assert_allclose(analytic, numeric, atol=1e-7)
+    return np.asarray((differences[: len(steps)] - differences[len(steps) :]).T / (2 * eps))
+
+
+def stacked(blocks):
+    return np.concatenate([np.asarray(b).reshape(9, -1) for b in blocks], 1)
+
+
+@pytest.mark.parametrize("regime", list(REGIMES))
+def test_factor_jacobians_by_finite_differences(regime):
+    r"""The closed-form blocks (`imu_jacobians`) and the autodiff path (`value_and_jacobian` of
+    `imu_residual`) against central differences (float64), and against each other; near $\pi$
+    the step is below the distance to $\pi$ (where `Log` wraps)."""
+    args, pim = factor_state(regime)
+    value, blocks = closed_form(*args, pim, PARAMS)
+    auto_value, auto_blocks = residual_and_jacobians(*args, pim, PARAMS)
+    rotation_error = float(np.linalg.norm(value[:3]))
+    angle = REGIMES[regime][1]
+    if angle is not None:
+        assert rotation_error == pytest.approx(angle, abs=1e-12)
+    if regime == "at_rest":
+        np.testing.assert_allclose(value, 0.0, atol=1e-12)
+    eps = 1e-7 if regime.startswith("near_pi") else 1e-6
+    numeric = numeric_jacobian(args, pim, eps)
+    analytic = stacked(blocks)
+    scale = max(1.0, np.max(np.abs(numeric)))
+    np.testing.assert_allclose(analytic, numeric, atol=2e-7 * scale)
+    np.testing.assert_allclose(value, auto_value, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(analytic, stacked(auto_blocks), rtol=0, atol=1e-12 * scale)
+
+
+def test_factor_jacobians_batched_and_reverse():
+    r"""`vmap(imu_jacobians)` over instances equals the unbatched blocks, and the rows of the
+    pose_i block equal reverse-mode derivatives (`jax.vjp`) of the residual in local
+    coordinates."""
+    states = [factor_state(regime, seed=20 + k) for k, regime in enumerate(REGIMES)]
+    args = jax.tree.map(lambda *x: jnp.stack(x), *[a for a, _ in states])
+    pims = jax.tree.map(lambda *x: jnp.stack(x), *[p for _, p in states])
+    values, blocks = jax.jit(jax.vmap(imu.imu_jacobians, in_axes=(0, 0, 0, 0, 0, 0, None)))(
+        *args, pims, PARAMS
+    )
+    for k, (one_args, one_pim) in enumerate(states):
+        value, one = closed_form(*one_args, one_pim, PARAMS)
+        np.testing.assert_allclose(values[k], value, rtol=0, atol=1e-15)
+        for b, b_one in zip(blocks, one):
+            np.testing.assert_allclose(b[k], b_one, rtol=0, atol=1e-15)
+    one_args, one_pim = states[0]
+
+    def f(delta):
+        return imu.imu_residual(
+            *rplus(one_args, unflatten_tangents(one_args, delta)), one_pim, PARAMS
+        )
+
+    _, pullback = jax.vjp(f, jnp.zeros(tangent_dim(one_args)))
+    rows = np.stack([pullback(e)[0] for e in jnp.eye(9)])
+    _, one = closed_form(*one_args, one_pim, PARAMS)
+    np.testing.assert_allclose(stacked(one), rows, rtol=0, atol=1e-12)
+    rotating = PARAMS._replace(omega_coriolis=jnp.array([0.0, 0.0, 7.29e-5]))
+    with pytest.raises(imu.ImuError, match="omega_coriolis"):
+        imu.imu_jacobians(*one_args, one_pim, rotating)
+
+
+def test_bias_random_walk_blocks():
+    """The bias random-walk factor's closed-form blocks are $-I$ and $I$ of $b_j - b_i$, as its
+    autodiff Jacobian."""
+    from lieax.factorgraph import Var
+    from lieax.factorgraph._factors import linearize_one
+
+    biases = Var(jnp.zeros((2, 6)))
+    factor = imu.bias_random_walk_factor(biases[[0]], biases[[1]], np.array([1.0]), 1e-3, 1e-4)
+    b_i, b_j = np.random.default_rng(3).normal(size=(2, 6))
+    value, blocks = linearize_one(factor, (b_i, b_j), None)
+    auto_value, auto = value_and_jacobian(factor.residual, (0, 1))(b_i, b_j)
+    np.testing.assert_allclose(value, b_j - b_i, rtol=1e-15)
+    np.testing.assert_allclose(value, auto_value, rtol=1e-15)
+    np.testing.assert_array_equal(blocks[0], -np.eye(6))
+    np.testing.assert_array_equal(blocks[1], np.eye(6))
+    np.testing.assert_array_equal(auto[0], blocks[0])
+    np.testing.assert_array_equal(auto[1], blocks[1])
 
 
 def test_factors_in_a_graph():

@@ -32,6 +32,7 @@ REQUIRED = [
     "04_pose_graphs",
     "05_differentiable_icp",
     "06_factor_graphs",
+    "07_inertial_navigation",
 ]
 TIME_LIMIT = float(os.environ.get("LIEAX_NOTEBOOK_TIME_LIMIT", "120"))
 MAX_BYTES = 1_000_000

@@ -4,24 +4,29 @@ factors for `lieax.factorgraph`. Conventions: the README's "Conventions"; the ma
 is in `lieax.conventions`.
 """
 
-from ._factors import bias_random_walk_factor, imu_factor, imu_residual
+from ._factors import bias_random_walk_factor, imu_factor, imu_jacobians, imu_residual
 from ._preintegration import (
+    BiasRandomWalk,
     ImuError,
     ImuParams,
     Preintegrated,
     predict,
     preintegrate,
     preintegrate_associative,
+    preintegrate_combined,
 )
 
 __all__ = [
+    "BiasRandomWalk",
     "ImuError",
     "ImuParams",
     "Preintegrated",
     "bias_random_walk_factor",
     "imu_factor",
+    "imu_jacobians",
     "imu_residual",
     "predict",
     "preintegrate",
     "preintegrate_associative",
+    "preintegrate_combined",
 ]

@@ -8,7 +8,8 @@ error, the prediction in the local coordinates of $x_j$ (`PreintegrationBase::co
 $r = (\mathrm{Log}(R_j^\top \hat R_j),\ R_j^\top(\hat p_j - p_j),\ R_j^\top(\hat v_j - v_j))$
 with $(\hat T_j, \hat v_j)$ = `predict`, whitened by `Preintegrated.residual_covariance` (the
 preintegrated covariance mapped into the residual's coordinates, as GTSAM 4.3's `ImuFactor`).
-Jacobians come from the groups' closed-form rules through `lieax.value_and_jacobian`.
+The factor's Jacobian blocks are closed forms (`imu_jacobians`); `imu_residual` itself
+differentiates through the groups' rules (`lieax.value_and_jacobian`), which the tests compare.
 Conventions: the README's "Conventions"; GTSAM's mapping in `lieax.conventions`.
 """
 
@@ -16,7 +17,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._linalg import skew
 from ..factorgraph._factors import Factor
+from ..groups import _so3 as so3
+from ..groups._so3 import SO3
 from ._preintegration import ImuError, ImuParams, Preintegrated, predict
 
 
@@ -31,6 +35,71 @@ def imu_residual(pose_i, velocity_i, pose_j, velocity_j, bias_i, pim: Preintegra
     return jnp.concatenate([r_theta, r_p, r_v])
 
 
+def imu_jacobians(pose_i, velocity_i, pose_j, velocity_j, bias_i, pim: Preintegrated, params):
+    r"""`(r, (J_pose_i, J_velocity_i, J_pose_j, J_velocity_j, J_bias_i))`: `imu_residual` and its
+    blocks `(9, 6)`, `(9, 3)`, `(9, 6)`, `(9, 3)`, `(9, 6)` in right-local tangents (poses
+    $(\rho, \phi)$ with $T \oplus \delta = T\,\mathrm{Exp}(\delta)$, vectors additive).
+
+    With $(\theta_c, \Delta p_c, \Delta v_c) = (\theta, \Delta p, \Delta v) + J_b(b_i - \hat b)$
+    (`bias_corrected`), $R_c = \mathrm{Exp}(\theta_c)$, $E = R_j^\top R_i R_c$,
+    $r_\theta = \mathrm{Log}(E)$, $Q = R_j^\top R_i$ and $J_b = [J_\theta; J_p; J_v]$ by rows:
+    $$\frac{\partial r}{\partial T_i} = \begin{bmatrix} 0 & J_r^{-1}(r_\theta) R_c^\top \\
+    Q & -Q[\Delta p_c]_\times \\ 0 & -Q[\Delta v_c]_\times \end{bmatrix},\quad
+    \frac{\partial r}{\partial v_i} = \begin{bmatrix} 0 \\ R_j^\top\Delta t \\ R_j^\top
+    \end{bmatrix},\quad
+    \frac{\partial r}{\partial T_j} = \begin{bmatrix} 0 & -J_r^{-1}(r_\theta) E^\top \\
+    -I & [r_p]_\times \\ 0 & [r_v]_\times \end{bmatrix},\quad
+    \frac{\partial r}{\partial v_j} = \begin{bmatrix} 0 \\ 0 \\ -R_j^\top \end{bmatrix},\quad
+    \frac{\partial r}{\partial b_i} = \begin{bmatrix} J_r^{-1}(r_\theta) J_r(\theta_c) J_\theta
+    \\ Q J_p \\ Q J_v \end{bmatrix}.$$
+    Derivation: $R_i\mathrm{Exp}(\phi)R_c = R_iR_c\mathrm{Exp}(R_c^\top\phi)$,
+    $\mathrm{Exp}(-\phi)E = E\,\mathrm{Exp}(-E^\top\phi)$,
+    $\mathrm{Exp}(\theta_c + \delta) \approx \mathrm{Exp}(\theta_c)\mathrm{Exp}(J_r(\theta_c)\delta)$
+    and $\mathrm{Log}(E\,\mathrm{Exp}(\delta)) \approx r_\theta + J_r^{-1}(r_\theta)\delta$;
+    $p_i + R_i\rho$, $R_i\mathrm{Exp}(\phi)x \approx R_i x - R_i[x]_\times\phi$, and
+    $\mathrm{Exp}(-\phi)R_j^\top y \approx R_j^\top y + [R_j^\top y]_\times\phi$. Forster et al.,
+    T-RO 2017, Appendix (eqs. for $r_{\Delta R}, r_{\Delta v}, r_{\Delta p}$), in GTSAM's
+    ComponentWise form: `PreintegrationBase::computeErrorAndJacobians` with
+    `TangentPreintegration::biasCorrectedDelta` (GTSAM 4.3), whose blocks these equal (after
+    `lieax.conventions`' column permutation of the poses; `tests/test_imu.py`). In an inertial
+    navigation frame only: `ImuError` when `params.omega_coriolis` is set (`imu_factor` then
+    differentiates `imu_residual`).
+    """
+    if getattr(params, "omega_coriolis", None) is not None:
+        raise ImuError("imu_jacobians: the closed form is for params.omega_coriolis None.")
+    corrected = pim.bias_corrected(bias_i)
+    theta_c, dp_c, dv_c = corrected[:3], corrected[3:6], corrected[6:]
+    rotation_j = pose_j.rotation()
+    rotation_c = SO3.exp(theta_c)
+    ri, rj, rc = pose_i.rotation().as_matrix(), rotation_j.as_matrix(), rotation_c.as_matrix()
+    rj_t = rj.T
+    q = rj_t @ ri
+    e = q @ rc
+    t, g = pim.delta_t, params.n_gravity
+    r_theta = rotation_j.between(pose_i.rotation() @ rotation_c).log()
+    position_hat = pose_i.translation() + ri @ dp_c + velocity_i * t + 0.5 * g * t**2
+    velocity_hat = velocity_i + ri @ dv_c + g * t
+    r_p = rj_t @ (position_hat - pose_j.translation())
+    r_v = rj_t @ (velocity_hat - velocity_j)
+    jr_inv = so3.right_jacobian_inverse(r_theta)
+    zero, eye = jnp.zeros((3, 3), q.dtype), jnp.eye(3, dtype=q.dtype)
+    jac_b = pim.jacobian_bias
+    blocks = (
+        jnp.block([[zero, jr_inv @ rc.T], [q, -q @ skew(dp_c)], [zero, -q @ skew(dv_c)]]),
+        jnp.concatenate([zero, rj_t * t, rj_t]),
+        jnp.block([[zero, -jr_inv @ e.T], [-eye, skew(r_p)], [zero, skew(r_v)]]),
+        jnp.concatenate([zero, zero, -rj_t]),
+        jnp.concatenate(
+            [jr_inv @ so3.right_jacobian(theta_c) @ jac_b[0:3], q @ jac_b[3:6], q @ jac_b[6:9]]
+        ),
+    )
+    return jnp.concatenate([r_theta, r_p, r_v]), blocks
+
+
+# one compiled program, not one dispatch (and one compilation) per operation on first use
+_residual_covariance = jax.jit(Preintegrated.residual_covariance)
+
+
 def imu_factor(
     pim: Preintegrated, params: ImuParams, pose_i, velocity_i, pose_j, velocity_j, bias_i
 ):
@@ -43,7 +112,8 @@ def imu_factor(
       arrays `(m,)` (poses an `SE3` `Var`, velocities `(n, 3)`, biases `(n, 6)`).
 
     **Returns:** a `Factor` with information $\Sigma_r^{-1}$, $\Sigma_r$ each interval's
-    `residual_covariance()`.
+    `residual_covariance()`, and the closed-form blocks of `imu_jacobians` (autodiff of
+    `imu_residual` with `params.omega_coriolis`).
     Raises `ImuError` when a `pim` is invalid or its covariance is not positive definite.
     """
     valid = np.asarray(pim.valid)
@@ -53,7 +123,7 @@ def imu_factor(
         )
     if not valid.all():
         raise ImuError(f"pim {int(np.flatnonzero(~valid)[0])} is invalid (bad samples).")
-    covariance = np.asarray(pim.residual_covariance())
+    covariance = np.asarray(_residual_covariance(pim))
     try:
         information = np.linalg.inv(covariance)
         information = 0.5 * (information + np.swapaxes(information, 1, 2))
@@ -62,6 +132,9 @@ def imu_factor(
             (pose_i, velocity_i, pose_j, velocity_j, bias_i),
             pim,
             information=information,
+            jacobian_fn=None
+            if getattr(params, "omega_coriolis", None) is not None
+            else lambda xi, vi, xj, vj, bi, data: imu_jacobians(xi, vi, xj, vj, bi, data, params),
             name="imu",
         )
     except (np.linalg.LinAlgError, ValueError) as error:
@@ -84,10 +157,21 @@ def bias_random_walk_factor(bias_i, bias_j, delta_t, accel_bias_sigma, gyro_bias
     if not (accel_bias_sigma > 0 and gyro_bias_sigma > 0):
         raise ImuError("the bias random-walk sigmas must be positive.")
     sigmas = np.repeat([accel_bias_sigma, gyro_bias_sigma], 3)
-    sqrt_information = jax.vmap(jnp.diag)(1.0 / (sigmas[None] * np.sqrt(delta_t)[:, None]))
+    sqrt_information = np.eye(6) / (sigmas[None] * np.sqrt(delta_t)[:, None])[:, :, None]
     return Factor(
-        lambda bi, bj: bj - bi,
+        _bias_difference,
         (bias_i, bias_j),
-        sqrt_information=np.asarray(sqrt_information),
+        sqrt_information=sqrt_information,
+        jacobian_fn=_bias_difference_jacobians,
         name="bias_random_walk",
     )
+
+
+def _bias_difference(bias_i, bias_j):
+    return bias_j - bias_i
+
+
+def _bias_difference_jacobians(bias_i, bias_j):
+    r"""$r = b_j - b_i$: blocks $-I$, $I$ (`(6, 6)`)."""
+    eye = jnp.eye(bias_i.shape[-1], dtype=bias_i.dtype)
+    return bias_j - bias_i, (-eye, eye)

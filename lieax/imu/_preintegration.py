@@ -9,7 +9,10 @@ backend is `TangentPreintegration`, which the installed Python `gtsam` uses: it 
 $\Delta R = \mathrm{Exp}(\theta)$, all in the body frame at keyframe $i$; the covariance and the
 bias Jacobians are in the same order (GTSAM's `preintMeasCov`, `preintegrated_H_biasAcc`,
 `preintegrated_H_biasOmega`). Biases are 6-vectors $(b_a, b_g)$, GTSAM's
-`imuBias.ConstantBias.vector()` order. Conventions: the README's "Conventions".
+`imuBias.ConstantBias.vector()` order. `preintegrate_combined` adds the 15×15 covariance with
+the biases' random walk of GTSAM's `PreintegratedCombinedMeasurements`; `predict` works in an
+inertial or, with `ImuParams.omega_coriolis`, a rotating navigation frame (GTSAM 4.3's
+`NavState::predictPIM`). Conventions: the README's "Conventions".
 """
 
 from typing import NamedTuple
@@ -19,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import as_float_array
-from .._linalg import cross, matvec, skew
+from .._linalg import cross, dot, matvec, skew
 from ..groups import _so3 as so3
 from ..groups._se3 import SE3
 from ..groups._series import g
@@ -40,6 +43,9 @@ class ImuParams(NamedTuple):
     - `integration_covariance`: $\Sigma_i$, `(3, 3)`, added to the position as $\Sigma_i\,\delta t$.
     - `n_gravity`: gravity in the navigation frame, `(3,)`.
     - `body_P_sensor`: the sensor's pose in the body frame (`SE3`), or `None` for the identity.
+    - `omega_coriolis`: the navigation frame's rotation rate $\omega_c$ (rad/s, `(3,)`, e.g. the
+      Earth's in a local-level frame), for `predict` in a rotating frame (Coriolis and
+      centrifugal terms), or `None` for an inertial one (GTSAM's `omegaCoriolis`).
     """
 
     accelerometer_covariance: jax.Array
@@ -47,6 +53,7 @@ class ImuParams(NamedTuple):
     integration_covariance: jax.Array
     n_gravity: jax.Array
     body_P_sensor: SE3 | None = None
+    omega_coriolis: jax.Array | None = None
 
     @classmethod
     def make_u(
@@ -57,6 +64,7 @@ class ImuParams(NamedTuple):
         gyro_noise_density=0.0,
         integration_sigma=0.0,
         body_P_sensor=None,
+        omega_coriolis=None,
     ):
         r"""Z up, gravity along $-z$ (GTSAM's `PreintegrationParams.MakeSharedU(g)`), with isotropic
         covariances $\sigma^2 I$ from the noise densities (m/s²/√Hz, rad/s/√Hz) and the
@@ -68,6 +76,7 @@ class ImuParams(NamedTuple):
             jnp.asarray(integration_sigma**2 * eye),
             jnp.asarray([0.0, 0.0, -float(gravity)]),
             body_P_sensor,
+            None if omega_coriolis is None else jnp.asarray(omega_coriolis, dtype=float),
         )
 
 
@@ -161,6 +170,10 @@ def _check_params(params):
         raise ImuError(f"params.n_gravity must be (3,), got {jnp.shape(params.n_gravity)}.")
     if params.body_P_sensor is not None and not isinstance(params.body_P_sensor, SE3):
         raise TypeError("params.body_P_sensor must be an SE3 or None.")
+    if params.omega_coriolis is not None and jnp.shape(params.omega_coriolis) != (3,):
+        raise ImuError(
+            f"params.omega_coriolis must be (3,) or None, got {jnp.shape(params.omega_coriolis)}."
+        )
 
 
 def _check_samples(gyro, accel, dt, bias, params):
@@ -228,7 +241,8 @@ def _so3_at(theta, omega):
     Solà eqs. 77, 143, 144) and $\partial(J_r^{-1}(\theta)\omega)/\partial\theta =
     -\tfrac12[\omega]_\times + D\,((\theta\cdot\omega) I + \theta\omega^\top - 2\omega\theta^\top)
     + 2D'(s)\,\theta\times(\theta\times\omega)\,\theta^\top$ (GTSAM's `DexpFunctor`, its
-    `applyInvDexp` derivative), sharing one $s = \theta^2$ and one $W^2$."""
+    `applyInvDexp` derivative), sharing one $s = \theta^2$ and one $W^2$. Returns
+    $(R, J_r, J_r^{-1}, J_r^{-1}\omega, \partial(J_r^{-1}\omega)/\partial\theta)$."""
     s = jnp.dot(theta, theta)
     w = skew(theta)
     w2 = w @ w
@@ -245,61 +259,100 @@ def _so3_at(theta, omega):
         * (jnp.dot(theta, omega) * eye + jnp.outer(theta, omega) - 2.0 * jnp.outer(omega, theta))
         + 2.0 * d_prime * jnp.outer(u, theta)
     )
-    return rotation, jr, jr_inv, h
+    return rotation, jr, jr_inv, jr_inv @ omega, h
 
 
-def _tangent_step(carry, sample, bias, params):
-    r"""One `TangentPreintegration::update` and `integrateMeasurement` covariance step:
-    $\theta^+ = \theta + J_r^{-1}(\theta)\omega\delta t$, $p^+ = p + v\delta t + \tfrac12 R a
-    \delta t^2$, $v^+ = v + R a \delta t$ with $R = \mathrm{Exp}(\theta)$ before the update;
-    $\Sigma^+ = A\Sigma A^\top + B\frac{\Sigma_a}{\delta t}B^\top + C\frac{\Sigma_g}{\delta t}C^\top
-    + \Sigma_i\delta t$ (position block), $J_b^+ = A J_b - [B, C]$, with
+class _Step(NamedTuple):
+    r"""The blocks of one step's Jacobians (`_kinematics`): $A_{\theta\theta}$ (`a00`),
+    $A_{p\theta}$ (`a10`; $A_{v\theta} = k A_{p\theta}$, $k = 2/\delta t$), the sample Jacobians
+    $C_\theta = \partial\theta^+/\partial\tilde\omega$ (`c_w`), $B_p = \partial p^+/\partial\tilde a$
+    (`p_a`; $B_v = k B_p$) and $\partial p^+/\partial\tilde\omega$ (`p_w`, the lever arm's
+    coupling, `None` without a sensor pose), and `dt`, `k`."""
+
+    a00: jax.Array
+    a10: jax.Array
+    c_w: jax.Array
+    p_a: jax.Array
+    p_w: jax.Array | None
+    dt: jax.Array
+    k: jax.Array
+
+
+def _kinematics(x, sample, bias, params):
+    r"""One `TangentPreintegration::update`: $\theta^+ = \theta + J_r^{-1}(\theta)\omega\delta t$,
+    $p^+ = p + v\delta t + \tfrac12 R a \delta t^2$, $v^+ = v + R a \delta t$ with
+    $R = \mathrm{Exp}(\theta)$ before the update, and its Jacobians (`_Step`):
     $A = [[I + \partial_\theta(J_r^{-1}\omega)\delta t, 0, 0], [H\tfrac{\delta t^2}2, I, I\delta t],
     [H\delta t, 0, I]]$, $H = -R[a]_\times J_r(\theta)$, $B = [0; R\tfrac{\delta t^2}2; R\delta t]$,
-    $C = [J_r^{-1}(\theta)\delta t; 0; 0]$, evaluated on 3×3 blocks (the velocity rows of $A$, $B$
-    are $2/\delta t$ times the position rows'). The covariance `s` is its six upper blocks
-    `(θθ, θp, θv, pp, pv, vv)`, the bias Jacobian `j` its three row blocks."""
-    x, s, j = carry
+    $C = [J_r^{-1}(\theta)\delta t; 0; 0]$ (with respect to the raw samples: times the
+    sensor-pose correction's Jacobians)."""
     gyro, accel, dt = sample
     acc, omega, d = _corrected(accel, gyro, bias, params)
     theta, p, v = x[:3], x[3:6], x[6:]
-    rotation, jr, jr_inv, w_tangent_H_theta = _so3_at(theta, omega)
-    w_tangent = jr_inv @ omega
+    rotation, jr, jr_inv, w_tangent, w_tangent_H_theta = _so3_at(theta, omega)
     a00 = jnp.eye(3, dtype=x.dtype) + dt * w_tangent_H_theta
     a_nav = rotation @ acc
     dt22, k = 0.5 * dt * dt, 2.0 / dt
     x_next = jnp.concatenate([theta + w_tangent * dt, p + v * dt + a_nav * dt22, v + a_nav * dt])
     a10 = (rotation @ skew(-acc) @ jr) * dt22  # a20 = k * a10
-    # B and C with respect to the raw samples: rows θ [0, c_w], p [p_a, p_w], v k [p_a, p_w].
     c_w = jr_inv * dt
-    p_a, p_w = rotation * dt22, None  # p_w: the lever arm's coupling, none without a sensor pose
+    p_a, p_w = rotation * dt22, None
     if d is not None:
         d_aa, d_aw, d_ww = d
         p_a, p_w, c_w = p_a @ d_aa, p_a @ d_aw, c_w @ d_ww
+    return x_next, _Step(a00, a10, c_w, p_a, p_w, dt, k)
+
+
+def _times_a(step, rows):
+    r"""$A M$ for a $9 \times n$ matrix $M$ given as its row blocks $(M_\theta, M_p, M_v)$."""
+    m_t, m_p, m_v = rows
+    a10_m = step.a10 @ m_t
+    return step.a00 @ m_t, a10_m + m_p + step.dt * m_v, step.k * a10_m + m_v
+
+
+def _propagate(s, step, q_tt, q_tp, q_pp, integration):
+    r"""$A \Sigma A^\top + Q$ on the six upper 3×3 blocks `(θθ, θp, θv, pp, pv, vv)` of $\Sigma$,
+    for noise entering through the θ and p rows (the v rows are $k$ times the p rows):
+    $Q_{\theta\theta}$, $Q_{\theta p}$, $Q_{pp}$ given, $Q_{\theta v} = k Q_{\theta p}$,
+    $Q_{pv} = k Q_{pp}$, $Q_{vv} = k^2 Q_{pp}$, and `integration` added to the pp block only.
+    $X = A\Sigma$ first (its θ row blocks, the θ and v columns of its v rows), then $X A^\top$."""
     tt, tp, tv, pp, pv, vv = s
-    # X = A Σ (row blocks θ, p, v; column blocks θ, p, v), then Σ⁺ = X Aᵀ (upper blocks).
+    a00, a10, dt, k = step.a00, step.a10, step.dt, step.k
     x_t = (a00 @ tt, a00 @ tp, a00 @ tv)
     m = (a10 @ tt, a10 @ tp, a10 @ tv)
     x_p = (m[0] + tp.T + dt * tv.T, m[1] + pp + dt * pv.T, m[2] + pv + dt * vv)
     x_v = (k * m[0] + tv.T, k * m[2] + vv)  # the θ and v column blocks (p is not needed)
+    a10t = a10.T
+    return (
+        x_t[0] @ a00.T + q_tt,
+        x_t[0] @ a10t + x_t[1] + dt * x_t[2] + q_tp,
+        k * (x_t[0] @ a10t) + x_t[2] + k * q_tp,
+        x_p[0] @ a10t + x_p[1] + dt * x_p[2] + q_pp + integration,
+        k * (x_p[0] @ a10t) + x_p[2] + k * q_pp,
+        k * (x_v[0] @ a10t) + x_v[1] + k * k * q_pp,
+    )
+
+
+def _tangent_step(carry, sample, bias, params):
+    r"""One `PreintegratedImuMeasurements::integrateMeasurement` (`_kinematics`):
+    $\Sigma^+ = A\Sigma A^\top + B\frac{\Sigma_a}{\delta t}B^\top + C\frac{\Sigma_g}{\delta t}C^\top
+    + \Sigma_i\delta t$ (position block), $J_b^+ = A J_b - [B, C]$, evaluated on 3×3 blocks
+    (`_propagate`). The covariance `s` is its six upper blocks `(θθ, θp, θv, pp, pv, vv)`, the
+    bias Jacobian `j` its three row blocks."""
+    x, s, j = carry
+    x_next, step = _kinematics(x, sample, bias, params)
+    c_w, p_a, p_w, dt, k = step.c_w, step.p_a, step.p_w, step.dt, step.k
     sa = params.accelerometer_covariance / dt
     sg = params.gyroscope_covariance / dt
     q_tt = c_w @ sg @ c_w.T
     q_tp = 0.0 if p_w is None else c_w @ sg @ p_w.T
     q_pp = p_a @ sa @ p_a.T + (0.0 if p_w is None else p_w @ sg @ p_w.T)
-    a10t = a10.T
-    new_tt = x_t[0] @ a00.T + q_tt
-    new_tp = x_t[0] @ a10t + x_t[1] + dt * x_t[2] + q_tp
-    new_tv = k * (x_t[0] @ a10t) + x_t[2] + k * q_tp
-    new_pp = x_p[0] @ a10t + x_p[1] + dt * x_p[2] + q_pp + params.integration_covariance * dt
-    new_pv = k * (x_p[0] @ a10t) + x_p[2] + k * q_pp
-    new_vv = k * (x_v[0] @ a10t) + x_v[1] + k * k * q_pp
-    j_t, j_p, j_v = j
-    bc_t = jnp.concatenate([jnp.zeros_like(c_w), c_w], axis=1)
-    bc_p = jnp.concatenate([p_a, jnp.zeros_like(p_a) if p_w is None else p_w], axis=1)
-    a10_j = a10 @ j_t
-    j_next = (a00 @ j_t - bc_t, a10_j + j_p + dt * j_v - bc_p, k * a10_j + j_v - k * bc_p)
-    return (x_next, (new_tt, new_tp, new_tv, new_pp, new_pv, new_vv), j_next), None
+    s_next = _propagate(s, step, q_tt, q_tp, q_pp, params.integration_covariance * dt)
+    zero = jnp.zeros_like(c_w)
+    bc_t = jnp.concatenate([zero, c_w], axis=1)
+    bc_p = jnp.concatenate([p_a, zero if p_w is None else p_w], axis=1)
+    j_t, j_p, j_v = _times_a(step, j)
+    return (x_next, s_next, (j_t - bc_t, j_p - bc_p, j_v - k * bc_p)), None
 
 
 def preintegrate(gyro, accel, dt, bias, params: ImuParams) -> Preintegrated:
@@ -328,6 +381,111 @@ def preintegrate(gyro, accel, dt, bias, params: ImuParams) -> Preintegrated:
     tt, tp, tv, pp, pv, vv = s
     cov = jnp.block([[tt, tp, tv], [tp.T, pp, pv], [tv.T, pv.T, vv]])
     return _result(x, dt.sum(), cov, jnp.concatenate(j), bias, ok)
+
+
+class BiasRandomWalk(NamedTuple):
+    r"""The biases' random walk for `preintegrate_combined` (GTSAM 4.3's
+    `PreintegrationCombinedParams`), a pytree.
+
+    **Fields:**
+    - `accelerometer_bias_covariance`: `(3, 3)`, continuous time ((m/s³)²/Hz; `biasAccCovariance`).
+    - `gyroscope_bias_covariance`: `(3, 3)`, (rad/s²)²/Hz (`biasOmegaCovariance`).
+    """
+
+    accelerometer_bias_covariance: jax.Array
+    gyroscope_bias_covariance: jax.Array
+
+    @classmethod
+    def isotropic(cls, accel_bias_sigma, gyro_bias_sigma):
+        r"""$\sigma^2 I$ from the random-walk densities (m/s³/√Hz, rad/s²/√Hz)."""
+        eye = np.eye(3)
+        return cls(jnp.asarray(accel_bias_sigma**2 * eye), jnp.asarray(gyro_bias_sigma**2 * eye))
+
+
+def _combined_step(carry, sample, bias, params, walk):
+    r"""One `PreintegratedCombinedMeasurements::integrateMeasurement` (GTSAM 4.3): the 15×15
+    covariance of $(\theta, \Delta p, \Delta v, b_a, b_g)$, $\Sigma^+ = F \Sigma F^\top + Q$ with
+    $F = [[A, F_b], [0, I]]$, $F_b = [B, C]$ (`_kinematics`, the sample Jacobians: a bias moves
+    the increments as the samples do) and $Q = \mathrm{diag}(Q_{nav}, \Sigma_{b_a}\delta t,
+    \Sigma_{b_g}\delta t)$, $Q_{nav}$ `_tangent_step`'s. In blocks, with $\Sigma = [[P, X],
+    [X^\top, S]]$: $P^+ = A P A^\top + W F_b^\top + F_b W^\top + Q_{nav}$, $W = A X + \tfrac12 F_b
+    S$, $X^+ = A X + F_b S$, $S^+ = S + \mathrm{diag}(\Sigma_{b_a}, \Sigma_{b_g})\delta t$.
+    `cross_nb` is $X$'s three row blocks (3×6), `s_bb` is $S$."""
+    x, s, j, cross_nb, s_bb = carry
+    x_next, step = _kinematics(x, sample, bias, params)
+    c_w, p_a, p_w, dt, k = step.c_w, step.p_a, step.p_w, step.dt, step.k
+    zero = jnp.zeros_like(c_w)
+    p_w = zero if p_w is None else p_w
+    sg = params.gyroscope_covariance / dt
+    q_tt = c_w @ sg @ c_w.T
+    q_tp = c_w @ sg @ p_w.T
+    q_pp = p_a @ (params.accelerometer_covariance / dt) @ p_a.T + p_w @ sg @ p_w.T
+    s_next = _propagate(s, step, q_tt, q_tp, q_pp, params.integration_covariance * dt)
+    fb_t = jnp.concatenate([zero, c_w], axis=1)
+    fb_p = jnp.concatenate([p_a, p_w], axis=1)
+    fb_s = (fb_t @ s_bb, fb_p @ s_bb, k * (fb_p @ s_bb))
+    a_x = _times_a(step, cross_nb)
+    w_t, w_p, w_v = (a + 0.5 * f for a, f in zip(a_x, fb_s))
+    # M(r, c) = W_r F_b,cᵀ; the v columns are k times the p columns.
+    m_tt, m_tp = w_t @ fb_t.T, w_t @ fb_p.T
+    m_pt, m_pp = w_p @ fb_t.T, w_p @ fb_p.T
+    m_vt, m_vp = w_v @ fb_t.T, w_v @ fb_p.T
+    tt, tp, tv, pp, pv, vv = s_next
+    s_next = (
+        tt + m_tt + m_tt.T,
+        tp + m_tp + m_pt.T,
+        tv + k * m_tp + m_vt.T,
+        pp + m_pp + m_pp.T,
+        pv + k * m_pp + m_vp.T,
+        vv + k * (m_vp + m_vp.T),
+    )
+    cross_next = tuple(a + f for a, f in zip(a_x, fb_s))
+    walk_q = jax.scipy.linalg.block_diag(
+        walk.accelerometer_bias_covariance, walk.gyroscope_bias_covariance
+    )
+    j_t, j_p, j_v = _times_a(step, j)
+    j_next = (j_t - fb_t, j_p - fb_p, j_v - k * fb_p)
+    return (x_next, s_next, j_next, cross_next, s_bb + walk_q * dt), None
+
+
+def preintegrate_combined(gyro, accel, dt, bias, params: ImuParams, walk: BiasRandomWalk):
+    r"""`preintegrate` with GTSAM 4.3's `PreintegratedCombinedMeasurements` covariance: the
+    15×15 covariance of $(\theta, \Delta p, \Delta v, b_a, b_g)$ propagated with the biases'
+    random walk `walk` and their coupling into the increments (`_combined_step`; its
+    `preintMeasCov()`, which GTSAM's `CombinedImuFactor` whitens its 15-vector residual with).
+    Same arguments as `preintegrate`, plus `walk` (a `BiasRandomWalk`).
+
+    **Returns:** `(pim, covariance)`: a `Preintegrated` whose increments and bias Jacobians are
+    `preintegrate`'s and whose `covariance` is the 9×9 navigation block of `covariance`
+    `(15, 15)` (`preintegrate`'s plus the random walk's share; equal to it for a zero walk).
+    `vmap` it over intervals.
+    """
+    gyro, accel, dt, bias, ok = _check_samples(gyro, accel, dt, bias, params)
+    if not isinstance(walk, BiasRandomWalk):
+        raise TypeError(f"walk must be a BiasRandomWalk, got {type(walk).__name__}.")
+    for name, value in zip(walk._fields, walk):
+        if jnp.shape(value) != (3, 3):
+            raise ImuError(f"walk.{name} must be (3, 3), got {jnp.shape(value)}.")
+    dtype = gyro.dtype
+    zero, zero36 = jnp.zeros((3, 3), dtype), jnp.zeros((3, 6), dtype)
+    init = (
+        jnp.zeros(9, dtype),
+        (zero,) * 6,
+        (zero36,) * 3,
+        (zero36,) * 3,
+        jnp.zeros((6, 6), dtype),
+    )
+    (x, s, j, cross_nb, s_bb), _ = jax.lax.scan(
+        lambda carry, sample: _combined_step(carry, sample, bias, params, walk),
+        init,
+        (gyro, accel, dt),
+    )
+    tt, tp, tv, pp, pv, vv = s
+    nav = jnp.block([[tt, tp, tv], [tp.T, pp, pv], [tv.T, pv.T, vv]])
+    x_nb = jnp.concatenate(cross_nb)
+    covariance = jnp.block([[nav, x_nb], [x_nb.T, s_bb]])
+    pim = _result(x, dt.sum(), nav, jnp.concatenate(j), bias, ok)
+    return pim, jnp.where(ok, covariance, jnp.nan)
 
 
 def _result(x, delta_t, cov, jac, bias, ok):
@@ -457,20 +615,48 @@ def _identity(dt):
 
 
 def predict(pim: Preintegrated, pose_i: SE3, velocity_i, bias, params: ImuParams):
-    r"""The state at $j$ from the state at $i$ (GTSAM's `PreintegrationBase::predict`, without
-    Coriolis): with $(\theta, \Delta p, \Delta v)$ = `pim.bias_corrected(bias)`,
+    r"""The state at $j$ from the state at $i$ (GTSAM 4.3's `PreintegrationBase::predict`,
+    `NavState::predictPIM`): with $(\theta, \Delta p, \Delta v)$ = `pim.bias_corrected(bias)`
+    and $\Delta t$ = `pim.delta_t`, in an inertial frame (`params.omega_coriolis` `None`)
     $R_j = R_i \mathrm{Exp}(\theta)$, $p_j = p_i + R_i \Delta p + v_i \Delta t + \tfrac12 g
     \Delta t^2$, $v_j = v_i + R_i \Delta v + g \Delta t$.
 
+    In a frame rotating at $\omega_c$ (Brossard, Barrau, Chauchat and Bonnabel, "Associating
+    uncertainty to extended poses for on Lie group IMU preintegration with rotating Earth",
+    T-RO 2022; GTSAM's `PIMPredictionRotating`): with the transported velocity
+    $\bar v_i = v_i + \omega_c\times p_i$, $\phi = -\omega_c\Delta t$, $A = \mathrm{Exp}(\phi)$,
+    $\Gamma_v = J_l(\phi) = I + g_2[\phi]_\times + g_3[\phi]_\times^2$ and $\Gamma_p = J_l(\phi) -
+    \Gamma_2(\phi) = \tfrac12 I + (g_2 - g_3)[\phi]_\times + (g_3 - g_4)[\phi]_\times^2$
+    ($\Gamma_2 = \sum_k [\phi]_\times^k/(k+2)!$, $g_n$ of `lieax.groups._series`):
+    $R_j = A R_i \mathrm{Exp}(\theta)$, $p_j = A(p_i + \bar v_i\Delta t + R_i\Delta p) +
+    \Gamma_p g\Delta t^2$, $v_j = A(\bar v_i + R_i\Delta v) + \Gamma_v g\Delta t - \omega_c\times
+    p_j$: exact for a constant $\omega_c$ (Coriolis and centrifugal terms to all orders; GTSAM 4.3
+    ignores `use2ndOrderCoriolis` likewise), equal to the inertial prediction at $\omega_c = 0$.
+
     **Arguments:** `pim` (one interval), `pose_i` ($T_{nb}$, `SE3`), `velocity_i` (navigation
-    frame, `(3,)`), `bias` `(6,)`, `params` (for `n_gravity`).
+    frame, `(3,)`), `bias` `(6,)`, `params` (`n_gravity`, `omega_coriolis`).
 
     **Returns:** `(pose_j, velocity_j)`.
     """
     corrected = pim.bias_corrected(bias)
     rotation_i, t = pose_i.rotation(), pim.delta_t
-    g = params.n_gravity
-    position = pose_i.translation() + rotation_i @ corrected[3:6] + velocity_i * t + 0.5 * g * t**2
-    velocity = velocity_i + rotation_i @ corrected[6:] + g * t
-    rotation_j = rotation_i @ SO3.exp(corrected[:3])
-    return SE3.from_rotation_and_translation(rotation_j, position), velocity
+    gravity, position_i = params.n_gravity, pose_i.translation()
+    rotation_z = rotation_i @ SO3.exp(corrected[:3])
+    if params.omega_coriolis is None:
+        position = position_i + rotation_i @ corrected[3:6] + velocity_i * t + 0.5 * gravity * t**2
+        velocity = velocity_i + rotation_i @ corrected[6:] + gravity * t
+        return SE3.from_rotation_and_translation(rotation_z, position), velocity
+    omega = params.omega_coriolis
+    phi = -omega * t
+    s, w = dot(phi, phi), skew(phi)
+    w2 = w @ w
+    eye = jnp.eye(3, dtype=phi.dtype)
+    gamma_v = eye + g(2, s) * w + g(3, s) * w2
+    gamma_p = 0.5 * eye + (g(2, s) - g(3, s)) * w + (g(3, s) - g(4, s)) * w2
+    earth = SO3.exp(phi)
+    transported = velocity_i + cross(omega, position_i)
+    position_z = position_i + transported * t + rotation_i @ corrected[3:6]
+    velocity_z = transported + rotation_i @ corrected[6:]
+    position = earth @ position_z + gamma_p @ gravity * t**2
+    velocity = earth @ velocity_z + gamma_v @ gravity * t - cross(omega, position)
+    return SE3.from_rotation_and_translation(earth @ rotation_z, position), velocity
