@@ -119,7 +119,7 @@ def build_graph(data, pim, imu_params):
     n = len(data["fixes"])
     rotations, positions, velocities, biases = initial_guess(data["fixes"])
     pose_values = lieax.SE3.from_rotation_and_translation(
-        lieax.SO3.from_matrix(jnp.asarray(rotations)), jnp.asarray(positions)
+        jax.jit(lieax.SO3.from_matrix)(jnp.asarray(rotations)), jnp.asarray(positions)
     )
     poses = Var(pose_values, name="poses")
     vels = Var(jnp.asarray(velocities), name="velocities")

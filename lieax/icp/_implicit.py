@@ -52,11 +52,11 @@ import jax.numpy as jnp
 
 from .._linalg import quat_to_matrix
 from ..groups._se3 import SE3
+from ..lstsq._solution import Status
 from ._centring import centred_pose, centroid, uncentred_tangent
+from ._checks import ICPError
 from ._normals import neighbourhood_covariances, neighbourhoods, normals_from_neighbourhoods
 from ._robust import loss_weights
-
-_CONVERGED = 0  # Status.CONVERGED (lieax.icp._registration, which imports this module)
 
 
 def with_implicit_derivatives(kind, static_loss, throw, result, data, fixed):
@@ -87,9 +87,7 @@ def _converged_jvp(kind, static_loss, throw, primals, tangents):
             "point_to_point have them); differentiate a lieax.lstsq solve on its final matches."
         )
     status = fixed[1]
-    if throw and not isinstance(status, jax.core.Tracer) and int(status) != _CONVERGED:
-        from ._registration import ICPError, Status
-
+    if throw and not isinstance(status, jax.core.Tracer) and int(status) != Status.CONVERGED:
         raise ICPError(
             f"the derivative of an ICP result is defined only at a converged run; this one ended "
             f"{Status(int(status)).name} (raise max_iterations, check the data, or pass "
@@ -145,7 +143,7 @@ def _tangents(params, rmse, data, fixed, data_dot, *, kind, static_loss):
 
     # NaN where the run did not converge: a constant factor on the data tangent and on the
     # results, so that the cotangents of reverse mode (the transposed rule) are NaN there too.
-    undefined = jnp.where(status == _CONVERGED, 1.0, jnp.nan).astype(params.dtype)
+    undefined = jnp.where(status == Status.CONVERGED, 1.0, jnp.nan).astype(params.dtype)
     data_dot = jax.tree.map(lambda x: x * undefined.astype(x.dtype), data_dot)
     zero = jnp.zeros((6,), params.dtype)
     hessian = jax.jacfwd(gradient)(zero, data)
