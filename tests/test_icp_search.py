@@ -1,6 +1,8 @@
 """The nearest-neighbour backends (`lieax.icp._search`): each against SciPy's exact cKDTree, inside
 ICP against the graph backend, under `vmap`, and their errors."""
 
+import importlib.util
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -125,8 +127,14 @@ def test_normals_from_the_host_tree_and_the_graph_agree():
     """`estimate_normals` with its neighbourhoods from the host k-d tree (the CPU default) and
     from the graph: the same normals on a dense sphere (up to the graph's rare approximate
     neighbourhoods), both within 10 degrees of the true normals (the irregular sampling tilts a
-    few by up to 8), masked rows zero."""
+    few by up to 8), masked rows zero. The host tree needs pykdtree (the bench extra); without
+    it, `search="kdtree"` is refused by name."""
     rng = np.random.default_rng(3)
+    points0 = rng.normal(size=(50, 3))
+    if importlib.util.find_spec("pykdtree") is None:
+        with pytest.raises(ValueError, match="pykdtree"):
+            icp.estimate_normals(points0, k=12, search="kdtree")
+        return
     points = rng.normal(size=(2000, 3))
     points /= np.linalg.norm(points, axis=1, keepdims=True)
     mask = np.arange(2000) % 10 != 0
