@@ -21,7 +21,7 @@ from ..groups._se3 import SE3
 from . import _neighbors, _search
 from ._batch import pad_to_bucket
 from ._checks import check_cloud, check_count, check_mask
-from ._normals import smallest_eigenvector
+from ._normals import _UPPER, offset_covariances, smallest_eigenvector
 from ._registration import (
     ICPResult,
     _act_jacobian_rows,
@@ -32,7 +32,6 @@ from ._registration import (
 
 EPSILON = 1e-3  # the smallest regularized eigenvalue (GICP, fast_gicp, small_gicp)
 MIN_NEIGHBOURS = 5  # fewer valid neighbours give the identity (small_gicp's rule)
-_UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
 
 # ---- covariances --------------------------------------------------------------------------------
@@ -136,16 +135,7 @@ def _host_neighbours(points, valid, *, k):
 def _regularized(centre, neighbours, inside, valid):
     r"""$I - (1 - \varepsilon) n n^\top$ from the sample covariance of `neighbours` `(n, 3, k)`
     where `inside` `(n, k)`; the identity where fewer than 5 are inside or `valid` is False."""
-    count = jnp.sum(inside, axis=1)
-    offsets = jnp.where(inside[:, None, :], neighbours - centre[:, :, None], 0.0)
-    mean = jnp.sum(offsets, axis=2) / jnp.maximum(count, 1)[:, None]
-    centred = jnp.where(inside[:, None, :], offsets - mean[:, :, None], 0.0)
-    # The six products written out (batched 3x3 products run slowly on the CPU).
-    rows = [centred[:, a, :] for a in range(3)]
-    products = {(a, b): jnp.sum(rows[a] * rows[b], axis=1) for a, b in _UPPER}
-    entries = [[products[min(a, b), max(a, b)] for b in range(3)] for a in range(3)]
-    covariance = jnp.stack([jnp.stack(row, -1) for row in entries], -2)
-    covariance = covariance / jnp.maximum(count, 1)[:, None, None]
+    covariance, count = offset_covariances(neighbours - centre[:, :, None], inside)
     normal = smallest_eigenvector(covariance)
     eye = jnp.eye(3, dtype=centre.dtype)
     regularized = eye - (1.0 - EPSILON) * normal[:, :, None] * normal[:, None, :]

@@ -141,6 +141,13 @@ def neighbourhood_covariances(points, found, radius=jnp.inf):
     members = jnp.transpose(points[jnp.maximum(found, 0)], (0, 2, 1))  # (n, 3, k)
     offsets = members - points[:, :, None]
     inside = inside & (jnp.sum(offsets * offsets, axis=1) <= radius * radius)
+    return offset_covariances(offsets, inside)
+
+
+def offset_covariances(offsets, inside):
+    r"""The sample covariance of the offsets `(n, 3, k)` where `inside` `(n, k)`, `(n, 3, 3)`, and
+    the count of those, `(n,)`. The six products are written out (batched 3x3 products run
+    slowly on the CPU)."""
     count = jnp.sum(inside, axis=1)
     offsets = jnp.where(inside[:, None, :], offsets, 0.0)
     mean = jnp.sum(offsets, axis=2) / jnp.maximum(count, 1)[:, None]
