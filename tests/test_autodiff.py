@@ -269,7 +269,9 @@ def test_grad_passes_any_aux_through():
 # ---- nested Jacobians, vmap ----------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("G", [SE2, SE3], ids=lambda G: G.__name__)
+@pytest.mark.parametrize(
+    "G", [pytest.param(SE2, marks=pytest.mark.slow), SE3], ids=lambda G: G.__name__
+)  # SE2's rules are the same generic code as SE3's
 def test_jacobian_of_a_jacobian(G):
     """d/dX of `J(X, Y) = ∂ Log(X Y) / ∂X` (and of `∂ (X @ p) / ∂X`) against finite differences."""
     x, y = element(G, 6), element(G, 7)
@@ -341,7 +343,16 @@ def _gradient_point(spec, name):
     return regime_tangent(spec, name)
 
 
-@pytest.mark.parametrize("spec", GROUPS, ids=lambda s: s.name)
+# Sim3's and SE23's logs go through `_generic.local_rules` as SE3's does (run by default), and
+# test_jacobians.py checks their log's Jacobian at every regime, near π included: their cases
+# (~25 s each) are slow.
+@pytest.mark.parametrize(
+    "spec",
+    [
+        pytest.param(s, id=s.name, marks=[pytest.mark.slow] if s.name in ("Sim3", "SE23") else [])
+        for s in GROUPS
+    ],
+)
 def test_gradient_of_log_is_finite(spec):
     """`jax.grad` (on the parameters), `jax.hessian` and `lieax.grad` of `w · Log(X)` are finite at
     the identity, 1e-9 from it, ~1e-4 rad, π - 1e-6 and at π; away from π, `lieax.grad` is

@@ -70,6 +70,7 @@ def plane(normals, **options):
 # ---- the bug this fixes -------------------------------------------------------------------------
 
 
+@pytest.mark.slow  # the regimes below check jax.jvp and jax.grad, the same rule, at every regime
 def test_grad_and_jacfwd_through_point_to_plane_are_the_finite_differences():
     """Before the implicit rule, `jax.grad` failed on the while loop and `jax.jacfwd` silently
     differentiated the unrolled iterations (a component had the wrong sign)."""

@@ -17,6 +17,14 @@ from registry import GROUP_IDS, GROUPS, random_points, random_tangents, regime_t
 STEP = 1e-5  # central differences of the gradient: error ~ STEP² |∇³c| + rounding / STEP
 RAW_STEP = 1e-6
 TOLERANCE = 1e-6  # |H - H_fd| <= TOLERANCE * max(1, |H_fd|)
+# Sim3's and SE23's rules are `_generic.local_rules`, the code SE3's case runs by default, and their
+# first derivatives at every regime are in test_jacobians.py: their cases (~25 s each) are slow.
+SPECS = [
+    pytest.param(
+        spec, id=spec.name, marks=[pytest.mark.slow] if spec.name in ("Sim3", "SE23") else []
+    )
+    for spec in GROUPS
+]
 
 
 def cost(spec, delta, xi, y, p):
@@ -66,7 +74,7 @@ def results(name):
     return jax.tree_util.tree_map(np.asarray, out), regimes
 
 
-@pytest.mark.parametrize("spec", GROUPS, ids=GROUP_IDS)
+@pytest.mark.parametrize("spec", SPECS)
 def test_hessian_matches_finite_differences(spec):
     """The Hessian of `cost` (forward over reverse mode through the groups' rules) is symmetric and
     matches central differences of its gradient; both finite at every regime."""
@@ -80,7 +88,7 @@ def test_hessian_matches_finite_differences(spec):
         np.testing.assert_allclose(hessian, fd, rtol=0, atol=TOLERANCE * scale, err_msg=what)
 
 
-@pytest.mark.parametrize("spec", GROUPS, ids=GROUP_IDS)
+@pytest.mark.parametrize("spec", SPECS)
 def test_raw_parameter_derivatives(spec):
     """Derivatives with respect to raw parameters (`G(params)`, then `normalize`) match central
     differences along them, and `jax.jacrev` matches `jax.jacfwd`, at every regime."""
