@@ -8,7 +8,10 @@ fixes have 0.5 m noise. Keyframes are the fixes; the samples between two are pre
 start is what a filter would have: positions from the fixes, headings and velocities from their
 differences, zero biases.
 
-    python examples/inertial_navigation.py [--keyframes 300] [--plot ins.png]
+    python examples/inertial_navigation.py [--keyframes 300] [--plot ins.png] [--combined]
+
+`--combined` joins each interval's two factors in one `combined_imu_factor` (GTSAM's
+`CombinedImuFactor`), whitened by `preintegrate_combined`'s 15×15 covariance.
 """
 
 import argparse
@@ -109,8 +112,9 @@ def initial_guess(fixes):
     return rotations, fixes, velocities, np.zeros((len(fixes), 6))
 
 
-def build_graph(data, pim, imu_params):
-    """The factor graph: IMU and bias random-walk factors per interval, a position prior per
+def build_graph(data, pim, imu_params, covariance=None):
+    """The factor graph: IMU and bias random-walk factors per interval (with `covariance`,
+    `preintegrate_combined`'s, one combined IMU factor instead), a position prior per
     keyframe, a weak prior on the first velocity and bias. Returns `(graph, (poses, velocities,
     biases))`."""
     import lieax.imu
@@ -126,11 +130,21 @@ def build_graph(data, pim, imu_params):
     bias = Var(jnp.asarray(biases), name="biases")
     i, j, every = np.arange(n - 1), np.arange(1, n), np.arange(n)
     first = np.array([0])
+    if covariance is None:
+        inertial = [
+            lieax.imu.imu_factor(pim, imu_params, poses[i], vels[i], poses[j], vels[j], bias[i]),
+            lieax.imu.bias_random_walk_factor(
+                bias[i], bias[j], np.asarray(pim.delta_t), ACCEL_BIAS_WALK, GYRO_BIAS_WALK
+            ),
+        ]
+    else:
+        inertial = [
+            lieax.imu.combined_imu_factor(
+                pim, covariance, imu_params, poses[i], vels[i], poses[j], vels[j], bias[i], bias[j]
+            )
+        ]
     factors = [
-        lieax.imu.imu_factor(pim, imu_params, poses[i], vels[i], poses[j], vels[j], bias[i]),
-        lieax.imu.bias_random_walk_factor(
-            bias[i], bias[j], np.asarray(pim.delta_t), ACCEL_BIAS_WALK, GYRO_BIAS_WALK
-        ),
+        *inertial,
         Factor(
             lambda x, z: x.translation() - z,
             (poses[every],),
@@ -155,14 +169,19 @@ def build_graph(data, pim, imu_params):
     return FactorGraph(factors), (poses, vels, bias)
 
 
-def preintegrate_all(data, imu_params):
-    """`vmap(preintegrate)` over the intervals, at zero bias (the initial guess)."""
+def preintegrate_all(data, imu_params, combined=False):
+    """`vmap(preintegrate)` over the intervals, at zero bias (the initial guess); `combined`:
+    `vmap(preintegrate_combined)` with the bias random walk, `(pim, covariance)`."""
     import lieax.imu
 
+    samples = (jnp.asarray(data["gyro"]), jnp.asarray(data["accel"]), data["dt"], jnp.zeros(6))
+    if combined:
+        walk = lieax.imu.BiasRandomWalk.isotropic(ACCEL_BIAS_WALK, GYRO_BIAS_WALK)
+        axes = (0, 0, None, None, None, None)
+        run = jax.jit(jax.vmap(lieax.imu.preintegrate_combined, in_axes=axes))
+        return run(*samples, imu_params, walk)
     run = jax.jit(jax.vmap(lieax.imu.preintegrate, in_axes=(0, 0, None, None, None)))
-    return run(
-        jnp.asarray(data["gyro"]), jnp.asarray(data["accel"]), data["dt"], jnp.zeros(6), imu_params
-    )
+    return run(*samples, imu_params)
 
 
 def errors(data, values):
@@ -223,15 +242,19 @@ def main(argv=None):
     parser.add_argument("--keyframes", type=int, default=300)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--plot", help="save a figure of the trajectory, errors and biases")
+    parser.add_argument(
+        "--combined", action="store_true", help="one combined IMU factor per interval"
+    )
     args = parser.parse_args(argv)
     jax.config.update("jax_enable_x64", True)
 
     data = simulate(args.keyframes, np.random.default_rng(args.seed))
     imu_params = params()
     start = time.perf_counter()
-    pim = jax.block_until_ready(preintegrate_all(data, imu_params))
+    pim = jax.block_until_ready(preintegrate_all(data, imu_params, args.combined))
     preintegrated = time.perf_counter() - start
-    graph, _ = build_graph(data, pim, imu_params)
+    pim, covariance = pim if args.combined else (pim, None)
+    graph, _ = build_graph(data, pim, imu_params, covariance)
     start = time.perf_counter()
     result = graph.solve(max_iterations=50)
     solved = time.perf_counter() - start

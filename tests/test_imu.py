@@ -1,69 +1,52 @@
 """IMU preintegration and factors (`lieax.imu`): against GTSAM 4.3's
-`PreintegratedImuMeasurements` (`TangentPreintegration`) and `ImuFactor` on random sample
-streams; bias Jacobians and factor Jacobians against finite differences; the logarithmic-depth
-variant against the sequential scan; batching and bad input."""
+`PreintegratedImuMeasurements` (`TangentPreintegration`), `ImuFactor` and `CombinedImuFactor` on
+random sample streams (`_imu_streams`); bias Jacobians and factor Jacobians against finite
+differences; the logarithmic-depth variant against the sequential scan; batching and bad input."""
+
+import functools
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _imu_streams import (
+    ARM,
+    BIAS,
+    NOISE,
+    SAMPLES,
+    gtsam_bias,
+    gtsam_params,
+    gtsam_pose,
+    integrate,
+    relative,
+    stream,
+)
 
 import lieax.imu as imu
 from lieax import SE3, SO3
 from lieax import conventions as cv
 from lieax.autodiff import rplus, tangent_dim, unflatten_tangents, value_and_jacobian
 
-SAMPLES = 60
-NOISE = dict(accel_noise_density=0.01, gyro_noise_density=1e-3, integration_sigma=1e-4)
 PARAMS = imu.ImuParams.make_u(9.81, **NOISE)
-ARM = SE3.from_rotation_and_translation(
-    SO3.exp(jnp.array([0.1, 0.2, -0.3])), jnp.array([0.1, -0.05, 0.2])
-)
 PARAMS_ARM = PARAMS._replace(body_P_sensor=ARM)
-BIAS = np.array([0.1, -0.2, 0.05, 0.01, -0.02, 0.03])
+WALK = imu.BiasRandomWalk(np.diag([1e-4, 2e-4, 3e-4]), np.diag([1e-6, 2e-6, 3e-6]))
 
 sequential = jax.jit(imu.preintegrate)
 associative = jax.jit(imu.preintegrate_associative)
+combined = jax.jit(imu.preintegrate_combined)
 residual_and_jacobians = jax.jit(value_and_jacobian(imu.imu_residual, (0, 1, 2, 3, 4)))
-
-
-def stream(seed, samples=SAMPLES, rate_scale=1.0):
-    rng = np.random.default_rng(seed)
-    gyro = rate_scale * rng.normal(size=(samples, 3))
-    accel = rng.normal(size=(samples, 3)) + np.array([0.0, 0.0, 9.81])
-    dt = 0.005 + 0.002 * rng.random(samples)
-    return gyro, accel, dt
 
 
 def vector(pim):
     return np.concatenate([pim.theta, pim.delta_p, pim.delta_v])
 
 
-def relative(a, b):
-    return np.max(np.abs(np.asarray(a) - b)) / np.max(np.abs(b))
-
-
 # ---- GTSAM ----------------------------------------------------------------------------------------
 
 
-def gtsam_params(gtsam, with_arm):
-    params = gtsam.PreintegrationParams.MakeSharedU(9.81)
-    params.setAccelerometerCovariance(NOISE["accel_noise_density"] ** 2 * np.eye(3))
-    params.setGyroscopeCovariance(NOISE["gyro_noise_density"] ** 2 * np.eye(3))
-    params.setIntegrationCovariance(NOISE["integration_sigma"] ** 2 * np.eye(3))
-    params.setImuFactorErrorMode(gtsam.ImuFactorErrorMode.ComponentWise)
-    if with_arm:
-        rotation = gtsam.Rot3(np.asarray(ARM.rotation().as_matrix()))
-        params.setBodyPSensor(gtsam.Pose3(rotation, np.asarray(ARM.translation())))
-    return params
-
-
 def gtsam_pim(gtsam, gyro, accel, dt, with_arm=False):
-    bias = gtsam.imuBias.ConstantBias(BIAS[:3], BIAS[3:])
-    pim = gtsam.PreintegratedImuMeasurements(gtsam_params(gtsam, with_arm), bias)
-    for k in range(len(dt)):
-        pim.integrateMeasurement(accel[k], gyro[k], dt[k])
-    return pim
+    params = gtsam_params(gtsam, gtsam.PreintegrationParams, with_arm=with_arm)
+    return integrate(gtsam.PreintegratedImuMeasurements(params, gtsam_bias(BIAS)), gyro, accel, dt)
 
 
 def gtsam_bias_jacobians(pim):
@@ -77,13 +60,6 @@ def gtsam_bias_jacobians(pim):
     ]
     assert len(blocks) == 2
     return np.concatenate(blocks, axis=1)
-
-
-def gtsam_pose(pose):
-    return __import__("gtsam").Pose3(
-        __import__("gtsam").Rot3(np.asarray(pose.rotation().as_matrix())),
-        np.asarray(pose.translation()),
-    )
 
 
 @pytest.mark.parametrize("with_arm", [False, True])
@@ -115,7 +91,7 @@ def test_predict_and_factor_match_gtsam():
     pose_i, pose_j = poses[0], poses[1]
     velocity_i, velocity_j = rng.normal(size=(2, 3))
     bias_i = BIAS + 0.01 * rng.normal(size=6)
-    bias_g = gtsam.imuBias.ConstantBias(bias_i[:3], bias_i[3:])
+    bias_g = gtsam_bias(bias_i)
 
     predicted = reference.predict(gtsam.NavState(gtsam_pose(pose_i), velocity_i), bias_g)
     pose_hat, velocity_hat = imu.predict(pim, pose_i, velocity_i, bias_i, PARAMS)
@@ -141,6 +117,62 @@ def test_predict_and_factor_match_gtsam():
             theirs = np.asarray(cv.se3_jacobian_from_gtsam(theirs, rows=False))
         assert relative(ours, theirs) < 1e-9, k
         assert relative(mine, theirs) < 1e-9, k
+
+
+def test_combined_factor_matches_gtsam():
+    r"""`combined_imu_factor` as GTSAM 4.3's `CombinedImuFactor` (ComponentWise; anisotropic
+    bias random walks; distinct $b_i$, $b_j$) on the same stream: the 15-vector error and all six
+    Jacobian blocks in closed form (`combined_imu_jacobians`) after `lieax.conventions` (bias
+    rows negated, pose columns permuted), the residual's covariance as its noise model's, and the
+    factor's whitened cost $\tfrac12\|R r\|^2$ as GTSAM's `error`."""
+    gtsam = pytest.importorskip("gtsam")
+    from lieax.factorgraph import Var
+    from lieax.imu._factors import _combined_residual_covariance
+
+    gyro, accel, dt = stream(11)
+    g_params = gtsam_params(gtsam, gtsam.PreintegrationCombinedParams)
+    g_params.setBiasAccCovariance(np.asarray(WALK.accelerometer_bias_covariance))
+    g_params.setBiasOmegaCovariance(np.asarray(WALK.gyroscope_bias_covariance))
+    reference = integrate(
+        gtsam.PreintegratedCombinedMeasurements(g_params, gtsam_bias(BIAS)), gyro, accel, dt
+    )
+    pim, covariance = combined(gyro, accel, dt, BIAS, PARAMS, WALK)
+    rng = np.random.default_rng(12)
+    poses = SE3.exp(jnp.asarray(rng.normal(size=(2, 6))))
+    velocities = rng.normal(size=(2, 3))
+    biases = BIAS + 0.01 * rng.normal(size=(2, 6))
+    ours = (poses[0], velocities[0], poses[1], velocities[1], biases[0], biases[1])
+    theirs = (
+        gtsam_pose(poses[0]), velocities[0], gtsam_pose(poses[1]), velocities[1],
+        gtsam_bias(biases[0]), gtsam_bias(biases[1]),
+    )  # fmt: skip
+    factor = gtsam.CombinedImuFactor(1, 2, 3, 4, 5, 6, reference)
+    h = [np.zeros((15, n), order="F") for n in (6, 3, 6, 3, 6, 6)]
+    error = factor.evaluateError(*theirs, *h)
+    flip = np.diag(np.repeat([1.0, -1.0], [9, 6]))  # GTSAM's bias rows are b_i - b_j
+    value, blocks = combined_closed_form(*ours, pim, PARAMS)
+    assert relative(value, flip @ error) < 1e-12
+    assert relative(value[9:], biases[1] - biases[0]) < 1e-15
+    for k, (mine, expected) in enumerate(zip(blocks, h)):
+        expected = flip @ expected
+        if k in (0, 2):
+            expected = np.asarray(cv.se3_jacobian_from_gtsam(expected, rows=False))
+        assert relative(mine, expected) < 1e-9, k
+    residual_covariance = _combined_residual_covariance(pim, covariance)
+    assert relative(residual_covariance, flip @ factor.noiseModel().covariance() @ flip) < 1e-9
+
+    pose_var, velocity_var = Var(poses, name="poses"), Var(jnp.asarray(velocities))
+    bias_var = Var(jnp.asarray(biases), name="biases")
+    i, j = np.array([0]), np.array([1])
+    ours_factor = imu.combined_imu_factor(
+        jax.tree.map(lambda x: x[None], pim), covariance[None], PARAMS,
+        pose_var[i], velocity_var[i], pose_var[j], velocity_var[j], bias_var[i], bias_var[j],
+    )  # fmt: skip
+    values = gtsam.Values()
+    for key, x in enumerate(theirs, 1):
+        values.insert(key, x)
+    whitened = ours_factor.sqrt_information[0] @ np.asarray(value)
+    assert 0.5 * whitened @ whitened == pytest.approx(factor.error(values), rel=1e-9)
 
 
 # ---- lieax only -----------------------------------------------------------------------------------
@@ -246,6 +278,7 @@ def test_bad_input():
 # ---- factor Jacobians by finite differences ----------------------------------------------------
 
 closed_form = jax.jit(imu.imu_jacobians)
+combined_closed_form = jax.jit(imu.combined_imu_jacobians)
 # regime -> (gyro rate scale, rotation error r_θ imposed on pose_j, velocities, rotations of poses)
 REGIMES = {
     "random": (1.0, None, "random", "random"),
@@ -262,10 +295,12 @@ REGIMES = {
 
 
 def factor_state(regime, seed=6):
-    r"""`(args, pim)` of one IMU factor in a regime: the interval's rate scale (0: the corrected
-    rate is exactly zero), $\|r_\theta\|$ imposed through `pose_j`'s rotation (`None`: random),
-    zero or random velocities, identity or random pose rotations. `at_rest`: a vehicle standing
-    still, its prediction equal to `pose_j` (zero residual)."""
+    r"""`(args, pim)` of one combined IMU factor in a regime, `args` =
+    $(T_i, v_i, T_j, v_j, b_i, b_j)$ (the IMU factor's are the first five): the interval's rate
+    scale (0: the corrected rate is exactly zero), $\|r_\theta\|$ imposed through `pose_j`'s
+    rotation (`None`: random), zero or random velocities, identity or random pose rotations.
+    `at_rest`: a vehicle standing still, its prediction equal to `pose_j` and $b_j = b_i$ (zero
+    residual)."""
     rate_scale, angle, velocities, rotations = REGIMES[regime]
     rng = np.random.default_rng(seed)
     gyro, accel, dt = stream(7, rate_scale=rate_scale)
@@ -287,76 +322,95 @@ def factor_state(regime, seed=6):
         rotation_c = SO3.exp(pim.bias_corrected(bias_i)[:3])
         rotation_j = pose_i.rotation() @ rotation_c @ error.inverse()
         pose_j = SE3.from_rotation_and_translation(rotation_j, pose_j.translation())
-    return (pose_i, v_i, pose_j, v_j, bias_i), pim
+    bias_j = bias_i if regime == "at_rest" else bias_i + 0.01 * rng.normal(size=6)
+    return (pose_i, v_i, pose_j, v_j, bias_i, bias_j), pim
 
 
-def numeric_jacobian(args, pim, eps):
-    """Central differences of `imu_residual` in the right-local tangents of `args`, `(9, 24)`."""
+@functools.partial(jax.jit, static_argnums=0)
+def perturbed(residual, args, pim, steps):
+    """`residual(args ⊕ step, pim, PARAMS)` for each row of `steps`, right-local tangents (one
+    compilation per residual function, shared by every regime)."""
 
     def f(delta):
-        return imu.imu_residual(*rplus(args, unflatten_tangents(args, delta)), pim, PARAMS)
+        return residual(*rplus(args, unflatten_tangents(args, delta)), pim, PARAMS)
 
+    return jax.vmap(f)(steps)
+
+
+def numeric_jacobian(residual, args, pim, eps):
+    """Central differences of `residual` in the right-local tangents of `args`."""
     steps = eps * np.eye(tangent_dim(args))
-    differences = jax.jit(jax.vmap(f))(np.concatenate([steps, -steps]))
+    differences = perturbed(residual, args, pim, np.concatenate([steps, -steps]))
     return np.asarray((differences[: len(steps)] - differences[len(steps) :]).T / (2 * eps))
 
 
 def stacked(blocks):
-    return np.concatenate([np.asarray(b).reshape(9, -1) for b in blocks], 1)
+    rows = np.shape(blocks[0])[0]
+    return np.concatenate([np.asarray(b).reshape(rows, -1) for b in blocks], 1)
 
 
 @pytest.mark.parametrize("regime", list(REGIMES))
 def test_factor_jacobians_by_finite_differences(regime):
-    r"""The closed-form blocks (`imu_jacobians`) and the autodiff path (`value_and_jacobian` of
-    `imu_residual`) against central differences (float64), and against each other; near $\pi$
-    the step is below the distance to $\pi$ (where `Log` wraps)."""
+    r"""The closed-form blocks of `imu_jacobians` and of `combined_imu_jacobians`, and the
+    autodiff path (`value_and_jacobian` of `imu_residual`), against central differences of
+    `combined_imu_residual` (float64; the IMU factor's are its first 9 rows and 24 columns), and
+    against each other; near $\pi$ the step is below the distance to $\pi$ (where `Log` wraps)."""
     args, pim = factor_state(regime)
-    value, blocks = closed_form(*args, pim, PARAMS)
-    auto_value, auto_blocks = residual_and_jacobians(*args, pim, PARAMS)
+    value, blocks = closed_form(*args[:5], pim, PARAMS)
+    auto_value, auto_blocks = residual_and_jacobians(*args[:5], pim, PARAMS)
+    combined_value, combined_blocks = combined_closed_form(*args, pim, PARAMS)
     rotation_error = float(np.linalg.norm(value[:3]))
     angle = REGIMES[regime][1]
     if angle is not None:
         assert rotation_error == pytest.approx(angle, abs=1e-12)
     if regime == "at_rest":
-        np.testing.assert_allclose(value, 0.0, atol=1e-12)
+        np.testing.assert_allclose(combined_value, 0.0, atol=1e-12)
     eps = 1e-7 if regime.startswith("near_pi") else 1e-6
-    numeric = numeric_jacobian(args, pim, eps)
+    numeric = numeric_jacobian(imu.combined_imu_residual, args, pim, eps)
     analytic = stacked(blocks)
     scale = max(1.0, np.max(np.abs(numeric)))
-    np.testing.assert_allclose(analytic, numeric, atol=2e-7 * scale)
+    np.testing.assert_allclose(analytic, numeric[:9, :24], atol=2e-7 * scale)
+    np.testing.assert_allclose(stacked(combined_blocks), numeric, atol=2e-7 * scale)
     np.testing.assert_allclose(value, auto_value, rtol=0, atol=1e-14)
     np.testing.assert_allclose(analytic, stacked(auto_blocks), rtol=0, atol=1e-12 * scale)
+    np.testing.assert_array_equal(combined_value, np.concatenate([value, args[5] - args[4]]))
 
 
 def test_factor_jacobians_batched_and_reverse():
-    r"""`vmap(imu_jacobians)` over instances equals the unbatched blocks, and the rows of the
-    pose_i block equal reverse-mode derivatives (`jax.vjp`) of the residual in local
-    coordinates."""
+    r"""`vmap(combined_imu_jacobians)` over instances equals the unbatched blocks (its first 9
+    rows `imu_jacobians`'), and the rows of all six blocks equal reverse-mode derivatives
+    (`jax.vjp`) of `combined_imu_residual` in local coordinates."""
     states = [factor_state(regime, seed=20 + k) for k, regime in enumerate(REGIMES)]
     args = jax.tree.map(lambda *x: jnp.stack(x), *[a for a, _ in states])
     pims = jax.tree.map(lambda *x: jnp.stack(x), *[p for _, p in states])
-    values, blocks = jax.jit(jax.vmap(imu.imu_jacobians, in_axes=(0, 0, 0, 0, 0, 0, None)))(
-        *args, pims, PARAMS
-    )
+    batched = jax.vmap(imu.combined_imu_jacobians, in_axes=(0, 0, 0, 0, 0, 0, 0, None))
+    values, blocks = jax.jit(batched)(*args, pims, PARAMS)
     for k, (one_args, one_pim) in enumerate(states):
-        value, one = closed_form(*one_args, one_pim, PARAMS)
-        np.testing.assert_allclose(values[k], value, rtol=0, atol=1e-15)
+        value, one = closed_form(*one_args[:5], one_pim, PARAMS)
+        np.testing.assert_allclose(values[k, :9], value, rtol=0, atol=1e-15)
         for b, b_one in zip(blocks, one):
-            np.testing.assert_allclose(b[k], b_one, rtol=0, atol=1e-15)
+            np.testing.assert_allclose(b[k, :9], b_one, rtol=0, atol=1e-15)
+        combined_value, combined_one = combined_closed_form(*one_args, one_pim, PARAMS)
+        np.testing.assert_allclose(values[k], combined_value, rtol=0, atol=1e-15)
+        np.testing.assert_allclose(
+            stacked([b[k] for b in blocks]), stacked(combined_one), atol=1e-15
+        )
     one_args, one_pim = states[0]
 
     def f(delta):
-        return imu.imu_residual(
+        return imu.combined_imu_residual(
             *rplus(one_args, unflatten_tangents(one_args, delta)), one_pim, PARAMS
         )
 
     _, pullback = jax.vjp(f, jnp.zeros(tangent_dim(one_args)))
-    rows = np.stack([pullback(e)[0] for e in jnp.eye(9)])
-    _, one = closed_form(*one_args, one_pim, PARAMS)
+    rows = jax.vmap(pullback)(jnp.eye(15))[0]
+    _, one = combined_closed_form(*one_args, one_pim, PARAMS)
     np.testing.assert_allclose(stacked(one), rows, rtol=0, atol=1e-12)
     rotating = PARAMS._replace(omega_coriolis=jnp.array([0.0, 0.0, 7.29e-5]))
     with pytest.raises(imu.ImuError, match="omega_coriolis"):
-        imu.imu_jacobians(*one_args, one_pim, rotating)
+        imu.imu_jacobians(*one_args[:5], one_pim, rotating)
+    with pytest.raises(imu.ImuError, match="omega_coriolis"):
+        imu.combined_imu_jacobians(*one_args, one_pim, rotating)
 
 
 def test_bias_random_walk_blocks():
@@ -382,22 +436,28 @@ def test_factors_in_a_graph():
     """Three keyframes at rest, their poses known (priors): the solve recovers zero velocities
     and the biases the samples carry (at rest, with the attitude known, all six are observable),
     to the accuracy of the first-order bias correction from the zero bias they were integrated
-    at (measured 3e-6; GTSAM's model alike)."""
+    at (measured 3e-6; GTSAM's model alike). The first interval is one `combined_imu_factor`,
+    the second an `imu_factor` and a `bias_random_walk_factor` (one solve for both kinds)."""
     from lieax.factorgraph import Factor, FactorGraph, Var
 
     true_bias = np.array([0.03, -0.02, 0.05, 0.002, -0.001, 0.003])
-    gyro = np.tile(true_bias[3:], (2, 100, 1))
-    accel = np.tile(true_bias[:3] + [0.0, 0.0, 9.81], (2, 100, 1))
-    pim = jax.vmap(imu.preintegrate, in_axes=(0, 0, None, None, None))(
-        gyro, accel, 0.01, np.zeros(6), PARAMS
-    )
+    gyro = np.tile(true_bias[3:], (100, 1))
+    accel = np.tile(true_bias[:3] + [0.0, 0.0, 9.81], (100, 1))
+    walk = imu.BiasRandomWalk.isotropic(1e-3, 1e-4)
+    first, covariance = combined(gyro, accel, 0.01, np.zeros(6), PARAMS, walk)
+    second = sequential(gyro, accel, 0.01, np.zeros(6), PARAMS)
+    first, second = (jax.tree.map(lambda x: x[None], pim) for pim in (first, second))
     start = SE3.exp(jnp.asarray(0.01 * np.random.default_rng(8).normal(size=(3, 6))))
     poses, velocities = Var(start, name="poses"), Var(jnp.full((3, 3), 0.1), name="velocities")
     biases = Var(jnp.zeros((3, 6)), name="biases")
-    i, j = np.arange(2), np.arange(1, 3)
+    i, j, k = np.array([0]), np.array([1]), np.array([2])
     graph = FactorGraph([
-        imu.imu_factor(pim, PARAMS, poses[i], velocities[i], poses[j], velocities[j], biases[i]),
-        imu.bias_random_walk_factor(biases[i], biases[j], np.asarray(pim.delta_t), 1e-3, 1e-4),
+        imu.combined_imu_factor(
+            first, covariance[None], PARAMS,
+            poses[i], velocities[i], poses[j], velocities[j], biases[i], biases[j],
+        ),
+        imu.imu_factor(second, PARAMS, poses[j], velocities[j], poses[k], velocities[k], biases[j]),
+        imu.bias_random_walk_factor(biases[j], biases[k], np.asarray(second.delta_t), 1e-3, 1e-4),
         Factor(lambda x: x.log(), (poses[np.arange(3)],), sqrt_information=1e4 * np.eye(6)),
     ])  # fmt: skip
     result = graph.solve()
@@ -407,7 +467,9 @@ def test_factors_in_a_graph():
     np.testing.assert_allclose(solved_biases, np.tile(true_bias, (3, 1)), atol=2e-5)
 
 
-def test_imu_factor_rejects_invalid_intervals():
+def test_imu_factors_reject_invalid_input():
+    """Invalid intervals, a combined covariance of the wrong shape or not positive definite (no
+    bias random walk), non-positive durations: `ImuError`s that say which."""
     from lieax.factorgraph import Var
 
     gyro, accel, dt = stream(9, samples=4)
@@ -425,3 +487,18 @@ def test_imu_factor_rejects_invalid_intervals():
         )
     with pytest.raises(imu.ImuError, match="delta_t"):
         imu.bias_random_walk_factor(biases[index], biases[index], np.array([1.0, 0.0]), 1e-3, 1e-4)
+    refs = (poses[index], vectors[index]) * 2 + (biases[index],) * 2
+    covariance = np.zeros((2, 15, 15))
+    covariance[:, :9, :9] = pim.covariance[0]
+    with pytest.raises(imu.ImuError, match="pim 1 is invalid"):
+        imu.combined_imu_factor(pim, covariance, PARAMS, *refs)
+    valid = jax.tree.map(lambda x: x[index], pim)
+    with pytest.raises(imu.ImuError, match=r"covariance must be \(m, 15, 15\) = \(2, 15, 15\)"):
+        imu.combined_imu_factor(valid, covariance[:, :9, :9], PARAMS, *refs)
+    with pytest.raises(imu.ImuError, match="15x15 covariance is not positive definite"):
+        imu.combined_imu_factor(valid, covariance, PARAMS, *refs)
+    # With a bias random walk it is accepted: closed-form blocks, autodiff in a rotating frame.
+    covariance[:, 9:, 9:] = 1e-6 * np.eye(6)
+    assert imu.combined_imu_factor(valid, covariance, PARAMS, *refs).jacobian_fn is not None
+    rotating = PARAMS._replace(omega_coriolis=jnp.array([0.0, 0.0, 7.29e-5]))
+    assert imu.combined_imu_factor(valid, covariance, rotating, *refs).jacobian_fn is None

@@ -7,18 +7,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _imu_streams import ARM, BIAS, NOISE, gtsam_params, gtsam_pose, integrate, relative, stream
 
 import lieax.imu as imu
-from lieax import SE3, SO3
+from lieax import SE3
 from lieax import conventions as cv
 from lieax.autodiff import value_and_jacobian
 
-NOISE = dict(accel_noise_density=0.01, gyro_noise_density=1e-3, integration_sigma=1e-4)
 OMEGA = np.array([2e-3, -5e-3, 7.292e-3])  # rad/s: exaggerated so that the terms are visible
-ARM = SE3.from_rotation_and_translation(
-    SO3.exp(jnp.array([0.1, 0.2, -0.3])), jnp.array([0.1, -0.05, 0.2])
-)
-BIAS = np.array([0.1, -0.2, 0.05, 0.01, -0.02, 0.03])
 WALK_ACC, WALK_GYRO = np.diag([1e-4, 2e-4, 3e-4]), np.diag([1e-6, 2e-6, 3e-6])
 
 sequential = jax.jit(imu.preintegrate)
@@ -27,49 +23,10 @@ predict = jax.jit(imu.predict)
 residual_and_jacobians = jax.jit(value_and_jacobian(imu.imu_residual, (0, 1, 2, 3, 4)))
 
 
-def stream(seed, samples=60):
-    rng = np.random.default_rng(seed)
-    gyro = rng.normal(size=(samples, 3))
-    accel = rng.normal(size=(samples, 3)) + np.array([0.0, 0.0, 9.81])
-    dt = 0.005 + 0.002 * rng.random(samples)
-    return gyro, accel, dt
-
-
-def relative(a, b):
-    return np.max(np.abs(np.asarray(a) - b)) / np.max(np.abs(b))
-
-
 def params(omega=None, with_arm=False):
     return imu.ImuParams.make_u(
         9.81, **NOISE, body_P_sensor=ARM if with_arm else None, omega_coriolis=omega
     )
-
-
-def gtsam_params(gtsam, cls, omega=None, with_arm=False):
-    p = cls.MakeSharedU(9.81)
-    p.setAccelerometerCovariance(NOISE["accel_noise_density"] ** 2 * np.eye(3))
-    p.setGyroscopeCovariance(NOISE["gyro_noise_density"] ** 2 * np.eye(3))
-    p.setIntegrationCovariance(NOISE["integration_sigma"] ** 2 * np.eye(3))
-    p.setImuFactorErrorMode(gtsam.ImuFactorErrorMode.ComponentWise)
-    if omega is not None:
-        p.setOmegaCoriolis(omega)
-    if with_arm:
-        p.setBodyPSensor(gtsam_pose(ARM))
-    return p
-
-
-def gtsam_pose(pose):
-    import gtsam
-
-    return gtsam.Pose3(
-        gtsam.Rot3(np.asarray(pose.rotation().as_matrix())), np.asarray(pose.translation())
-    )
-
-
-def integrate(pim, gyro, accel, dt):
-    for k in range(len(dt)):
-        pim.integrateMeasurement(accel[k], gyro[k], dt[k])
-    return pim
 
 
 def random_states(seed):

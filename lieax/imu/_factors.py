@@ -1,5 +1,7 @@
 r"""IMU factors for `lieax.factorgraph`: the preintegrated IMU factor between
-$(T_i, v_i, T_j, v_j, b_i)$ and the bias random walk between $(b_i, b_j)$.
+$(T_i, v_i, T_j, v_j, b_i)$, the bias random walk between $(b_i, b_j)$, and the combined IMU
+factor over $(T_i, v_i, T_j, v_j, b_i, b_j)$ that stacks the two and whitens them with
+`preintegrate_combined`'s 15×15 covariance (GTSAM's `CombinedImuFactor`).
 
 The states are an `SE3` pose $T_{nb}$ and a navigation-frame velocity in $\mathbb{R}^3$ (GTSAM's
 `ImuFactor` / `CombinedImuFactor` variables, so graphs and Jacobians map one to one), biases
@@ -116,13 +118,7 @@ def imu_factor(
     `imu_residual` with `params.omega_coriolis`).
     Raises `ImuError` when a `pim` is invalid or its covariance is not positive definite.
     """
-    valid = np.asarray(pim.valid)
-    if valid.ndim != 1:
-        raise ImuError(
-            f"pim must be batched over intervals (m,), got valid of shape {valid.shape}."
-        )
-    if not valid.all():
-        raise ImuError(f"pim {int(np.flatnonzero(~valid)[0])} is invalid (bad samples).")
+    _check_intervals(pim)
     covariance = np.asarray(_residual_covariance(pim))
     try:
         information = np.linalg.inv(covariance)
@@ -139,6 +135,138 @@ def imu_factor(
         )
     except (np.linalg.LinAlgError, ValueError) as error:
         raise ImuError(f"IMU factor: the preintegrated covariance is singular ({error}).") from None
+
+
+def _check_intervals(pim):
+    """The number of intervals `m` of a batched `pim`; `ImuError` unless every one is valid."""
+    valid = np.asarray(pim.valid)
+    if valid.ndim != 1:
+        raise ImuError(
+            f"pim must be batched over intervals (m,), got valid of shape {valid.shape}."
+        )
+    if not valid.all():
+        raise ImuError(f"pim {int(np.flatnonzero(~valid)[0])} is invalid (bad samples).")
+    return len(valid)
+
+
+def combined_imu_residual(
+    pose_i, velocity_i, pose_j, velocity_j, bias_i, bias_j, pim: Preintegrated, params
+):
+    r"""The unwhitened 15-vector $(r_\theta, r_p, r_v, b_j - b_i)$ of one combined IMU factor:
+    `imu_residual` stacked with the bias random walk's $b_j - b_i$ (GTSAM's `CombinedImuFactor`
+    has $b_i - b_j$; `lieax.conventions`)."""
+    residual = imu_residual(pose_i, velocity_i, pose_j, velocity_j, bias_i, pim, params)
+    return jnp.concatenate([residual, bias_j - bias_i])
+
+
+def combined_imu_jacobians(
+    pose_i, velocity_i, pose_j, velocity_j, bias_i, bias_j, pim: Preintegrated, params
+):
+    r"""`(r, (J_pose_i, J_velocity_i, J_pose_j, J_velocity_j, J_bias_i, J_bias_j))`:
+    `combined_imu_residual` and its blocks `(15, 6)`, `(15, 3)`, `(15, 6)`, `(15, 3)`, `(15, 6)`,
+    `(15, 6)`. The first nine rows are `imu_jacobians`' (no $b_j$ column: zero), the last six
+    those of $b_j - b_i$:
+    $$\frac{\partial r}{\partial b_i} = \begin{bmatrix} \partial r_{1:9} / \partial b_i \\ -I
+    \end{bmatrix},\quad \frac{\partial r}{\partial b_j} = \begin{bmatrix} 0 \\ I \end{bmatrix},$$
+    zero bias rows for the poses and velocities (GTSAM 4.3 `CombinedImuFactor::evaluateError`,
+    its bias rows negated). `ImuError` when `params.omega_coriolis` is set, as `imu_jacobians`.
+    """
+    residual, blocks = imu_jacobians(pose_i, velocity_i, pose_j, velocity_j, bias_i, pim, params)
+    dtype = residual.dtype
+    eye = jnp.eye(6, dtype=dtype)
+
+    def no_bias_rows(block):
+        return jnp.concatenate([block, jnp.zeros((6, block.shape[1]), dtype)])
+
+    *navigation, j_bias_i = blocks
+    return jnp.concatenate([residual, bias_j - bias_i]), (
+        *(no_bias_rows(b) for b in navigation),
+        jnp.concatenate([j_bias_i, -eye]),
+        jnp.concatenate([jnp.zeros((9, 6), dtype), eye]),
+    )
+
+
+@jax.jit
+def _combined_residual_covariance(pim: Preintegrated, covariance):
+    r"""The covariance of `combined_imu_residual`, `(*batch, 15, 15)`: `preintegrate_combined`'s
+    15×15 `covariance` of $(\theta, \Delta p, \Delta v, b_a, b_g)$ pushed through the residual's
+    Jacobian at zero residual, $M \Sigma M^\top$ with
+    $M = \mathrm{diag}(J_r(\theta), \Delta R^\top, \Delta R^\top, I_6)$: the navigation block
+    is `Preintegrated.residual_covariance`'s, and the bias coordinates, the random walk's change
+    of the biases over the interval, are the residual's $b_j - b_i$ as they are. GTSAM 4.3's `PreintegratedCombinedMeasurements::residualCovariance()`
+    (its `CombinedImuFactor`'s noise model), whose $M$ ends in $-I_6$ for its $b_i - b_j$."""
+    theta = pim.theta
+    rotation_t = jnp.swapaxes(so3.as_matrix(so3.exp(theta)), -1, -2)
+    m = jnp.zeros((*theta.shape[:-1], 15, 15), theta.dtype)
+    m = m.at[..., 0:3, 0:3].set(so3.right_jacobian(theta))
+    m = m.at[..., 3:6, 3:6].set(rotation_t).at[..., 6:9, 6:9].set(rotation_t)
+    m = m.at[..., 9:, 9:].set(jnp.eye(6, dtype=theta.dtype))
+    return m @ covariance @ jnp.swapaxes(m, -1, -2)
+
+
+def combined_imu_factor(
+    pim: Preintegrated,
+    covariance,
+    params: ImuParams,
+    pose_i,
+    velocity_i,
+    pose_j,
+    velocity_j,
+    bias_i,
+    bias_j,
+):
+    r"""A `Factor` kind of combined IMU factors (GTSAM 4.3's `CombinedImuFactor`), one per
+    interval: `combined_imu_residual` over $(T_i, v_i, T_j, v_j, b_i, b_j)$, the IMU residual
+    and the bias random walk in one 15-row factor whitened by the inverse square root of its
+    15×15 covariance, which couples the two (`imu_factor` + `bias_random_walk_factor` treat
+    them as independent). Between keyframes joined by it, no `bias_random_walk_factor`.
+
+    **Arguments:**
+    - `pim`, `covariance`: `vmap(preintegrate_combined)` over the intervals, a `Preintegrated`
+      batched `(m,)` and its `(m, 15, 15)` covariance.
+    - `params`: the `ImuParams` they were integrated with (for gravity).
+    - `pose_i`, `velocity_i`, `pose_j`, `velocity_j`, `bias_i`, `bias_j`: `var[index]`
+      references, index arrays `(m,)` (poses an `SE3` `Var`, velocities `(n, 3)`, biases
+      `(n, 6)`).
+
+    **Returns:** a `Factor` with square-root information $L^{-1}$, $L L^\top = \Sigma_r$ the
+    Cholesky factorization of the residual's covariance $\Sigma_r = M \Sigma M^\top$
+    (`_combined_residual_covariance`), and the closed-form blocks of
+    `combined_imu_jacobians` (autodiff of `combined_imu_residual` with `params.omega_coriolis`).
+    Raises `ImuError` when a `pim` is invalid, `covariance` is not `(m, 15, 15)`, or it is not
+    positive definite (a zero bias random walk, for one).
+    """
+    count = _check_intervals(pim)
+    if np.shape(covariance) != (count, 15, 15):
+        raise ImuError(
+            f"covariance must be (m, 15, 15) = ({count}, 15, 15) (preintegrate_combined's), got "
+            f"{np.shape(covariance)}."
+        )
+    residual_covariance = np.asarray(_combined_residual_covariance(pim, jnp.asarray(covariance)))
+    residual_covariance = 0.5 * (residual_covariance + np.swapaxes(residual_covariance, 1, 2))
+    try:
+        if not np.all(np.isfinite(residual_covariance)):
+            raise np.linalg.LinAlgError("non-finite entries")
+        sqrt_information = np.linalg.inv(np.linalg.cholesky(residual_covariance))
+    except np.linalg.LinAlgError as error:
+        raise ImuError(
+            f"combined IMU factor: the 15x15 covariance is not positive definite ({error})."
+        ) from None
+    coriolis = getattr(params, "omega_coriolis", None) is not None
+    return Factor(
+        lambda xi, vi, xj, vj, bi, bj, data: combined_imu_residual(
+            xi, vi, xj, vj, bi, bj, data, params
+        ),
+        (pose_i, velocity_i, pose_j, velocity_j, bias_i, bias_j),
+        pim,
+        sqrt_information=sqrt_information,
+        jacobian_fn=None
+        if coriolis
+        else lambda xi, vi, xj, vj, bi, bj, data: combined_imu_jacobians(
+            xi, vi, xj, vj, bi, bj, data, params
+        ),
+        name="combined_imu",
+    )
 
 
 def bias_random_walk_factor(bias_i, bias_j, delta_t, accel_bias_sigma, gyro_bias_sigma):
