@@ -277,6 +277,38 @@ def test_block_cholesky_of_a_forest():
     )
 
 
+def test_nested_dissection_of_chains():
+    """Two chains of 3-block rungs (an IMU smoother's shape: pose, velocity, bias per keyframe):
+    minimum degree's elimination tree is tall (nearly a path), so `analyze` takes nested
+    dissection, whose tree is logarithmically shallow, and both solutions are the dense one."""
+    d, rungs, rng = 3, 150, np.random.default_rng(11)
+    n = 2 * 3 * rungs  # two components
+    base = 3 * np.arange(rungs - 1)
+    one = np.concatenate([base, base + 1, base + 2, base, base + 1])
+    other = np.concatenate([base + 3, base + 4, base + 5, base + 1, base + 2])
+    rung = 3 * np.arange(rungs)
+    one = np.concatenate([one, rung, rung])
+    other = np.concatenate([other, rung + 1, rung + 2])
+    i, j = np.concatenate([one, one + n // 2]), np.concatenate([other, other + n // 2])
+    pattern, _, _ = _sparse.BlockPattern.from_edges(n, d, i, j)
+    order = _sparse.nested_dissection_order(n, pattern.rows, pattern.cols)
+    np.testing.assert_array_equal(np.sort(order), np.arange(n))
+    by_degree = _sparse.CholeskyPlan.analyze(pattern, order=_sparse.minimum_degree_order(
+        n, pattern.rows, pattern.cols
+    ))  # fmt: skip
+    plan = _sparse.CholeskyPlan.analyze(pattern)
+    assert plan.stats["ordering"] == "nested dissection"
+    assert plan.stats["height"] <= 2 * np.log2(rungs)
+    assert 3 * plan.stats["height"] <= by_degree.stats["height"]
+    off = 0.2 * rng.normal(size=(pattern.num_pairs, d, d))
+    diag = np.broadcast_to(6.0 * np.eye(d), (n, d, d)).copy()
+    rhs = rng.normal(size=(n, d))
+    dense = np.asarray(_sparse.dense_matrix(pattern, jnp.asarray(diag), jnp.asarray(off)))
+    expected = np.linalg.solve(dense, rhs.ravel()).reshape(n, d)
+    np.testing.assert_allclose(plan.solve(diag, off, rhs), expected, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(by_degree.solve(diag, off, rhs), expected, rtol=1e-10, atol=1e-12)
+
+
 # ---- optimization --------------------------------------------------------------------------------
 
 

@@ -12,8 +12,10 @@ Three solvers work on these blocks:
 - `CholeskyPlan`: a multifrontal block Cholesky factorization $H = L L^\top$. The symbolic part
   runs once per graph in numpy: a minimum-degree ordering of the block graph (SuperLU's multiple
   minimum degree on $A^\top + A$, through `scipy.sparse.linalg.splu`; SciPy is already a dependency
-  of JAX), the elimination tree, supernodes with relaxed amalgamation, and a schedule that groups
-  fronts of the same height in the tree and similar size into batches. The numeric part runs on
+  of JAX), or nested dissection (`nested_dissection_order`) where minimum degree's elimination
+  tree is tall (a chain, such as an IMU smoother, whose batches are then mostly fixed cost), the
+  elimination tree, supernodes with relaxed amalgamation, and a schedule that groups fronts of
+  the same height in the tree and similar size into batches. The numeric part runs on
   the host with numpy and LAPACK (called from the jitted loop through `host_call`): per batch,
   one sparse 0/1 product assembles the fronts (original entries and the extend-add of the
   children's update matrices), then LAPACK factors the pivot blocks and one batched product
@@ -103,6 +105,66 @@ def minimum_degree_order(num_blocks, rows, cols):
     return np.argsort(lu.perm_c).astype(np.int64)
 
 
+def nested_dissection_order(num_blocks, rows, cols, *, leaf=128):
+    r"""A fill-reducing elimination order (new position -> block) by nested dissection on level
+    structures (George, "Nested dissection of a regular finite element mesh", SIAM J. Numer.
+    Anal. 1973; George and Liu, "Computer Solution of Large Sparse Positive Definite Systems",
+    1981, Ch. 8): from a pseudo-peripheral block, the breadth-first level that halves the blocks
+    separates the rest into the nearer and the farther part (only its blocks adjacent to the
+    farther part are kept in the separator); both parts are ordered recursively, then the
+    separator. Parts of at most `leaf` blocks are ordered by `minimum_degree_order`. Its
+    elimination tree is shallow (about $\log_2$ of the blocks on a chain such as an IMU
+    smoother, where minimum degree gives a path), so the numeric phase runs far fewer batches."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components, shortest_path
+
+    n = num_blocks
+    adjacency = coo_matrix(
+        (np.ones(2 * len(rows)), (np.concatenate([rows, cols]), np.concatenate([cols, rows]))),
+        shape=(n, n),
+    ).tocsr()
+    result = []
+
+    def by_minimum_degree(nodes, graph):
+        upper = graph.tocoo()
+        keep = upper.row < upper.col
+        return nodes[minimum_degree_order(len(nodes), upper.row[keep], upper.col[keep])]
+
+    def levels(graph, start):
+        """Breadth-first distances from `start` (a connected graph)."""
+        distance = shortest_path(graph, method="D", unweighted=True, indices=start)
+        return distance.astype(np.int64)
+
+    def dissect(nodes, graph):
+        if len(nodes) <= leaf:
+            result.append(by_minimum_degree(nodes, graph))
+            return
+        count, label = connected_components(graph, directed=False)
+        if count > 1:
+            for c in range(count):
+                part = np.flatnonzero(label == c)
+                dissect(nodes[part], graph[part][:, part])
+            return
+        # from a block farthest from block 0: a pseudo-peripheral block, nearly
+        distance = levels(graph, int(np.argmax(levels(graph, 0))))
+        height = int(distance.max())
+        if height < 2:
+            result.append(by_minimum_degree(nodes, graph))
+            return
+        middle = int(np.searchsorted(np.cumsum(np.bincount(distance)), len(nodes) / 2))
+        middle = min(max(middle, 1), height - 1)
+        farther = distance > middle
+        separator = (distance == middle) & (graph @ farther.astype(np.float64) > 0)
+        nearer = ~farther & ~separator
+        for part in (nearer, farther):
+            index = np.flatnonzero(part)
+            dissect(nodes[index], graph[index][:, index])
+        result.append(nodes[separator])
+
+    dissect(np.arange(n), adjacency)
+    return np.concatenate(result).astype(np.int64)
+
+
 def _elimination_structure(n, rows, cols, position):
     """Row structures of the block columns of $L$ (in elimination positions) and the tree."""
     a, b = position[rows], position[cols]
@@ -180,6 +242,59 @@ class _Batch:
         return (*self.pivot_index.shape, self.update_index.shape[1])
 
 
+@dataclasses.dataclass(frozen=True)
+class _Symbolic:
+    """The fronts of one elimination order and their batches (`CholeskyPlan.analyze`)."""
+
+    order: np.ndarray
+    position: np.ndarray
+    pivots: list  # per front, its pivot blocks (elimination positions, sorted)
+    updates: list  # per front, its update blocks
+    children: list  # per front, its child fronts
+    height: np.ndarray  # per front, its height in the tree
+    batches: list  # per batch, its fronts
+    seconds: float  # modelled time of one factorization (`_batch_seconds`)
+
+    @classmethod
+    def of_order(cls, pattern, order, max_pivots, zero_fraction):
+        n, d = pattern.num_blocks, pattern.block_size
+        position = np.empty(n, dtype=np.int64)
+        position[order] = np.arange(n)
+        structure, parent = _elimination_structure(n, pattern.rows, pattern.cols, position)
+        pivots, update, children = _amalgamate(n, structure, parent, max_pivots, zero_fraction)
+        # fronts in elimination (topological) order; rows sorted by elimination position
+        fronts = sorted(pivots, key=lambda f: max(pivots[f]))
+        front_index = {f: k for k, f in enumerate(fronts)}
+        piv = [np.array(sorted(pivots[f]), dtype=np.int64) for f in fronts]
+        upd = [np.array(sorted(update[f]), dtype=np.int64) for f in fronts]
+        kids = [[front_index[c] for c in children[f]] for f in fronts]
+        height = np.zeros(len(fronts), dtype=np.int64)
+        for k in range(len(fronts)):
+            height[k] = 1 + max((height[c] for c in kids[k]), default=-1)
+        # batches: per height, an optimal split of the fronts sorted by size (see `_split_level`)
+        members_of, seconds = [], 0.0
+        for level in range(int(height.max()) + 1):
+            members = np.flatnonzero(height == level)
+            sizes = [(len(piv[k]), len(upd[k])) for k in members]
+            split = _split_level(members, sizes, d)
+            members_of.extend(split)
+            seconds += sum(
+                _batch_seconds(len(m), max(len(piv[k]) for k in m), max(len(upd[k]) for k in m), d)
+                for m in split
+            )
+        return cls(order, position, piv, upd, kids, height, members_of, seconds)
+
+    @property
+    def batch_share(self):
+        """The share of the modelled time that is the batches' fixed cost."""
+        return len(self.batches) * _BATCH_SECONDS / self.seconds
+
+
+# nested dissection is tried when the batches' fixed cost is this share of the modelled time
+# of minimum degree's plan or more (a tall elimination tree, as a chain's: an IMU smoother)
+_DISSECTION_SHARE = 0.6
+
+
 class CholeskyPlan:
     """The symbolic block Cholesky factorization of a `BlockPattern` (see the module docstring).
 
@@ -201,12 +316,14 @@ class CholeskyPlan:
     The Schur complements are written in place into the work array for the parents, and the
     work array is kept between factorizations.
 
-    **Attributes:** `stats` (fronts, batches, tree height, multiply-adds of one factorization with
-    and without padding, stored blocks of $L$).
+    **Attributes:** `order` (the elimination order of the blocks), `stats` (the ordering, fronts,
+    batches, tree height, multiply-adds of one factorization with and without padding, stored
+    blocks of $L$).
     """
 
-    def __init__(self, pattern, batches, work_rows, stats):
+    def __init__(self, pattern, order, batches, work_rows, stats):
         self.pattern = pattern
+        self.order = order
         self.batches = batches
         self.work_rows = work_rows
         self.stats = stats
@@ -227,40 +344,40 @@ class CholeskyPlan:
     @classmethod
     def analyze(cls, pattern, *, order=None, max_pivots=(2, 8, 32), zero_fraction=(0.5, 0.1)):
         """The plan for `pattern`: `order` (elimination order of the blocks; default
-        `minimum_degree_order`), amalgamation limits `max_pivots` (blocks) and `zero_fraction`
-        (see `_amalgamate`)."""
+        `minimum_degree_order`, or `nested_dissection_order` where minimum degree's tree is tall
+        and nested dissection's plan is faster by the cost model `_batch_seconds`),
+        amalgamation limits `max_pivots` (blocks) and `zero_fraction` (see `_amalgamate`)."""
+        n, rows, cols = pattern.num_blocks, pattern.rows, pattern.cols
+        ordering = "given"
+        if order is None:
+            ordering = "minimum degree"
+            order = minimum_degree_order(n, rows, cols)
+            symbolic = _Symbolic.of_order(pattern, order, max_pivots, zero_fraction)
+            if symbolic.batch_share >= _DISSECTION_SHARE:
+                dissected = _Symbolic.of_order(
+                    pattern, nested_dissection_order(n, rows, cols), max_pivots, zero_fraction
+                )
+                if dissected.seconds < symbolic.seconds:
+                    ordering, symbolic = "nested dissection", dissected
+        else:
+            order = np.asarray(order, dtype=np.int64)
+            if order.shape != (n,) or np.any(np.sort(order) != np.arange(n)):
+                raise ValueError("order must be a permutation of the blocks.")
+            symbolic = _Symbolic.of_order(pattern, order, max_pivots, zero_fraction)
+        return cls._numeric_plan(pattern, symbolic, ordering)
+
+    @classmethod
+    def _numeric_plan(cls, pattern, symbolic, ordering):
+        """The plan's assembly matrices and batches for the fronts of `symbolic`."""
         from scipy.sparse import csr_matrix
 
         n, d, p = pattern.num_blocks, pattern.block_size, pattern.num_pairs
         rows, cols = pattern.rows, pattern.cols
-        if order is None:
-            order = minimum_degree_order(n, rows, cols)
-        order = np.asarray(order, dtype=np.int64)
-        if order.shape != (n,) or np.any(np.sort(order) != np.arange(n)):
-            raise ValueError("order must be a permutation of the blocks.")
-        position = np.empty(n, dtype=np.int64)
-        position[order] = np.arange(n)
-        structure, parent = _elimination_structure(n, rows, cols, position)
-        pivots, update, children = _amalgamate(n, structure, parent, max_pivots, zero_fraction)
-
-        # fronts in elimination (topological) order; rows sorted by elimination position
-        fronts = sorted(pivots, key=lambda f: max(pivots[f]))
-        front_index = {f: k for k, f in enumerate(fronts)}
-        piv = [np.array(sorted(pivots[f]), dtype=np.int64) for f in fronts]
-        upd = [np.array(sorted(update[f]), dtype=np.int64) for f in fronts]
-        kids = [[front_index[c] for c in children[f]] for f in fronts]
-        num_fronts = len(fronts)
-        height = np.zeros(num_fronts, dtype=np.int64)
-        for k in range(num_fronts):
-            height[k] = 1 + max((height[c] for c in kids[k]), default=-1)
+        order, position = symbolic.order, symbolic.position
+        piv, upd, kids = symbolic.pivots, symbolic.updates, symbolic.children
+        members_of = symbolic.batches
+        num_fronts = len(piv)
         work = np.array([_front_work(len(a), len(b)) for a, b in zip(piv, upd)])
-
-        # batches: per height, an optimal split of the fronts sorted by size (see `_split_level`)
-        members_of = []
-        for level in range(int(height.max()) + 1):
-            members = np.flatnonzero(height == level)
-            sizes = [(len(piv[k]), len(upd[k])) for k in members]
-            members_of.extend(_split_level(members, sizes, d))
 
         where = np.empty((num_fronts, 2), dtype=np.int64)  # front -> (batch, position)
         shapes = []
@@ -353,16 +470,17 @@ class CholeskyPlan:
             )
             flops += bsize * _front_work(bp, bu) * d**3
         stats = {
+            "ordering": ordering,
             "fronts": num_fronts,
             "batches": len(batches),
-            "height": int(height.max()) + 1,
+            "height": int(symbolic.height.max()) + 1,
             "flops": flops,
             "flops_unpadded": float(work.sum() * d**3),
             "nnz_blocks": int(
                 sum(len(a) * (len(a) + 1) // 2 + len(a) * len(b) for a, b in zip(piv, upd))
             ),
         }
-        return cls(pattern, batches, work_rows, stats)
+        return cls(pattern, order, batches, work_rows, stats)
 
     # ---- numeric phase (numpy) -------------------------------------------------------------------
     def factor(self, diag, off):
@@ -659,5 +777,6 @@ __all__ = [
     "dense_matrix",
     "dense_solve",
     "minimum_degree_order",
+    "nested_dissection_order",
     "pcg",
 ]
