@@ -148,6 +148,70 @@ def test_pad_clouds():
 # ---- registration -------------------------------------------------------------------------------
 
 
+ROTATIONS = {  # the standards' poses: identity, 1e-9 and 1e-4 rad, pure translation, near pi
+    "identity": (0.0, [0.0, 0.0, 0.0]),
+    "1e-9": (1e-9, [0.3, -0.2, 0.5]),
+    "1e-4": (1e-4, [0.3, -0.2, 0.5]),
+    "translation": (0.0, [1.5, -0.7, 2.0]),
+    "pi-1e-4": (np.pi - 1e-4, [0.3, -0.2, 0.5]),
+    "pi-1e-6": (np.pi - 1e-6, [0.3, -0.2, 0.5]),
+    "random": (2.1, [-0.4, 0.9, 0.1]),
+}
+
+
+def _se3_exp_matrix(xi):
+    """NumPy $\\mathrm{Exp}$ of an SE(3) tangent $(v, \\omega)$ as a 4x4 matrix: Rodrigues'
+    rotation and $V(\\omega) v$ (Solà et al. 2018, appendix D), for finite differences."""
+    v, w = xi[:3], xi[3:]
+    theta = np.linalg.norm(w)
+    k = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+    a = np.sinc(theta / np.pi)  # sin(theta) / theta
+    b = (1 - np.cos(theta)) / theta**2 if theta > 1e-4 else 0.5 - theta**2 / 24
+    c = (theta - np.sin(theta)) / theta**3 if theta > 1e-4 else 1 / 6 - theta**2 / 120
+    out = np.eye(4)
+    out[:3, :3] = np.eye(3) + a * k + b * k @ k
+    out[:3, 3] = (np.eye(3) + b * k + c * k @ k) @ v
+    return out
+
+
+def test_plane_rows_match_lieax_jacobian_and_finite_differences():
+    """`_plane_rows`' closed form $[R^T n, s \\times R^T n]$ equals $n^T$ times `lieax.jacobian`
+    of `SE3`'s action, and central differences of $n^T (T \\,\\mathrm{Exp}(\\xi)) s$ in the
+    right tangent (float64), at every pose of `ROTATIONS`, batched over the poses and unbatched."""
+    from lieax import jacobian
+    from lieax.icp._registration import _plane_rows
+
+    rng = np.random.default_rng(11)
+    points = rng.normal(size=(5, 3)) * 2.0
+    normals = rng.normal(size=(5, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    axis = np.array([0.48, -0.6, 0.64])
+    tangents = jnp.asarray([np.concatenate([t, a * axis]) for a, t in ROTATIONS.values()])
+    act = jax.vmap(jacobian(lambda T, p: T @ p), in_axes=(None, 0))
+
+    @jax.jit
+    @jax.vmap
+    def rows_and_reference(tangent):
+        pose = SE3.exp(tangent)
+        rows = _plane_rows(pose.parameters(), points, normals)
+        reference = jnp.einsum("na,nab->nb", normals, act(pose, jnp.asarray(points)))
+        return pose.as_matrix(), pose.parameters(), rows, reference
+
+    matrices, params, rows, reference = (np.asarray(x) for x in rows_and_reference(tangents))
+    np.testing.assert_allclose(rows, reference, rtol=0, atol=1e-12)
+    step = 1e-6
+    homogeneous = np.concatenate([points, np.ones((5, 1))], axis=1)
+    for matrix, pose_rows in zip(matrices, rows):
+
+        def residual(xi, matrix=matrix):
+            return np.sum(normals * (matrix @ _se3_exp_matrix(xi) @ homogeneous.T).T[:, :3], 1)
+
+        columns = [(residual(step * e) - residual(-step * e)) / (2 * step) for e in np.eye(6)]
+        np.testing.assert_allclose(pose_rows, np.stack(columns, axis=1), rtol=0, atol=1e-8)
+    single = jax.jit(_plane_rows)(params[-1], points, normals)
+    np.testing.assert_allclose(single, rows[-1], rtol=0, atol=1e-15)
+
+
 def test_point_to_plane_recovers_the_motion(pair):
     source, target, normals, truth = pair
     result = register("plane", source, target, normals)

@@ -107,34 +107,33 @@ def test_grid_is_exact_with_colliding_buckets_and_wide_tables(capacity):
 
 def test_kdtree_warm_start_keeps_only_provably_nearest_matches():
     """Earlier matches kept by the spacing test (right ones, wrong ones, random ones) change
-    nothing: the result is still the exact nearest point within the radius."""
+    nothing: the result is still the exact nearest point within the radius. The spacing is
+    computed at the first such query, not by the build."""
     rng = np.random.default_rng(5)
     target, queries, radius = _ring_cloud(rng)
     index = _search.build_index(target, search="kdtree")
     exact = _search.match(index, queries, radius)
     reference, _ = cKDTree(target).query(queries, 1)
     within = reference <= radius
+    assert _host_kdtree._entry(index.tree)[4] is None  # the spacing waits for `previous`
     match = jax.jit(lambda q, p: _search.match(index, q, radius, previous=p))
     for previous in (exact[0], rng.integers(0, len(target), len(queries)), exact[0][::-1]):
         _, d2 = match(queries, jnp.asarray(previous, jnp.int32))
         np.testing.assert_allclose(np.sqrt(d2[within]), reference[within], rtol=0, atol=1e-12)
         assert np.all(np.isinf(d2[~within]))
     spacing, _ = cKDTree(target).query(target, 2)
-    np.testing.assert_allclose(index.spacing, spacing[:, 1], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(
+        _host_kdtree.kdtree_spacing(index), spacing[:, 1], rtol=0, atol=1e-12
+    )
 
 
 def test_normals_from_the_host_tree_and_the_graph_agree():
     """`estimate_normals` with its neighbourhoods from the host k-d tree (the CPU default) and
     from the graph: the same normals on a dense sphere (up to the graph's rare approximate
     neighbourhoods), both within 10 degrees of the true normals (the irregular sampling tilts a
-    few by up to 8), masked rows zero. The host tree needs pykdtree (the bench extra); without
-    it, `search="kdtree"` is refused by name."""
+    few by up to 8), masked rows zero. The host tree is pykdtree's where it is installed (the
+    bench extra), else SciPy's."""
     rng = np.random.default_rng(3)
-    points0 = rng.normal(size=(50, 3))
-    if importlib.util.find_spec("pykdtree") is None:
-        with pytest.raises(ValueError, match="pykdtree"):
-            icp.estimate_normals(points0, k=12, search="kdtree")
-        return
     points = rng.normal(size=(2000, 3))
     points /= np.linalg.norm(points, axis=1, keepdims=True)
     mask = np.arange(2000) % 10 != 0
@@ -148,6 +147,32 @@ def test_normals_from_the_host_tree_and_the_graph_agree():
         assert np.all(found[~mask] == 0)
         # viewpoint at the origin: the normals face inward
         assert np.all(np.sum(found[mask] * -points[mask], axis=1) > np.cos(np.radians(10)))
+
+
+@pytest.mark.parametrize("library", ["scipy", "pykdtree"])
+def test_host_neighbourhoods_survive_repeated_points(library):
+    """The host k-d tree of the normals, inside XLA's callback (flush-to-zero and
+    denormals-are-zero set), on a cloud with more repeats of one point than a leaf holds: SciPy's
+    default `cKDTree` build segfaults there (`lieax.icp._normals`), the unbalanced one and
+    pykdtree give the exact `k` nearest distances (NumPy's brute force)."""
+    if library == "pykdtree" and importlib.util.find_spec("pykdtree") is None:
+        pytest.skip("pykdtree is not installed (the bench extra)")
+    from lieax.icp import _normals
+
+    rng = np.random.default_rng(0)
+    points = np.concatenate([rng.normal(size=(200, 3)), np.zeros((40, 3))])
+    mask = np.arange(len(points)) % 7 != 3
+    found = np.asarray(
+        _normals._host_neighbourhoods_call(
+            jnp.asarray(points), jnp.asarray(mask), k=12, library=library
+        )
+    )
+    valid = points[mask]
+    gaps = np.linalg.norm(valid[:, None] - valid[None], axis=-1)
+    expected = np.sort(gaps, axis=1)[:, :12]
+    got = np.linalg.norm(points[found[mask]] - valid[:, None], axis=-1)
+    np.testing.assert_allclose(np.sort(got, axis=1), expected, rtol=0, atol=1e-12)
+    assert np.all(found[~mask] == -1) and np.all(mask[found[mask]])
 
 
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])

@@ -18,7 +18,7 @@ from .._linalg import quat_to_matrix
 def centroid(points, mask):
     """The mean of the rows of `points` `(n, 3)` where `mask` `(n,)` (the origin for none), in the
     points' dtype. Any centre near the cloud serves: the solves map back with the same one."""
-    count = jnp.maximum(jnp.sum(mask), 1).astype(points.dtype)
+    count = jnp.maximum(jnp.sum(mask.astype(points.dtype)), 1)  # (a float sum: one kernel)
     return jnp.sum(jnp.where(mask[:, None], points, 0.0), axis=0) / count
 
 

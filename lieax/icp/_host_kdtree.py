@@ -14,8 +14,11 @@ in a few microseconds. So the tree lives on the host:
 
 Warm starts. ICP's iterations use `track_in_kdtree`, which keeps the answer of a query that moved
 less than half the gap between its nearest and second-nearest distances (see there).
-For `nearest_in_kdtree(previous=...)` the build also records each target point's `spacing`, the
-distance to its nearest other valid point. A query at distance $d$ from its previous match $c$ keeps it
+For `nearest_in_kdtree(previous=...)` the host also computes, on the first such call, each
+target point's `spacing` (`kdtree_spacing`), the distance to its nearest other valid point, and
+keeps it with the tree (a k-nearest query over the whole target, 0.2-0.4 s on the Kinect
+benchmark's 181k points, that ICP's `track_in_kdtree` does not need, so the build does not pay
+for it). A query at distance $d$ from its previous match $c$ keeps it
 when $2d \le$ `spacing[c]`: every other point $p$ has $|q - p| \ge |p - c| - d \ge$
 `spacing[c]` $- d \ge d$ (the triangle inequality), so $c$ is still the nearest. Only the other
 queries are sent to the tree (40-80% of the source points are kept near convergence on the
@@ -38,7 +41,7 @@ import numpy as np
 from .._host_call import host_call
 
 _CAPACITY = 256
-# id -> [digest, tree, dtype, kept, spacing (filled by the first `_spacing` call)]
+# id -> [digest, tree, dtype, kept, spacing (filled by the first `kdtree_spacing` call)]
 _TREES: collections.OrderedDict = collections.OrderedDict()
 _IDS: dict = {}  # digest -> id
 _NEXT_ID = [0]
@@ -54,15 +57,12 @@ class KDTreeIndex(NamedTuple):
     - `order`: `(N,)` int32, `arange(N)` (slots are the original indices).
     - `valid`: `(N,)` bool.
     - `tree`: `()` int32, the id of the tree in the host registry.
-    - `spacing`: `(N,)` the distance from each valid point to its nearest other valid point
-      (`inf` for a single point, 0 for invalid ones).
     """
 
     points: jax.Array
     order: jax.Array
     valid: jax.Array
     tree: jax.Array
-    spacing: jax.Array
 
 
 def check_on_host(points, what):
@@ -105,9 +105,8 @@ def build_kdtree(points, mask=None, *, library=None) -> KDTreeIndex:
     valid = valid & jnp.all(jnp.isfinite(points), axis=1)
     build = _build_scipy if library == "scipy" else _build_pykdtree
     tree = host_call(build, jax.ShapeDtypeStruct((), jnp.int32), points, valid)
-    spacing = host_call(_spacing, jax.ShapeDtypeStruct((n,), points.dtype), tree, points)
     points = jnp.where(valid[:, None], points, jnp.inf)
-    return KDTreeIndex(points, jnp.arange(n, dtype=jnp.int32), valid, tree, spacing)
+    return KDTreeIndex(points, jnp.arange(n, dtype=jnp.int32), valid, tree)
 
 
 def has_pykdtree():
@@ -164,9 +163,18 @@ def _entry(tree_id):
     return entry
 
 
+def kdtree_spacing(index: KDTreeIndex):
+    """`(N,)` the distance from each valid point of the index to its nearest other valid point
+    (`inf` for a single point, 0 for invalid ones); one host call, the k-nearest query made on
+    the first call for this tree only (the host keeps the result with the tree)."""
+    points = index.points
+    return host_call(
+        _spacing, jax.ShapeDtypeStruct(points.shape[:1], points.dtype), index.tree, points
+    )
+
+
 def _spacing(tree_id, points):
-    """Host side: each valid point's distance to its nearest other valid point (kept with the
-    tree: a target found in the registry does not pay for it again)."""
+    """Host side of `kdtree_spacing` (`points` the index's, `inf` in invalid rows)."""
     entry = _entry(tree_id)
     _, tree, dtype, kept, spacing = entry
     if spacing is None:
@@ -223,7 +231,7 @@ def nearest_in_kdtree(index: KDTreeIndex, queries, radius=jnp.inf, *, mask=None,
     kept = jnp.zeros((m,), bool)
     if previous is not None:
         previous_d2 = jnp.sum((index.points[previous].astype(queries.dtype) - queries) ** 2, -1)
-        spacing = index.spacing[previous].astype(queries.dtype)
+        spacing = kdtree_spacing(index)[previous].astype(queries.dtype)
         slack = 4 * (1 + 16 * jnp.finfo(queries.dtype).eps)  # rounding of both sides
         kept = active & index.valid[previous] & (slack * previous_d2 <= spacing * spacing)
     out = host_call(

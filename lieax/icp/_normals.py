@@ -6,10 +6,14 @@ neighbourhood (the point and its `k - 1` nearest neighbours, optionally only tho
 (Smith, "Eigenvalues of a symmetric 3x3 matrix", CACM 1961, then the largest cross product of
 two rows of $A - \lambda I$), and flipped to face `viewpoint`.
 
-The neighbourhoods (`neighbourhoods`) come from a k-d tree on the host on a CPU where pykdtree is
-installed (through `host_call`: exact, and no search to compile; under `jit` and `vmap` too; SciPy's
-`cKDTree` segfaults inside this callback, seen in CI, so it is not a fallback here), or from the fixed-shape neighbour graph of `lieax.icp._neighbors` elsewhere (the graph's
-build compiles for seconds; 99.96% of the bunny's neighbourhoods exact). The covariances and
+The neighbourhoods (`neighbourhoods`) come from a k-d tree on the host on a CPU (through
+`host_call`: exact, and no search to compile; under `jit` and `vmap` too): pykdtree's where it is
+installed, else SciPy's `cKDTree` built with `balanced_tree=False`. (XLA runs host callbacks with
+the x86 flush-to-zero and denormals-are-zero flags set, MXCSR `0x9fe2`; under those flags SciPy
+1.17's default build, `balanced_tree=True` with `compact_nodes=True`, segfaults on a cloud with
+repeated points, inside JAX or not: `tests/test_icp_search.py`. Either flag off builds.) Elsewhere
+they come from the fixed-shape neighbour graph of `lieax.icp._neighbors` (the graph's build
+compiles for seconds; 99.96% of the bunny's neighbourhoods exact). The covariances and
 eigenvectors are computed in JAX from those neighbourhoods (`normals_from_neighbourhoods`), so
 that `lieax.icp._implicit` can differentiate them with the neighbourhoods held fixed.
 """
@@ -40,9 +44,9 @@ def estimate_normals(
     - `mask`: `(n,)` bools, False for padding; those rows get `(0, 0, 0)`.
     - `viewpoint`: each normal is flipped to point toward it ($n^\top (v - p) \ge 0$), e.g. the
       sensor position; `None` leaves the sign the eigen solver gives.
-    - `search`: how the neighbourhoods are found: `"kdtree"` (a host pykdtree, exact; CPU only),
-      `"graph"` (the fixed-shape neighbour graph, any backend) or `"auto"` (`"kdtree"` on a CPU
-      with pykdtree installed, else `"graph"`).
+    - `search`: how the neighbourhoods are found: `"kdtree"` (a host k-d tree, pykdtree's where
+      it is installed, else SciPy's; exact; CPU only), `"graph"` (the fixed-shape neighbour graph,
+      any backend) or `"auto"` (`"kdtree"` on a CPU, else `"graph"`).
 
     Neighbourhoods with fewer than 3 points give `(0, 0, 1)`. Runs under `jit` and `vmap`.
     """
@@ -60,38 +64,40 @@ def neighbourhoods(points, mask, k, *, search="auto"):
     if search not in NORMAL_SEARCHES:
         raise ValueError(f"search must be one of {NORMAL_SEARCHES}, got {search!r}.")
     if search == "auto":
-        on_cpu = _search.platform_of(points) == "cpu"
-        search = "kdtree" if on_cpu and _host_kdtree.has_pykdtree() else "graph"
+        search = "kdtree" if _search.platform_of(points) == "cpu" else "graph"
     if search == "kdtree":
-        if not _host_kdtree.has_pykdtree():
-            raise ValueError(
-                "estimate_normals(search='kdtree') needs pykdtree (pip install pykdtree): SciPy's "
-                "cKDTree crashes the process when it runs inside this host callback; "
-                "use search='graph'."
-            )
         _host_kdtree.check_on_host(points, "the points")
-        return _host_neighbourhoods_call(points, mask, k=k)
+        library = "pykdtree" if _host_kdtree.has_pykdtree() else "scipy"
+        return _host_neighbourhoods_call(points, mask, k=k, library=library)
     return _graph_neighbourhoods(points, mask, k=k)
 
 
-@functools.partial(jax.jit, static_argnames=("k",))
-def _host_neighbourhoods_call(points, mask, *, k):
+@functools.partial(jax.jit, static_argnames=("k", "library"))
+def _host_neighbourhoods_call(points, mask, *, k, library):
     valid = mask & jnp.all(jnp.isfinite(points), axis=1)
     result = jax.ShapeDtypeStruct((points.shape[0], k), jnp.int32)
-    return host_call(functools.partial(_host_neighbourhoods, k=k), result, points, valid)
+    host = functools.partial(_host_neighbourhoods, k=k, library=library)
+    return host_call(host, result, points, valid)
 
 
-def _host_neighbourhoods(points, valid, *, k):
-    """Host side: pykdtree's k-d tree of the valid points, queried for each of them."""
+def _host_neighbourhoods(points, valid, *, k, library):
+    """Host side: the k-d tree of the valid points (`library` `"pykdtree"` or `"scipy"`), queried
+    for each of them."""
     found = np.full((points.shape[0], k), -1, np.int32)
     rows = np.flatnonzero(valid)
     if rows.size == 0:
         return found
     count = min(k, rows.size)
     cloud = np.ascontiguousarray(points[rows])
-    from pykdtree.kdtree import KDTree
+    if library == "pykdtree":
+        from pykdtree.kdtree import KDTree
 
-    _, nearest = KDTree(cloud).query(cloud, k=count)
+        tree = KDTree(cloud)
+    else:  # (the default balanced build crashes in XLA's callbacks, see the module docstring)
+        from scipy.spatial import cKDTree
+
+        tree = cKDTree(cloud, balanced_tree=False)
+    _, nearest = tree.query(cloud, k=count)
     found[rows, :count] = rows[np.asarray(nearest, np.int64).reshape(rows.size, count)]
     return found
 

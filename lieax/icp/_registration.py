@@ -12,9 +12,10 @@ addition: the test also passes against the iteration before the last, so that a 
 between two states (each update switching the matches that lead back) stops as converged.
 
 - Point-to-plane: one Gauss-Newton step per iteration on $r_i = n_i^\top (T s_i - d_i)$, whose
-  $1 \times 6$ Jacobian block $n_i^\top [R, -R[s_i]_\times]$ comes from `lieax.jacobian` of
-  `SE3`'s action (its closed-form rule); the $6 \times 6$ normal equations are a reduction over
-  the cloud, weighted by the robust loss (iteratively reweighted least squares).
+  $1 \times 6$ Jacobian block $n_i^\top [R, -R[s_i]_\times]$ is written out per coordinate
+  (`_plane_rows`, checked against `lieax.jacobian` of `SE3`'s action); the $6 \times 6$ normal
+  equations are a reduction over the cloud, weighted by the robust loss (iteratively reweighted
+  least squares).
 - Point-to-point: the closed-form weighted Kabsch / Umeyama step (Arun et al. 1987), as Open3D.
 
 Matching uses `search` (`lieax.icp._search`; default `"auto"`: the host k-d tree on CPUs,
@@ -341,6 +342,13 @@ def _first_rows(array, n):
     return jnp.asarray(np.asarray(array)[:n])
 
 
+def _count(flags):
+    """The number of True entries of `flags`, as a float (exact: float64 under x64, float32
+    below 2**24 rows): XLA's CPU backend compiles an integer or boolean reduction as three
+    kernels, a float one as one."""
+    return jnp.sum(flags.astype(jnp.result_type(float)))
+
+
 def _positive(x):
     return jnp.isfinite(x) & (x > 0)
 
@@ -378,18 +386,17 @@ def _solve(
     def weights(squared):
         return _weights(loss, static_loss, squared)
 
-    finite = (
-        jnp.all(jnp.isfinite(source) | ~source_mask[:, None])
-        & jnp.all(jnp.isfinite(target) | ~target_mask[:, None])
-        & jnp.all(jnp.isfinite(target_normals) | ~target_mask[:, None])
-    )
+    # Finite rows, and one reduction per cloud for "a valid row is not finite" (a float sum: XLA's
+    # CPU backend splits a boolean or integer reduction into three kernels).
+    source_rows = jnp.all(jnp.isfinite(source), axis=1)
+    target_rows = jnp.all(jnp.isfinite(target), axis=1)
+    target_bad = ~(target_rows & jnp.all(jnp.isfinite(target_normals), axis=1))
+    source_bad = ~source_rows
     if kind == "gicp":  # (n, 3, 3) and (m, 3, 3) covariances, checked by lieax.icp.gicp
-        finite = (
-            finite
-            & jnp.all(jnp.isfinite(source_covariances) | ~source_mask[:, None, None])
-            & jnp.all(jnp.isfinite(target_covariances) | ~target_mask[:, None, None])
-        )
+        source_bad = source_bad | ~jnp.all(jnp.isfinite(source_covariances), axis=(1, 2))
+        target_bad = target_bad | ~jnp.all(jnp.isfinite(target_covariances), axis=(1, 2))
     init_finite = jnp.all(jnp.isfinite(init))
+    finite = (_count(source_mask & source_bad) == 0) & (_count(target_mask & target_bad) == 0)
     finite = finite & init_finite
     # Parameters traced under jit / vmap (concrete ones were checked by `_register`).
     valid = _positive(max_distance) & _non_negative(relative_fitness)
@@ -399,8 +406,8 @@ def _solve(
     # (Under vmap the loop's body also runs for an INVALID problem, its results discarded: the
     # searches need a radius they accept.)
     max_distance = jnp.where(_positive(max_distance), max_distance, 1.0)
-    source_mask = source_mask & jnp.all(jnp.isfinite(source), axis=1)
-    target_mask = target_mask & jnp.all(jnp.isfinite(target), axis=1)
+    source_mask = source_mask & source_rows
+    target_mask = target_mask & target_rows
     source = jnp.where(source_mask[:, None], source, 0.0)
     target = jnp.where(target_mask[:, None], target, 0.0)
     start = jnp.where(init_finite, init, jnp.asarray(_IDENTITY, dtype))
@@ -428,7 +435,7 @@ def _solve(
         target_covariances = jnp.where(
             index.valid[:, None, None], target_covariances.astype(dtype)[index.order], eye
         )
-    n_valid = jnp.maximum(jnp.sum(source_mask), 1)
+    n_valid = jnp.maximum(_count(source_mask), 1)
     r2 = max_distance * max_distance
 
     def moved(params):
@@ -446,10 +453,11 @@ def _solve(
 
     def statistics(d2):
         inliers = (d2 <= r2) & source_mask
-        count = jnp.sum(inliers)
+        count = _count(inliers)
         fitness = count / n_valid
-        rmse = jnp.sqrt(jnp.sum(jnp.where(inliers, d2, 0.0)) / jnp.maximum(count, 1))
-        return inliers, fitness.astype(dtype), jnp.where(count > 0, rmse, 0.0).astype(dtype)
+        rmse = jnp.sqrt(jnp.sum(jnp.where(inliers, d2, 0.0)) / jnp.maximum(count, 1).astype(dtype))
+        rmse = jnp.where(count > 0, rmse, 0.0).astype(dtype)
+        return inliers, fitness.astype(dtype), rmse, count
 
     def update(params, slot, inliers):
         matched = target_points[slot]
@@ -468,8 +476,8 @@ def _solve(
         """Update the pose from the current matches, then match again. The very first pass (the
         matches are not there yet) only matches, at `init`."""
         first = state.iterations < 0
-        inliers, _, _ = statistics(state.d2)
-        enough = jnp.sum(inliers) >= MIN_CORRESPONDENCES
+        inliers, _, _, count = statistics(state.d2)
+        enough = count >= MIN_CORRESPONDENCES
         candidate = update(state.params, state.slot, inliers)
         ok = enough & jnp.all(jnp.isfinite(candidate))
         params = jnp.where(ok & ~first, candidate, state.params)
@@ -486,7 +494,7 @@ def _solve(
         else:  # exact in every iteration
             slot, d2 = _search.match(index, in_index(queries), max_distance, source_mask)
         d2 = jnp.where(source_mask, centred(queries, slot, d2), jnp.inf)
-        _, fitness, rmse = statistics(d2)
+        _, fitness, rmse, _ = statistics(d2)
         iterations = state.iterations + (ok | first).astype(jnp.int32)
 
         def unchanged(f, r):
@@ -537,7 +545,7 @@ def _solve(
             index, in_index(queries), state.slot, state.d2, certified, max_distance, scan=False
         )
         d2 = jnp.where(source_mask, centred(queries, slot, d2), jnp.inf)
-        _, fitness, rmse = statistics(d2)
+        _, fitness, rmse, _ = statistics(d2)
 
         def unchanged(f, r):
             return (jnp.abs(fitness - f) < relative_fitness) & (jnp.abs(rmse - r) < relative_rmse)
@@ -571,7 +579,7 @@ def _solve(
     else:
         state = verified(state)
 
-    inliers, _, _ = statistics(state.d2)
+    inliers, _, _, _ = statistics(state.d2)
     correspondences = jnp.where(inliers, index.order[state.slot], -1)
     correspondences = jnp.zeros_like(correspondences).at[order].set(correspondences)
     params = jnp.where(finite, centred_pose(state.params, -source_centre, -target_centre), init)
@@ -614,22 +622,26 @@ def _act_jacobian_rows(pose: SE3, points):
     return blocks[0], blocks[1:] - blocks[0]
 
 
-def _plane_rows(pose: SE3, points, normals):
-    r"""$J_i = n_i^\top [R, -R[s_i]_\times]$, `(n, 6)`, from `_act_jacobian_rows`, written out as
-    elementwise sums (small matrix products batch poorly under `vmap` on the CPU)."""
-    constant, slope = _act_jacobian_rows(pose, points)
-    rows = 0.0
-    for a in range(3):
-        block = constant[a] + sum(points[:, k : k + 1] * slope[k, a] for k in range(3))
-        rows = rows + normals[:, a : a + 1] * block
-    return rows
+def _plane_rows(params, points, normals):
+    r"""$J_i = \partial\, n_i^\top (T \oplus \xi)\, s_i / \partial \xi
+    = n_i^\top [R, -R[s_i]_\times] = [m_i^\top, (s_i \times m_i)^\top]$, $m_i = R^\top n_i$,
+    `(n, 6)`, for SE3 parameters `params`: the action's Jacobian $[R, -R[s]_\times]$ (Solà,
+    Deray, Atchuthan 2018, "A micro Lie theory", appendix D, right perturbation) and
+    $-m^\top [s]_\times = (s \times m)^\top$. Written out per coordinate: one fused kernel,
+    where `lieax.jacobian` of the action under `vmap` (`_act_jacobian_rows`) compiles to eight on
+    the CPU. `tests/test_icp.py` checks it against `lieax.jacobian` and finite differences."""
+    rotation = quat_to_matrix(params[:4])
+    m = [sum(rotation[a, j] * normals[:, a] for a in range(3)) for j in range(3)]
+    s = [points[:, k] for k in range(3)]
+    cross = [s[1] * m[2] - s[2] * m[1], s[2] * m[0] - s[0] * m[2], s[0] * m[1] - s[1] * m[0]]
+    return jnp.stack(m + cross, axis=1)
 
 
 def _plane_step(params, source, matched, normals, inliers, loss_weights):
     r"""One Gauss-Newton step $T \leftarrow T \oplus \delta$, $\delta = -(J^\top W J)^{-1} J^\top W r$,
     with rows $J_i = n_i^\top [R, -R[s_i]_\times]$ (see `_plane_rows`)."""
     pose = SE3._wrap(params)
-    jac = _plane_rows(pose, source, normals)
+    jac = _plane_rows(params, source, normals)
     residuals = jnp.sum(normals * (transform_points(params, source) - matched), axis=-1)
     weights = inliers.astype(params.dtype) * loss_weights(residuals * residuals)
     weighted = jac * weights[:, None]
