@@ -548,6 +548,48 @@ def test_structure_is_analysed_once(gps_graph):
     assert result.status_name == "CONVERGED"
 
 
+def test_kinds_sharing_a_residual_are_evaluated_once(gps_graph):
+    """The between factor split into two kinds of their own information is traced once for
+    both, and linearizes as one kind with that information per instance."""
+    from lieax.factorgraph._assembly import evaluate
+
+    graph, poses, (i, j, measured, _, _) = gps_graph
+    fix = graph.factors[1]
+    roots = np.stack([np.diag([20.0, 20.0, 50.0])] * 5 + [np.diag([5.0, 8.0, 30.0])] * (len(i) - 5))
+    first, second = slice(0, 5), slice(5, None)
+    split = FactorGraph(
+        [
+            Factor(between, (poses[i[first]], poses[j[first]]), measured[first],
+                   sqrt_information=roots[0]),
+            Factor(between, (poses[i[second]], poses[j[second]]), measured[second],
+                   sqrt_information=roots[5]),
+            fix,
+        ]
+    )  # fmt: skip
+    merged = FactorGraph(
+        [Factor(between, (poses[i], poses[j]), measured, sqrt_information=roots), fix]
+    )
+
+    def evaluated(g):
+        return jax.jit(lambda v, d: evaluate(g.factors, g.plans, v, d))(g.initial_values, g.data)
+
+    (cost_split, parts_split), (cost_merged, parts_merged) = evaluated(split), evaluated(merged)
+    np.testing.assert_allclose(cost_split, cost_merged, rtol=1e-13)
+    for s, t in ((0, slice(0, 5)), (1, slice(5, None))):
+        r, blocks, _ = parts_split[s]
+        np.testing.assert_allclose(r, parts_merged[0][0][t], rtol=1e-13)
+        for b, c in zip(blocks, parts_merged[0][1]):
+            np.testing.assert_allclose(b, c[t], rtol=1e-13)
+
+    def equations(g):
+        return len(jax.make_jaxpr(lambda v, d: evaluate(g.factors, g.plans, v, d))(
+            g.initial_values, g.data).eqns)  # fmt: skip
+
+    # one traced copy of the between factor: the split adds a few slices and products, where a
+    # second copy would double the program
+    assert equations(split) < 1.3 * equations(merged)
+
+
 @pytest.mark.parametrize("group", [SE2, SE3])
 def test_pose_graph_blocks_match_finite_differences(group):
     """`lieax.graph.to_factor_graph`'s closed-form between and prior blocks against central

@@ -13,6 +13,8 @@ come from `lieax.value_and_jacobian`, i.e. the groups' closed-form `custom_jvp` 
 `jacobian_fn(*xs, data) -> (residual, (J_a, J_b, ...))` is given.
 """
 
+import math
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -110,14 +112,28 @@ def _sqrt_information(information, name):
     return np.swapaxes(lower, 1, 2).reshape(information.shape)
 
 
+# forward mode for the blocks while the arguments' tangents have at most this many coordinates
+# per residual entry: vmapped over thousands of instances, forward mode's extra directions cost
+# less than reverse mode's transposed program (a 2D between factor, 6 tangent coordinates for 3
+# residuals, 10k instances: XLA CPU compiled the linearization in 1.8 s instead of 2.7 s, 28
+# kernels instead of 43, and it ran in 10 ms instead of 15 ms)
+_FORWARD_RATIO = 2
+
+
 def linearize_one(factor, xs, data):
-    """`(residual (k,), blocks)` for one instance: `blocks` a tuple of `(k, tangent_dim)`."""
+    """`(residual (k,), blocks)` for one instance: `blocks` a tuple of `(k, tangent_dim)`
+    (`lieax.value_and_jacobian`, forward mode unless the tangents outnumber the residual
+    entries by more than `_FORWARD_RATIO`)."""
     extra = () if factor.data is None else (data,)
     if factor.jacobian_fn is not None:
         value, blocks = factor.jacobian_fn(*xs, *extra)
         return value, tuple(blocks)
     argnums = tuple(range(len(xs)))
-    value, jac = value_and_jacobian(factor.residual, argnums)(*xs, *extra)
+    shapes = jax.tree_util.tree_leaves(jax.eval_shape(factor.residual, *xs, *extra))
+    residual_size = sum(math.prod(leaf.shape) for leaf in shapes)
+    tangent_size = sum(v.tangent_dim for v in factor.vars)
+    mode = "fwd" if tangent_size <= _FORWARD_RATIO * residual_size else "rev"
+    value, jac = value_and_jacobian(factor.residual, argnums, mode=mode)(*xs, *extra)
     k = value.shape[0]
     blocks = tuple(
         jnp.concatenate([jnp.reshape(b, (k, -1)) for b in jax.tree_util.tree_leaves(j)], axis=1)

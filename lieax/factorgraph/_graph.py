@@ -320,6 +320,8 @@ class FactorGraph:
             layout = schur.layout
         if solver == "auto":
             solver = _auto_method(layout)
+        if solver == "cholesky":
+            layout.start_plan()  # analysed while the loop is traced and compiled
         options = {
             "method": solver,
             "schur": schur,

@@ -40,7 +40,10 @@ Jacobian blocks and weights of every factor kind, in one trace), decides, and wh
 taken completes the normal equations from that same evaluation (`assemble`, inside a `cond`), as
 `lieax.graph.optimize` does: a taken step costs one evaluation, a rejected one an evaluation and
 a solve. The first pass evaluates the start itself, so each factor kind is traced and compiled
-once (not once for the start and once in the loop).
+once (not once for the start and once in the loop; kinds that share a residual function, once
+for all of them). XLA CPU's compile time grows with the program's kernels (tens of ms each),
+so the loop's finiteness and stationarity tests are floating sums (one kernel each, where a
+boolean `all` over an array is three) and the parameters are read inside the loop.
 """
 
 import jax
@@ -128,25 +131,33 @@ def make_loop(graph, options):
             for d, s in zip(diag, scale)
         )
         delta = solve(damped, off, tuple(-g for g in grad), params)
-        solved = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in delta]))
-        delta = tuple(jnp.where(solved, x, 0.0) for x in delta)
         g_delta = sum(jnp.vdot(g, x) for g, x in zip(grad, delta))
         d_delta = sum(jnp.vdot(s * x, x) for s, x in zip(scale, delta))
-        predicted = -0.5 * g_delta + 0.5 * lam * d_delta
+        # a NaN or infinite entry of the step makes its scaled square norm NaN or infinite (the
+        # scale is positive; so does a step beyond 1e154): one reduction that is computed anyway
+        solved = jnp.isfinite(d_delta)
+        delta = tuple(jnp.where(solved, x, 0.0) for x in delta)
+        predicted = jnp.where(solved, -0.5 * g_delta + 0.5 * lam * d_delta, 0.0)
         return retract(variables, values, delta, options["retraction"]), predicted, solved
 
     def assembled(parts, dtype):
-        """The normal equations from `evaluate`'s parts, and whether they are finite."""
+        """The normal equations from `evaluate`'s parts, and whether they are finite: a NaN or
+        infinite entry anywhere makes the sum of the diagonal blocks and gradients NaN or
+        infinite (a coupling block's entries come from the same Jacobian columns as two
+        diagonal blocks'; so does an overflowing sum). One floating sum per array is one small
+        kernel, where XLA CPU splits a boolean `all` into three."""
         system = jax.tree_util.tree_map(lambda a: a.astype(dtype), assemble(layout, plans, parts))
         diag, _, grad = system
-        return system, jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in (*diag, *grad)]))
+        return system, jnp.isfinite(sum(jnp.sum(a) for a in (*diag, *grad)))
 
-    def loop(values, data, params):
-        params = dict(zip(PARAMETERS, params))
-        max_iterations = params["max_iterations"].astype(jnp.int32)
-        dtype = params["lambda_initial"].dtype
+    def named(vector):
+        return dict(zip(PARAMETERS, vector))
+
+    def loop(values, data, vector):
+        max_iterations = named(vector)["max_iterations"].astype(jnp.int32)
+        dtype = vector.dtype
         zero = jnp.zeros((), jnp.int32)
-        lam0 = jnp.zeros((), dtype) if gauss_newton else params["lambda_initial"]
+        lam0 = jnp.zeros((), dtype) if gauss_newton else named(vector)["lambda_initial"]
         nu0 = jnp.asarray(2.0, dtype)
         nan = jnp.asarray(jnp.nan, dtype)
         # the first pass of `body` evaluates the start itself (`started` False), so that every
@@ -168,6 +179,9 @@ def make_loop(graph, options):
         def body(state):
             values, trial, cost, predicted, solved, system, lam, nu, iterations, solves = state[:10]
             status, history, started = state[10:]
+            # read inside the loop, where XLA fuses each read into its use (read before it, each
+            # would be a kernel of its own)
+            params = named(vector)
             new_cost, parts = evaluate(factors, plans, trial, data)
             change = cost - new_cost
             valid = solved & (predicted >= 0) & jnp.isfinite(new_cost)
@@ -250,7 +264,7 @@ def make_loop(graph, options):
             status = jnp.where(finite, status, Status.NONFINITE).astype(jnp.int32)
             # a point with an exactly zero gradient (a zero error: GTSAM's `errorTol` = 0) is
             # stationary: no step to try (at the start: converged after 0 iterations)
-            stationary = jnp.all(jnp.stack([jnp.all(g == 0) for g in system[2]]))
+            stationary = sum(jnp.sum(jnp.abs(g)) for g in system[2]) == 0
             status = jnp.where(
                 (status == Status.RUNNING) & stationary, Status.CONVERGED, status
             ).astype(jnp.int32)

@@ -553,9 +553,11 @@ class CholeskyPlan:
 def cholesky_solve(plan, diag, off, rhs):
     """`plan.solve` from inside JAX (`jit`, `lax.while_loop`): a host callback (`host_call`), so
     on an accelerator the blocks travel to the host and back. NaN when $H$ is not positive
-    definite."""
+    definite. `plan` is a `CholeskyPlan`, or a function returning one, called when the solve runs
+    (not when it is traced: the analysis may still be running while the loop compiles)."""
+    plan_of = plan if callable(plan) else lambda: plan
     result = jax.ShapeDtypeStruct(rhs.shape, rhs.dtype)
-    return host_call(plan.solve, result, diag, off, rhs)
+    return host_call(lambda *system: plan_of().solve(*system), result, diag, off, rhs)
 
 
 # Host linear algebra must not wake two OpenBLAS thread pools: SciPy's wheels bundle a second

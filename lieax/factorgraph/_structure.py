@@ -17,8 +17,10 @@ linked in $S$ when they are linked in $H$ or share an eliminated instance (camer
 common point in bundle adjustment; Triggs et al. 2000, Sec. 6.1).
 """
 
+import concurrent.futures
 import dataclasses
 import hashlib
+import threading
 
 import numpy as np
 
@@ -43,6 +45,8 @@ class Layout:
         self.offsets = np.concatenate([[0], np.cumsum(self.counts)]).astype(np.int64)
         self.block_size = max(self.dims)
         self._plan = None
+        self._analysis = None
+        self._lock = threading.Lock()
         n = int(self.offsets[-1])
         items = self.pairs.items()
         if self.pairs:
@@ -69,11 +73,26 @@ class Layout:
     def padded_unknowns(self):
         return int(self.offsets[-1]) * self.block_size
 
+    def start_plan(self):
+        """Begin the `CholeskyPlan`'s analysis in a background thread, once: NumPy and SciPy
+        work on the host that overlaps the tracing and the XLA compilation of the loop that will
+        call it (XLA releases the GIL while it compiles; the analysis of the 10k-pose graphs of
+        `benchmarks/factorgraph.py` took 1-3 s, a third to half of their compilation)."""
+        with self._lock:
+            if self._analysis is None:
+                self._analysis = _ANALYSES.submit(CholeskyPlan.analyze, self.pattern)
+
     def plan(self):
-        """The `CholeskyPlan` of the padded pattern (analysed on first use)."""
+        """The `CholeskyPlan` of the padded pattern (analysed on first use, or waited for when
+        `start_plan` began it; its errors are raised here)."""
         if self._plan is None:
-            self._plan = CholeskyPlan.analyze(self.pattern)
+            self.start_plan()
+            self._plan = self._analysis.result()
         return self._plan
+
+
+# one host thread for the Cholesky analyses (`Layout.start_plan`), made on first use
+_ANALYSES = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="lieax-analysis")
 
 
 def pair_slots(pairs, a, b, ia, ib):
