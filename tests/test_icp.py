@@ -193,7 +193,7 @@ def test_plane_rows_match_lieax_jacobian_and_finite_differences():
     @jax.vmap
     def rows_and_reference(tangent):
         pose = SE3.exp(tangent)
-        rows = _plane_rows(pose.parameters(), points, normals)
+        rows = _plane_rows(pose.parameters(), points, normals).T  # (6, n): transposed rows
         reference = jnp.einsum("na,nab->nb", normals, act(pose, jnp.asarray(points)))
         return pose.as_matrix(), pose.parameters(), rows, reference
 
@@ -208,7 +208,7 @@ def test_plane_rows_match_lieax_jacobian_and_finite_differences():
 
         columns = [(residual(step * e) - residual(-step * e)) / (2 * step) for e in np.eye(6)]
         np.testing.assert_allclose(pose_rows, np.stack(columns, axis=1), rtol=0, atol=1e-8)
-    single = jax.jit(_plane_rows)(params[-1], points, normals)
+    single = jax.jit(_plane_rows)(params[-1], points, normals).T
     np.testing.assert_allclose(single, rows[-1], rtol=0, atol=1e-15)
 
 

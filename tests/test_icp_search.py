@@ -70,10 +70,11 @@ def _check_against_kdtree(result, target, target_mask, queries, query_mask, radi
         assert np.all(np.isinf(distance[beyond])) and np.all(index[beyond] == -1)
 
 
-# Every backend on every cloud in float64, and in float32 (the graph, slow to compile, on one).
+# Every backend on every cloud in float64, and in float32 (the graph, slow to compile, on one);
+# "kdtree scipy": the host tree forced to SciPy's (the default without pykdtree, the bench extra).
 CASES = [
     (search, cloud, dtype)
-    for search in BACKENDS
+    for search in BACKENDS + ("kdtree scipy",)
     for cloud in sorted(CLOUDS)
     for dtype in (np.float64, np.float32)
     if not (search == "graph" and dtype == np.float32 and cloud != "dense")
@@ -86,7 +87,9 @@ def test_nearest_equals_ckdtree_within_radius(search, cloud, dtype):
     target, queries, radius = (a if np.isscalar(a) else a.astype(dtype) for a in CLOUDS[cloud](rng))
     target_mask = rng.uniform(size=len(target)) > 0.2
     query_mask = rng.uniform(size=len(queries)) > 0.1
-    index = _search.build_index(target, target_mask, search=search, max_distance=radius)
+    options = {"library": "scipy"} if search == "kdtree scipy" else {}
+    search = search.split()[0]
+    index = _search.build_index(target, target_mask, search=search, max_distance=radius, **options)
     result = _nearest(index, queries, radius, query_mask)
     _check_against_kdtree(
         result, target, target_mask, queries, query_mask, radius, search in EXACT_BACKENDS

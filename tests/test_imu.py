@@ -118,6 +118,23 @@ def test_predict_and_factor_match_gtsam():
         assert relative(ours, theirs) < 1e-9, k
         assert relative(mine, theirs) < 1e-9, k
 
+    # imu_factor whitens as ImuFactor's noise model: 0.5 |L⁻¹ r|² = error.
+    from lieax.factorgraph import Var
+
+    pose_var, vector_var = Var(poses), Var(jnp.asarray([velocity_i, velocity_j]))
+    bias_var = Var(jnp.asarray([bias_i, bias_i]))
+    i, j = np.array([0]), np.array([1])
+    ours_factor = imu.imu_factor(
+        jax.tree.map(lambda x: x[None], pim), PARAMS,
+        pose_var[i], vector_var[i], pose_var[j], vector_var[j], bias_var[i],
+    )  # fmt: skip
+    values = gtsam.Values()
+    theirs = (gtsam_pose(pose_i), velocity_i, gtsam_pose(pose_j), velocity_j, bias_g)
+    for key, x in enumerate(theirs, 1):
+        values.insert(key, x)
+    whitened = ours_factor.sqrt_information[0] @ np.asarray(closed_value)
+    assert 0.5 * whitened @ whitened == pytest.approx(factor.error(values), rel=1e-9)
+
 
 def test_combined_factor_matches_gtsam():
     r"""`combined_imu_factor` as GTSAM 4.3's `CombinedImuFactor` (ComponentWise; anisotropic
@@ -485,6 +502,9 @@ def test_imu_factors_reject_invalid_input():
         imu.imu_factor(
             pim, PARAMS, poses[index], vectors[index], poses[index], vectors[index], biases[index]
         )
+    singular = jax.tree.map(lambda x: x[index], pim)._replace(covariance=np.zeros((2, 9, 9)))
+    with pytest.raises(imu.ImuError, match="9x9 covariance is not positive definite"):
+        imu.imu_factor(singular, PARAMS, *(poses[index], vectors[index]) * 2, biases[index])
     with pytest.raises(imu.ImuError, match="delta_t"):
         imu.bias_random_walk_factor(biases[index], biases[index], np.array([1.0, 0.0]), 1e-3, 1e-4)
     refs = (poses[index], vectors[index]) * 2 + (biases[index],) * 2

@@ -14,11 +14,10 @@ import functools
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from .._checks import as_float_array
 from ..groups._se3 import SE3
-from . import _neighbors, _search
+from . import _neighbors, _normals, _search
 from ._batch import pad_to_bucket
 from ._checks import check_cloud, check_count, check_mask
 from ._normals import _UPPER, offset_covariances, smallest_eigenvector
@@ -27,7 +26,7 @@ from ._registration import (
     _act_jacobian_rows,
     _register,
     _solve_spd,
-    transform_points,
+    _transformed_columns,
 )
 
 EPSILON = 1e-3  # the smallest regularized eigenvalue (GICP, fast_gicp, small_gicp)
@@ -52,28 +51,24 @@ def estimate_covariances(points, *, k=20, mask=None, search="auto"):
     - `points`: shape `(n, 3)`.
     - `k`: neighbourhood size, the point itself included (small_gicp's default, 20).
     - `mask`: `(n,)` bools, False for padding; those rows get the identity.
-    - `search`: how the neighbours are found: `"kdtree"`, SciPy's `cKDTree` on the host (exact;
-      CPU, eager calls only), `"graph"`, the fixed-shape neighbour graph of `estimate_normals`
-      (any backend, under `jit` and `vmap`; 99.96% of the bunny's neighbourhoods exact), or
-      `"auto"` (`"kdtree"` for concrete points on a CPU, `"graph"` otherwise).
+    - `search`: how the neighbours are found, as for `estimate_normals`: `"kdtree"`, the host
+      k-d tree (`lieax.icp._host_kdtree.nearest_valid_rows`: pykdtree's where it is installed,
+      else SciPy's; exact; CPU only), `"graph"`, the fixed-shape neighbour graph (any backend;
+      99.96% of the bunny's neighbourhoods exact), or `"auto"` (`"kdtree"` on a CPU, else
+      `"graph"`).
 
-    Runs under `jit` and `vmap` (with the graph).
+    Runs under `jit` and `vmap`.
     """
     points = check_cloud(points, "points")
     mask = check_mask(mask, points, "mask")
     k = check_count(k, "k", minimum=MIN_NEIGHBOURS)
     if search not in ("auto", "graph", "kdtree"):
         raise ValueError(f"search must be 'auto', 'graph' or 'kdtree', got {search!r}.")
-    traced = any(isinstance(x, jax.core.Tracer) for x in (points, mask))
     if search == "auto":
-        search = "kdtree" if not traced and _search.platform_of(points) == "cpu" else "graph"
+        search = "kdtree" if _search.platform_of(points) == "cpu" else "graph"
     if search == "kdtree":
-        if traced:  # the host search needs the points themselves
-            raise ValueError(
-                "estimate_covariances(search='kdtree') needs concrete points (an eager call); "
-                "under jit or vmap use search='graph' (or 'auto')."
-            )
-        return _estimate_on_host(points, mask, k=k)
+        found = _normals.neighbourhoods(points, mask, k, search="kdtree")
+        return _covariances_of_neighbours(points, mask, found)
     return _estimate(points, mask, k=k)
 
 
@@ -99,37 +94,14 @@ def _estimate(points, mask, *, k):
     return identities.at[slots].set(regularized, mode="drop")
 
 
-def _estimate_on_host(points, mask, *, k):
-    """The neighbourhoods by SciPy's `cKDTree` on the host (the points are concrete), the
-    covariances from them in JAX. (Called through `host_call` from a compiled program, the same
-    query crashed jaxlib 0.10.2 on the program's second run.)"""
-    host_points = np.asarray(points)
-    valid = np.asarray(mask) & np.all(np.isfinite(host_points), axis=1)
-    safe = np.where(valid[:, None], host_points, 0.0)
-    found = _host_neighbours(safe, valid, k=k)
-    return _covariances_of_neighbours(jnp.asarray(safe), jnp.asarray(valid), jnp.asarray(found))
-
-
 @jax.jit
-def _covariances_of_neighbours(safe, valid, found):
-    inside = found >= 0
+def _covariances_of_neighbours(points, mask, found):
+    """The covariances over the neighbourhoods `found` (`-1` for none) of `_normals.neighbourhoods`
+    (the host k-d tree's: exact)."""
+    valid = mask & jnp.all(jnp.isfinite(points), axis=1)
+    safe = jnp.where(valid[:, None], points, 0.0)
     neighbours = jnp.transpose(safe[jnp.maximum(found, 0)], (0, 2, 1))  # (n, 3, k)
-    return _regularized(safe, neighbours, inside, valid)
-
-
-def _host_neighbours(points, valid, *, k):
-    """The `k` nearest valid points of every valid point (itself first), `-1` where there are
-    fewer, by SciPy's `cKDTree` (one thread, as small_gicp's default)."""
-    from scipy.spatial import cKDTree
-
-    found = np.full((points.shape[0], k), -1, np.int32)
-    rows = np.flatnonzero(valid)
-    if rows.size:
-        count = min(k, rows.size)
-        cloud = points[rows]
-        _, nearest = cKDTree(cloud).query(cloud, k=count)
-        found[rows, :count] = rows[nearest.reshape(rows.size, count)]
-    return found
+    return _regularized(safe, neighbours, found >= 0, valid)
 
 
 def _regularized(centre, neighbours, inside, valid):
@@ -188,21 +160,23 @@ def gicp_normal_equations(params, source, matched, source_covariances, target_co
     pose = SE3._wrap(params)
     rotation = pose.rotation().as_matrix()
     m = _mahalanobis(rotation, source_covariances, target_covariances)
-    residuals = transform_points(params, source) - matched
-    r = [residuals[:, a] for a in range(3)]
+    moved = _transformed_columns(params, source)
+    r = [moved[a] - matched[:, a] for a in range(3)]
     mr = [sum(_entry(m, a, b) * r[b] for b in range(3)) for a in range(3)]
     costs = sum(r[a] * mr[a] for a in range(3))
     if callable(weights):
         weights = weights(costs)
     constant, slope = _act_jacobian_rows(pose, source)
-    rows = [constant[a] + sum(source[:, k : k + 1] * slope[k, a] for k in range(3)) for a in
-            range(3)]  # fmt: skip
-    m_rows = [sum(_entry(m, a, b)[:, None] * rows[b] for b in range(3)) for a in range(3)]
-    jac = jnp.concatenate(rows)  # (3n, 6): row a of every pair, then the next row
-    weighted = jnp.concatenate([weights[:, None] * m_rows[a] for a in range(3)])
+    # Row a of every pair's J_i, transposed: (6, n) each (contiguous rows, no transposes for the
+    # products below; `_registration._plane_rows` says why).
+    rows = [constant[a][:, None] + sum(slope[k, a][:, None] * source[:, k] for k in range(3)) for
+            a in range(3)]  # fmt: skip
+    m_rows = [sum(_entry(m, a, b) * rows[b] for b in range(3)) for a in range(3)]
+    jac_t = jnp.concatenate(rows, axis=1)  # (6, 3n): row a of every pair, then the next row
+    weighted = jnp.concatenate([weights * m_rows[a] for a in range(3)], axis=1)
     weighted_mr = jnp.concatenate([weights * mr[a] for a in range(3)])
-    hessian = jnp.matmul(weighted.T, jac, precision=jax.lax.Precision.HIGHEST)
-    gradient = jnp.matmul(jac.T, weighted_mr, precision=jax.lax.Precision.HIGHEST)
+    hessian = jnp.matmul(weighted, jac_t.T, precision=jax.lax.Precision.HIGHEST)
+    gradient = jnp.matmul(jac_t, weighted_mr, precision=jax.lax.Precision.HIGHEST)
     return 0.5 * (hessian + hessian.T), gradient, costs
 
 

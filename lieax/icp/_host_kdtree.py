@@ -30,6 +30,7 @@ backends that run there (`"grid"`, `"brute"`).
 """
 
 import collections
+import functools
 import hashlib
 import threading
 from typing import NamedTuple
@@ -39,6 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._host_call import host_call
+from ._coordinates import squared_norms
 
 _CAPACITY = 256
 # id -> [digest, tree, dtype, kept, spacing (filled by the first `kdtree_spacing` call)]
@@ -85,13 +87,12 @@ def build_kdtree(points, mask=None, *, library=None) -> KDTreeIndex:
     **Arguments:**
     - `points`, `mask`: the target cloud and its valid rows.
     - `library`: `"scipy"` (`scipy.spatial.cKDTree`) or `"pykdtree"` (needs the package);
-      default pykdtree where it is installed (it builds 2-4x and queries up to 2x faster than
-      cKDTree on the benchmark's clouds, `benchmarks/neighbors.py`), else SciPy.
+      default `default_library()` (see `host_tree`).
 
     **Returns:** a `KDTreeIndex`.
     """
     if library is None:
-        library = "pykdtree" if has_pykdtree() else "scipy"
+        library = default_library()
     if library not in _LIBRARIES:
         raise ValueError(f"library must be one of {_LIBRARIES}, got {library!r}.")
     if library == "pykdtree":
@@ -103,8 +104,7 @@ def build_kdtree(points, mask=None, *, library=None) -> KDTreeIndex:
         raise ValueError(f"search='kdtree' handles fewer than {2**24} points, got {n}.")
     valid = jnp.ones((n,), bool) if mask is None else jnp.asarray(mask, bool)
     valid = valid & jnp.all(jnp.isfinite(points), axis=1)
-    build = _build_scipy if library == "scipy" else _build_pykdtree
-    tree = host_call(build, jax.ShapeDtypeStruct((), jnp.int32), points, valid)
+    tree = host_call(_BUILDERS[library], jax.ShapeDtypeStruct((), jnp.int32), points, valid)
     points = jnp.where(valid[:, None], points, jnp.inf)
     return KDTreeIndex(points, jnp.arange(n, dtype=jnp.int32), valid, tree)
 
@@ -117,7 +117,45 @@ def has_pykdtree():
     return True
 
 
-def _register(library, points, valid, make):
+def default_library():
+    """`"pykdtree"` where it is installed (it builds 2-4x and queries up to 2x faster than
+    cKDTree on the benchmark's clouds, `benchmarks/neighbors.py`), else `"scipy"`."""
+    return "pykdtree" if has_pykdtree() else "scipy"
+
+
+def host_tree(points, library=None):
+    """The k-d tree of `points` (a C-contiguous `(n, 3)` NumPy array, `n >= 1`) on the host:
+    pykdtree's `KDTree` or SciPy's `cKDTree` (`library`, default `default_library()`).
+
+    SciPy's tree is built with `balanced_tree=False`: XLA runs host callbacks with the x86
+    flush-to-zero and denormals-are-zero flags set (MXCSR `0x9fe2`), and under those flags SciPy
+    1.17's default build (`balanced_tree=True`, `compact_nodes=True`) segfaults on a cloud with
+    repeated points, inside JAX or not (`tests/test_icp_search.py`); either flag off builds."""
+    if (library or default_library()) == "pykdtree":
+        from pykdtree.kdtree import KDTree
+
+        return KDTree(points)
+    from scipy.spatial import cKDTree
+
+    return cKDTree(points, balanced_tree=False)
+
+
+def nearest_valid_rows(points, valid, k, library=None):
+    """The `k` nearest valid rows of every valid row of `points` `(n, 3)` (itself among them;
+    NumPy, on the host), `(n, k)` int32 row indices nearest first, `-1` where there are fewer
+    valid rows and in the rows not `valid`; one `host_tree` (`library`) of the valid rows."""
+    found = np.full((points.shape[0], k), -1, np.int32)
+    rows = np.flatnonzero(valid)
+    if rows.size == 0:
+        return found
+    count = min(k, rows.size)
+    cloud = np.ascontiguousarray(points[rows])
+    _, nearest = host_tree(cloud, library).query(cloud, k=count)
+    found[rows, :count] = rows[np.asarray(nearest, np.int64).reshape(rows.size, count)]
+    return found
+
+
+def _register(library, points, valid):
     digest = hashlib.blake2b(
         library.encode() + str(points.dtype).encode() + points.tobytes() + valid.tobytes(),
         digest_size=16,
@@ -128,7 +166,7 @@ def _register(library, points, valid, make):
             _TREES.move_to_end(tree_id)
             return np.int32(tree_id)
     kept = np.flatnonzero(valid)
-    tree = make(np.ascontiguousarray(points[kept])) if kept.size else None
+    tree = host_tree(np.ascontiguousarray(points[kept]), library) if kept.size else None
     with _LOCK:
         tree_id = _NEXT_ID[0] % 2**31
         _NEXT_ID[0] += 1
@@ -140,16 +178,8 @@ def _register(library, points, valid, make):
     return np.int32(tree_id)
 
 
-def _build_scipy(points, valid):
-    from scipy.spatial import cKDTree
-
-    return _register("scipy", points, valid, lambda p: cKDTree(p, balanced_tree=False))
-
-
-def _build_pykdtree(points, valid):
-    from pykdtree.kdtree import KDTree
-
-    return _register("pykdtree", points, valid, KDTree)
+# The host sides of `build_kdtree`, one per library (module-level, so that traces see one function).
+_BUILDERS = {library: functools.partial(_register, library) for library in _LIBRARIES}
 
 
 def _entry(tree_id):
@@ -230,7 +260,7 @@ def nearest_in_kdtree(index: KDTreeIndex, queries, radius=jnp.inf, *, mask=None,
     radius = jnp.asarray(radius, queries.dtype)
     kept = jnp.zeros((m,), bool)
     if previous is not None:
-        previous_d2 = jnp.sum((index.points[previous].astype(queries.dtype) - queries) ** 2, -1)
+        previous_d2 = squared_norms(index.points[previous].astype(queries.dtype) - queries)
         spacing = kdtree_spacing(index)[previous].astype(queries.dtype)
         slack = 4 * (1 + 16 * jnp.finfo(queries.dtype).eps)  # rounding of both sides
         kept = active & index.valid[previous] & (slack * previous_d2 <= spacing * spacing)
@@ -294,7 +324,7 @@ def track_in_kdtree(index: KDTreeIndex, queries, radius, warm: KDTreeWarmStart, 
     active = jnp.ones((m,), bool) if mask is None else jnp.asarray(mask, bool)
     active = active & jnp.all(jnp.isfinite(queries), axis=1)
     radius = jnp.asarray(radius, dtype)
-    moved = jnp.sqrt(jnp.sum((queries - warm.queries) ** 2, axis=1))
+    moved = jnp.sqrt(squared_norms(queries - warm.queries))
     scale = jnp.max(jnp.where(active[:, None], jnp.abs(queries), 0.0))
     slack = 16 * jnp.finfo(dtype).eps * scale
     kept = active & (moved + slack < warm.allowance.astype(dtype))
@@ -308,7 +338,7 @@ def track_in_kdtree(index: KDTreeIndex, queries, radius, warm: KDTreeWarmStart, 
     reference = jnp.where(kept[:, None], warm.queries.astype(dtype), queries)
     found = active & (nearest >= 0)
     slot = jnp.where(found, nearest, 0)
-    d2 = jnp.sum((index.points[slot].astype(dtype) - queries) ** 2, axis=1)
+    d2 = squared_norms(index.points[slot].astype(dtype) - queries)
     d2 = jnp.where(found & (d2 <= radius * radius), d2, jnp.inf)
     return slot, d2, KDTreeWarmStart(reference, nearest, allowance)
 
@@ -330,13 +360,20 @@ def _track_query(tree_id, queries, radius, active):
     count = min(2, kept.size)
     # Both libraries test `d < bound`: widen the bound by rounding (the allowance caps at 2r).
     bound = reach * (1 + 8 * np.finfo(queries.dtype).eps)
-    d, i = tree.query(np.ascontiguousarray(queries[rows], dtype), count, distance_upper_bound=bound)
+    every = rows.size == m  # (no gather or scatter of the rows: the usual case early on)
+    d, i = tree.query(
+        np.ascontiguousarray(queries if every else queries[rows], dtype), count,
+        distance_upper_bound=bound,
+    )  # fmt: skip
     d = np.asarray(d, np.float64).reshape(rows.size, count)
     i = np.asarray(i).reshape(rows.size, count)
     first = d[:, 0]
-    second = np.minimum(d[:, 1], reach) if count == 2 else np.full(rows.size, reach)
-    found = np.isfinite(first)
-    out[rows[found], 0] = kept[i[found, 0]]
-    out[rows[found], 1] = 0.5 * (second[found] - first[found])
-    out[rows[~found], 1] = float(radius)
+    second = np.minimum(d[:, 1], reach) if count == 2 else reach
+    found = first < np.inf
+    # (a miss reports the index len(kept) in both libraries: clipped, then masked)
+    slot = np.where(found, kept[np.minimum(i[:, 0], kept.size - 1)], -1)
+    allowance = np.where(found, 0.5 * (second - first), float(radius))
+    destination = slice(None) if every else rows
+    out[destination, 0] = slot
+    out[destination, 1] = allowance
     return out

@@ -41,6 +41,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from ._coordinates import squared_norms
+
 _MAX_INDEX_BITS = 24  # 2**24 points at most: the kd sort packs an 8-bit key with the position
 
 
@@ -269,7 +271,7 @@ def _pick_axis(values, axis):
 def _box_distance_squared(lo_a, hi_a, lo_b, hi_b):
     gap = jnp.maximum(jnp.maximum(lo_b - hi_a, lo_a - hi_b), 0.0)
     gap = jnp.where(jnp.isnan(gap), jnp.inf, gap)
-    return jnp.sum(gap * gap, axis=-1)
+    return squared_norms(gap)
 
 
 def _select_smallest(values, count):
@@ -465,8 +467,8 @@ def track(index: NeighborIndex, queries, previous, *, max_steps=16, mask=None):
 
     **Returns:** `(slot, squared_distance, steps)`."""
     candidate = index.representative[locate_leaf(index, queries)]
-    candidate_d2 = jnp.sum((index.points[candidate] - queries) ** 2, axis=-1)
-    previous_d2 = jnp.sum((index.points[previous] - queries) ** 2, axis=-1)
+    candidate_d2 = squared_norms(index.points[candidate] - queries)
+    previous_d2 = squared_norms(index.points[previous] - queries)
     start = jnp.where(candidate_d2 < previous_d2, candidate, previous)
     return descend(index, queries, start, max_steps=max_steps, mask=mask)
 
@@ -477,7 +479,7 @@ def descend(index: NeighborIndex, queries, slot, *, max_steps=64, mask=None):
 
     **Returns:** `(slot, squared_distance, steps)`."""
     active = jnp.ones(queries.shape[:-1], bool) if mask is None else mask
-    d2 = jnp.sum((index.points[slot] - queries) ** 2, axis=-1)
+    d2 = squared_norms(index.points[slot] - queries)
     d2 = jnp.where(jnp.isnan(d2), jnp.inf, d2)
 
     def step(state):

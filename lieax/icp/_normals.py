@@ -7,11 +7,9 @@ neighbourhood (the point and its `k - 1` nearest neighbours, optionally only tho
 two rows of $A - \lambda I$), and flipped to face `viewpoint`.
 
 The neighbourhoods (`neighbourhoods`) come from a k-d tree on the host on a CPU (through
-`host_call`: exact, and no search to compile; under `jit` and `vmap` too): pykdtree's where it is
-installed, else SciPy's `cKDTree` built with `balanced_tree=False`. (XLA runs host callbacks with
-the x86 flush-to-zero and denormals-are-zero flags set, MXCSR `0x9fe2`; under those flags SciPy
-1.17's default build, `balanced_tree=True` with `compact_nodes=True`, segfaults on a cloud with
-repeated points, inside JAX or not: `tests/test_icp_search.py`. Either flag off builds.) Elsewhere
+`host_call`: exact, and no search to compile; under `jit` and `vmap` too):
+`lieax.icp._host_kdtree.nearest_valid_rows`, pykdtree's tree where it is installed, else SciPy's
+`cKDTree` built so that it survives XLA's callbacks (see `_host_kdtree.host_tree`). Elsewhere
 they come from the fixed-shape neighbour graph of `lieax.icp._neighbors` (the graph's build
 compiles for seconds; 99.96% of the bunny's neighbourhoods exact). The covariances and
 eigenvectors are computed in JAX from those neighbourhoods (`normals_from_neighbourhoods`), so
@@ -22,7 +20,6 @@ import functools
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from .._host_call import host_call
 from . import _host_kdtree, _neighbors, _search
@@ -67,8 +64,10 @@ def neighbourhoods(points, mask, k, *, search="auto"):
         search = "kdtree" if _search.platform_of(points) == "cpu" else "graph"
     if search == "kdtree":
         _host_kdtree.check_on_host(points, "the points")
-        library = "pykdtree" if _host_kdtree.has_pykdtree() else "scipy"
-        return _host_neighbourhoods_call(points, mask, k=k, library=library)
+        library = _host_kdtree.default_library()
+        # (the neighbourhoods are piecewise constant in the points: no derivative to carry)
+        fixed = jax.lax.stop_gradient(points)
+        return _host_neighbourhoods_call(fixed, mask, k=k, library=library)
     return _graph_neighbourhoods(points, mask, k=k)
 
 
@@ -76,30 +75,8 @@ def neighbourhoods(points, mask, k, *, search="auto"):
 def _host_neighbourhoods_call(points, mask, *, k, library):
     valid = mask & jnp.all(jnp.isfinite(points), axis=1)
     result = jax.ShapeDtypeStruct((points.shape[0], k), jnp.int32)
-    host = functools.partial(_host_neighbourhoods, k=k, library=library)
+    host = functools.partial(_host_kdtree.nearest_valid_rows, k=k, library=library)
     return host_call(host, result, points, valid)
-
-
-def _host_neighbourhoods(points, valid, *, k, library):
-    """Host side: the k-d tree of the valid points (`library` `"pykdtree"` or `"scipy"`), queried
-    for each of them."""
-    found = np.full((points.shape[0], k), -1, np.int32)
-    rows = np.flatnonzero(valid)
-    if rows.size == 0:
-        return found
-    count = min(k, rows.size)
-    cloud = np.ascontiguousarray(points[rows])
-    if library == "pykdtree":
-        from pykdtree.kdtree import KDTree
-
-        tree = KDTree(cloud)
-    else:  # (the default balanced build crashes in XLA's callbacks, see the module docstring)
-        from scipy.spatial import cKDTree
-
-        tree = cKDTree(cloud, balanced_tree=False)
-    _, nearest = tree.query(cloud, k=count)
-    found[rows, :count] = rows[np.asarray(nearest, np.int64).reshape(rows.size, count)]
-    return found
 
 
 @functools.partial(jax.jit, static_argnames=("k",))

@@ -27,6 +27,7 @@ import jax.numpy as jnp
 
 from . import _grid, _host_kdtree, _neighbors
 from ._checks import check_parameter
+from ._coordinates import squared_norms
 
 SEARCHES = ("auto", "graph", "grid", "kdtree", "brute")
 BRUTE_MAX_TARGET = 16384
@@ -139,7 +140,7 @@ def match(index, queries, radius, mask=None, previous=None):
         raise TypeError("match needs an exact index; use nearest for search='graph'.")
     found = d2 < jnp.inf
     gap = jnp.where(found[:, None], queries - index.points[slot].astype(queries.dtype), 0.0)
-    return slot, jnp.where(found, jnp.sum(gap * gap, axis=-1), jnp.inf)
+    return slot, jnp.where(found, squared_norms(gap), jnp.inf)
 
 
 def _brute_force(index: BruteIndex, queries, radius, mask):

@@ -23,7 +23,7 @@ from .._linalg import skew
 from ..factorgraph._factors import Factor
 from ..groups import _so3 as so3
 from ..groups._so3 import SO3
-from ._preintegration import ImuError, ImuParams, Preintegrated, predict
+from ._preintegration import ImuError, ImuParams, Preintegrated, predict, residual_coordinates
 
 
 def imu_residual(pose_i, velocity_i, pose_j, velocity_j, bias_i, pim: Preintegrated, params):
@@ -113,28 +113,41 @@ def imu_factor(
     - `pose_i`, `velocity_i`, `pose_j`, `velocity_j`, `bias_i`: `var[index]` references, index
       arrays `(m,)` (poses an `SE3` `Var`, velocities `(n, 3)`, biases `(n, 6)`).
 
-    **Returns:** a `Factor` with information $\Sigma_r^{-1}$, $\Sigma_r$ each interval's
-    `residual_covariance()`, and the closed-form blocks of `imu_jacobians` (autodiff of
-    `imu_residual` with `params.omega_coriolis`).
+    **Returns:** a `Factor` with square-root information $L^{-1}$, $L L^\top = \Sigma_r$ the
+    Cholesky factorization of each interval's `residual_covariance()` (`_sqrt_information`),
+    and the closed-form blocks of `imu_jacobians` (autodiff of `imu_residual` with
+    `params.omega_coriolis`).
     Raises `ImuError` when a `pim` is invalid or its covariance is not positive definite.
     """
     _check_intervals(pim)
-    covariance = np.asarray(_residual_covariance(pim))
+    sqrt_information = _sqrt_information(
+        np.asarray(_residual_covariance(pim)), "IMU factor: the 9x9"
+    )
+    return Factor(
+        lambda xi, vi, xj, vj, bi, data: imu_residual(xi, vi, xj, vj, bi, data, params),
+        (pose_i, velocity_i, pose_j, velocity_j, bias_i),
+        pim,
+        sqrt_information=sqrt_information,
+        jacobian_fn=None
+        if getattr(params, "omega_coriolis", None) is not None
+        else lambda xi, vi, xj, vj, bi, data: imu_jacobians(xi, vi, xj, vj, bi, data, params),
+        name="imu",
+    )
+
+
+def _sqrt_information(covariance, what):
+    r"""$L^{-1}$, `(m, n, n)`, for $L L^\top = \tfrac12(\Sigma + \Sigma^\top)$ the Cholesky
+    factorization of each covariance (`(m, n, n)`): the whitening $\|L^{-1} r\|^2 =
+    r^\top\Sigma^{-1} r$ without forming $\Sigma^{-1}$ (its condition number is $\Sigma$'s,
+    $L^{-1}$'s only its square root). `ImuError` naming `what` unless every one is finite and
+    positive definite."""
+    covariance = 0.5 * (covariance + np.swapaxes(covariance, -1, -2))
     try:
-        information = np.linalg.inv(covariance)
-        information = 0.5 * (information + np.swapaxes(information, 1, 2))
-        return Factor(
-            lambda xi, vi, xj, vj, bi, data: imu_residual(xi, vi, xj, vj, bi, data, params),
-            (pose_i, velocity_i, pose_j, velocity_j, bias_i),
-            pim,
-            information=information,
-            jacobian_fn=None
-            if getattr(params, "omega_coriolis", None) is not None
-            else lambda xi, vi, xj, vj, bi, data: imu_jacobians(xi, vi, xj, vj, bi, data, params),
-            name="imu",
-        )
-    except (np.linalg.LinAlgError, ValueError) as error:
-        raise ImuError(f"IMU factor: the preintegrated covariance is singular ({error}).") from None
+        if not np.all(np.isfinite(covariance)):
+            raise np.linalg.LinAlgError("non-finite entries")
+        return np.linalg.inv(np.linalg.cholesky(covariance))
+    except np.linalg.LinAlgError as error:
+        raise ImuError(f"{what} covariance is not positive definite ({error}).") from None
 
 
 def _check_intervals(pim):
@@ -189,18 +202,11 @@ def combined_imu_jacobians(
 @jax.jit
 def _combined_residual_covariance(pim: Preintegrated, covariance):
     r"""The covariance of `combined_imu_residual`, `(*batch, 15, 15)`: `preintegrate_combined`'s
-    15×15 `covariance` of $(\theta, \Delta p, \Delta v, b_a, b_g)$ pushed through the residual's
-    Jacobian at zero residual, $M \Sigma M^\top$ with
-    $M = \mathrm{diag}(J_r(\theta), \Delta R^\top, \Delta R^\top, I_6)$: the navigation block
-    is `Preintegrated.residual_covariance`'s, and the bias coordinates, the random walk's change
-    of the biases over the interval, are the residual's $b_j - b_i$ as they are. GTSAM 4.3's `PreintegratedCombinedMeasurements::residualCovariance()`
-    (its `CombinedImuFactor`'s noise model), whose $M$ ends in $-I_6$ for its $b_i - b_j$."""
-    theta = pim.theta
-    rotation_t = jnp.swapaxes(so3.as_matrix(so3.exp(theta)), -1, -2)
-    m = jnp.zeros((*theta.shape[:-1], 15, 15), theta.dtype)
-    m = m.at[..., 0:3, 0:3].set(so3.right_jacobian(theta))
-    m = m.at[..., 3:6, 3:6].set(rotation_t).at[..., 6:9, 6:9].set(rotation_t)
-    m = m.at[..., 9:, 9:].set(jnp.eye(6, dtype=theta.dtype))
+    15×15 `covariance` of $(\theta, \Delta p, \Delta v, b_a, b_g)$ as $M \Sigma M^\top$, $M$ =
+    `residual_coordinates(theta, bias_size=6)` (GTSAM 4.3's
+    `PreintegratedCombinedMeasurements::residualCovariance()`, its `CombinedImuFactor`'s noise
+    model, up to the sign of the bias rows)."""
+    m = residual_coordinates(pim.theta, bias_size=6)
     return m @ covariance @ jnp.swapaxes(m, -1, -2)
 
 
@@ -231,7 +237,7 @@ def combined_imu_factor(
 
     **Returns:** a `Factor` with square-root information $L^{-1}$, $L L^\top = \Sigma_r$ the
     Cholesky factorization of the residual's covariance $\Sigma_r = M \Sigma M^\top$
-    (`_combined_residual_covariance`), and the closed-form blocks of
+    (`_combined_residual_covariance`, `_sqrt_information`), and the closed-form blocks of
     `combined_imu_jacobians` (autodiff of `combined_imu_residual` with `params.omega_coriolis`).
     Raises `ImuError` when a `pim` is invalid, `covariance` is not `(m, 15, 15)`, or it is not
     positive definite (a zero bias random walk, for one).
@@ -242,16 +248,10 @@ def combined_imu_factor(
             f"covariance must be (m, 15, 15) = ({count}, 15, 15) (preintegrate_combined's), got "
             f"{np.shape(covariance)}."
         )
-    residual_covariance = np.asarray(_combined_residual_covariance(pim, jnp.asarray(covariance)))
-    residual_covariance = 0.5 * (residual_covariance + np.swapaxes(residual_covariance, 1, 2))
-    try:
-        if not np.all(np.isfinite(residual_covariance)):
-            raise np.linalg.LinAlgError("non-finite entries")
-        sqrt_information = np.linalg.inv(np.linalg.cholesky(residual_covariance))
-    except np.linalg.LinAlgError as error:
-        raise ImuError(
-            f"combined IMU factor: the 15x15 covariance is not positive definite ({error})."
-        ) from None
+    sqrt_information = _sqrt_information(
+        np.asarray(_combined_residual_covariance(pim, jnp.asarray(covariance))),
+        "combined IMU factor: the 15x15",
+    )
     coriolis = getattr(params, "omega_coriolis", None) is not None
     return Factor(
         lambda xi, vi, xj, vj, bi, bj, data: combined_imu_residual(

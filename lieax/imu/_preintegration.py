@@ -80,6 +80,28 @@ class ImuParams(NamedTuple):
         )
 
 
+def residual_coordinates(theta, bias_size=0):
+    r"""The Jacobian $M$ of the IMU residual at zero residual with respect to the preintegrated
+    $(\theta, \Delta p, \Delta v)$ and, for `bias_size=6`, the biases' change over the interval,
+    `(*batch, 9 + bias_size, 9 + bias_size)`:
+    $M = \mathrm{diag}(J_r(\theta), \Delta R^\top, \Delta R^\top, I_{bias\_size})$,
+    $\Delta R = \mathrm{Exp}(\theta)$. The rotation error is
+    $\mathrm{Log}(\mathrm{Exp}(\theta)^{-1}\mathrm{Exp}(\theta + \delta)) \approx
+    J_r(\theta)\delta$; position and velocity errors are in frame $j$; the bias coordinates are
+    the residual's $b_j - b_i$ as they are. A covariance $\Sigma$ of those coordinates maps to the
+    residual's as $M \Sigma M^\top$: GTSAM 4.3's `PreintegratedImuMeasurements::residualCovariance`
+    (9×9) and `PreintegratedCombinedMeasurements::residualCovariance` (15×15, whose $M$ ends in
+    $-I_6$ for its $b_i - b_j$, so its navigation-bias cross blocks have the opposite sign)."""
+    rotation_t = jnp.swapaxes(so3.as_matrix(so3.exp(theta)), -1, -2)
+    size = 9 + bias_size
+    m = jnp.zeros((*theta.shape[:-1], size, size), theta.dtype)
+    m = m.at[..., 0:3, 0:3].set(so3.right_jacobian(theta))
+    m = m.at[..., 3:6, 3:6].set(rotation_t).at[..., 6:9, 6:9].set(rotation_t)
+    if bias_size:
+        m = m.at[..., 9:, 9:].set(jnp.eye(bias_size, dtype=theta.dtype))
+    return m
+
+
 class Preintegrated(NamedTuple):
     r"""Preintegrated IMU measurements of one interval (or a batch of them), a pytree.
 
@@ -132,22 +154,10 @@ class Preintegrated(NamedTuple):
 
     def residual_covariance(self):
         r"""The covariance of the IMU factor's residual (`lieax.imu.imu_residual`), `(*batch, 9, 9)`:
-        `covariance` pushed through the residual's Jacobian at zero residual,
-        $M \Sigma M^\top$ with $M = \mathrm{diag}(J_r(\theta), \Delta R^\top, \Delta R^\top)$
-        (the rotation error is $\mathrm{Log}(\mathrm{Exp}(\theta)^{-1}\mathrm{Exp}(\theta + \delta))
-        \approx J_r(\theta)\delta$; position and velocity errors are in frame $j$). GTSAM 4.3's
-        `residualCovariance()`, which its `ImuFactor` whitens with."""
-        rotation_t = jnp.swapaxes(so3.as_matrix(so3.exp(self.theta)), -1, -2)
-        jr = so3.right_jacobian(self.theta)
-        zero = jnp.zeros_like(jr)
-        m = jnp.concatenate(
-            [
-                jnp.concatenate([jr, zero, zero], axis=-1),
-                jnp.concatenate([zero, rotation_t, zero], axis=-1),
-                jnp.concatenate([zero, zero, rotation_t], axis=-1),
-            ],
-            axis=-2,
-        )
+        `covariance` pushed through the residual's Jacobian at zero residual, $M \Sigma M^\top$
+        with $M$ = `residual_coordinates(theta)` (GTSAM 4.3's `residualCovariance()`, which its
+        `ImuFactor` whitens with)."""
+        m = residual_coordinates(self.theta)
         return m @ self.covariance @ jnp.swapaxes(m, -1, -2)
 
     def bias_corrected(self, bias):
