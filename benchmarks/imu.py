@@ -7,7 +7,9 @@ Table 1: preintegrating all intervals (`jit(vmap(preintegrate))`, the logarithmi
 `preintegrate_associative`, GTSAM's loop), and the largest relative differences: lieax
 sequential vs GTSAM, associative vs sequential. Table 2: the smoother, solved from the same
 start by lieax (warm: structure cached, compiled) and GTSAM (default parameters), iterations and
-final costs ($\tfrac12\sum\|r\|^2_\Sigma$, GTSAM's `graph.error`). One pinned core, one thread
+final costs ($\tfrac12\sum\|r\|^2_\Sigma$, GTSAM's `graph.error`). Table 3: lieax's first call,
+graph construction and the first solve less a warm one, in wall and CPU seconds, split into XLA
+compilation (JAX's `backend_compile_duration` events) and the rest. One pinned core, one thread
 each (as `benchmarks/pgo.py`); medians over interleaved rounds in one process.
 
     python benchmarks/imu.py [--keyframes 1001] [--rounds 3]
@@ -174,13 +176,12 @@ def main(argv=None):
         ],
     ))  # fmt: skip
 
-    start = time.perf_counter()
-    graph, _ = example.build_graph(data, sequential, params)
-    build = time.perf_counter() - start
-    start, compiled = time.perf_counter(), compile_seconds()
-    ours = jax.block_until_ready(graph.solve(max_iterations=100))
-    first_call = time.perf_counter() - start
-    compiled = compile_seconds() - compiled
+    with FirstCall() as construction:
+        graph, _ = example.build_graph(data, sequential, params)
+    with FirstCall() as first_solve:
+        ours = jax.block_until_ready(graph.solve(max_iterations=100))
+    with FirstCall() as warm_solve:
+        jax.block_until_ready(graph.solve(max_iterations=100))
     g_graph, g_initial = gtsam_problem(example, data, pims)
     initial_gtsam = g_graph.error(g_initial)
     gtsam_cost, gtsam_iterations = run_gtsam(g_graph, g_initial)
@@ -210,26 +211,60 @@ def main(argv=None):
         f"lieax per solve: {int(ours.linear_solves)} linear solves of "
         f"{format_seconds(parts['linear solve'].median)} (host Cholesky), "
         f"{int(ours.iterations) + 1} linearizations of {format_seconds(parts['linearize'].median)}"
-        f"\nlieax first call: graph construction {format_seconds(build)}, first solve "
-        f"(analysis, trace, compile) {format_seconds(first_call)} of which XLA compilation "
-        f"{format_seconds(compiled)}"
     )
+    print(
+        f"\nfirst call (warm solve {format_seconds(warm_solve.wall)} subtracted from the first)\n"
+    )
+    print(markdown_table(
+        ["first call", "wall", "CPU (this process)", "XLA compile", "rest", "largest compilations"],
+        [row.row(name, minus) for name, row, minus in (
+            ("graph construction (`build_graph`)", construction, None),
+            ("first `solve` (analysis, trace, compile)", first_solve, warm_solve),
+        )],
+    ))  # fmt: skip
 
 
-_COMPILE_SECONDS = [0.0]
+_COMPILES = []  # (function name, seconds) of every XLA compilation in this process, in order
 
 
-def _record(name, seconds, **_):
-    if name == "/jax/core/compile/backend_compile_duration":
-        _COMPILE_SECONDS[0] += seconds
+def _record(name, seconds, fun_name="?", **_):
+    if name == "/jax/core/compile/backend_compile_duration":  # these events never nest
+        _COMPILES.append((fun_name, seconds))
 
 
 jax.monitoring.register_event_duration_secs_listener(_record)
 
 
-def compile_seconds():
-    """Seconds spent in XLA compilation in this process so far."""
-    return _COMPILE_SECONDS[0]
+class FirstCall:
+    """A timed block: wall and CPU seconds (this process's, so other processes' load does not
+    count), and the XLA compilations in it (JAX's `backend_compile_duration` events)."""
+
+    def __enter__(self):
+        self.start, self.start_cpu, self.first = (
+            time.perf_counter(),
+            time.process_time(),
+            len(_COMPILES),
+        )
+        return self
+
+    def __exit__(self, *_):
+        self.wall = time.perf_counter() - self.start
+        self.cpu = time.process_time() - self.start_cpu
+        self.compiles = _COMPILES[self.first :]
+        self.compile = sum(seconds for _, seconds in self.compiles)
+
+    def row(self, name, minus=None):
+        """A table row: wall and CPU less those of `minus` (a warm call), compile, the rest, and
+        the three largest compilations by name."""
+        wall = self.wall - (minus.wall if minus else 0.0)
+        cpu = self.cpu - (minus.cpu if minus else 0.0)
+        by_name = {}
+        for fun, seconds in self.compiles:
+            by_name[fun] = by_name.get(fun, 0.0) + seconds
+        top = sorted(by_name, key=by_name.get, reverse=True)[:3]
+        largest = ", ".join(f"{fun} {by_name[fun]:.2f} s" for fun in top)
+        return [name, format_seconds(wall), format_seconds(cpu), format_seconds(self.compile),
+                format_seconds(wall - self.compile), f"{len(self.compiles)}: {largest}"]  # fmt: skip
 
 
 def solve_parts(graph):

@@ -488,6 +488,62 @@ def test_bad_input_errors():
         graph.solve(values=[start[:3]])
 
 
+def test_covariance_whitens_as_its_inverse_information():
+    """`covariance=Σ` whitens as `information=Σ⁻¹`: `‖R r‖² = rᵀ Σ⁻¹ r` per instance, and a
+    shared diagonal covariance gives `diag(1/σ)`; two noise options, or a covariance that is not
+    symmetric positive definite, are refused naming the factor kind and the instance."""
+    _, i, j, measured, _, start = chain(n=5)
+    poses = Var(start, fixed=[0], name="poses")
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(len(i), 3, 3))
+    covariance = a @ np.swapaxes(a, 1, 2) + 0.1 * np.eye(3)
+    by_covariance = Factor(between, (poses[i], poses[j]), measured, covariance=covariance)
+    by_information = Factor(
+        between, (poses[i], poses[j]), measured, information=np.linalg.inv(covariance)
+    )
+    residuals = rng.normal(size=(len(i), 3))
+
+    def whitened_norms(factor):
+        return np.linalg.norm(np.einsum("mab,mb->ma", factor.sqrt_information, residuals), axis=1)
+
+    expected = np.sqrt(np.einsum("ma,mab,mb->m", residuals, np.linalg.inv(covariance), residuals))
+    np.testing.assert_allclose(whitened_norms(by_covariance), expected, rtol=1e-10)
+    np.testing.assert_allclose(whitened_norms(by_information), expected, rtol=1e-10)
+    sigmas = np.array([0.1, 0.2, 0.05])
+    shared = Factor(between, (poses[i], poses[j]), measured, covariance=np.diag(sigmas**2))
+    np.testing.assert_allclose(shared.sqrt_information, np.diag(1 / sigmas), rtol=1e-12)
+    with pytest.raises(ValueError, match="not information and covariance"):
+        Factor(between, (poses[i], poses[j]), measured, information=np.eye(3), covariance=np.eye(3))
+    bad = covariance.copy()
+    bad[4] = -np.eye(3)
+    with pytest.raises(ValueError, match=r"'odometry': covariance 4 is not symmetric positive"):
+        Factor(between, (poses[i], poses[j]), measured, covariance=bad, name="odometry")
+    bad[2, 0, 1] += 1.0
+    with pytest.raises(ValueError, match=r"'odometry': covariance 2 is not symmetric positive"):
+        Factor(between, (poses[i], poses[j]), measured, covariance=bad, name="odometry")
+
+
+def test_connected_components_match_scipy():
+    """The NumPy components of the gauge check label nodes as SciPy's csgraph does: random
+    graphs from empty to connected, a long path in reverse order, isolated nodes."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components as scipy_components
+
+    from lieax.factorgraph._structure import connected_components
+
+    rng = np.random.default_rng(11)
+    cases = [(1, np.zeros(0, int), np.zeros(0, int)), (500, np.arange(499)[::-1], None)]
+    cases += [(n, rng.integers(0, n, m), rng.integers(0, n, m)) for n, m in
+              [(7, 0), (50, 20), (300, 200), (300, 600), (2000, 1500)]]  # fmt: skip
+    for n, rows, cols in cases:
+        cols = rows + 1 if cols is None else cols
+        count, labels = connected_components(n, rows, cols)
+        adjacency = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n))
+        expected_count, expected = scipy_components(adjacency, directed=False)
+        assert count == expected_count
+        np.testing.assert_array_equal(labels, expected)
+
+
 def test_nonfinite_start_raises_or_reports(gps_graph):
     graph, _, (_, _, _, _, start) = gps_graph
     params = np.array(start.parameters())

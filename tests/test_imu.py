@@ -430,6 +430,80 @@ def test_factor_jacobians_batched_and_reverse():
         imu.combined_imu_jacobians(*one_args, one_pim, rotating)
 
 
+FUSED_ANGLES = (0.0, 1e-9, 1e-4, 0.3, 0.5 - 1e-9, 0.5 + 1e-9, 1.0, 2.5, np.pi - 1e-4, np.pi - 1e-6)
+
+
+def fused_local(omega, delta):
+    r"""The fused SO3 kernels at `omega` moved by `delta` = $(\delta_e, \delta_l)$, flattened: the
+    local coordinates $\mathrm{Log}(q(\omega)^{-1} q(\omega + \delta_e))$ of
+    `exp_and_right_jacobian`'s quaternion and its $J_r$, then `log_and_right_jacobian_inverse`
+    at $\mathrm{Exp}(\omega) \oplus \delta_l$ (its $\omega$ and $J_r^{-1}$)."""
+    from lieax.groups import _so3 as so3
+
+    q0 = so3.exp(omega)
+    q, jr = so3.exp_and_right_jacobian(omega + delta[:3])
+    local = so3.log(so3.compose(so3.inverse(q0), q))
+    log, jr_inv = so3.log_and_right_jacobian_inverse(so3.compose(q0, so3.exp(delta[3:])))
+    return jnp.concatenate([local, jr.ravel(), log, jr_inv.ravel()])
+
+
+@jax.jit
+def fused_checks(omegas, eps):
+    """For each row of `omegas` (one compilation): the fused kernels' values and the reference
+    kernels' (`exp`, `right_jacobian`, `log` and `right_jacobian_inverse` of `Exp(ω)` and of
+    `-Exp(ω)`, w < 0), and the forward-mode, reverse-mode and central-difference Jacobians of
+    `fused_local` in `delta` at zero."""
+    zero, steps = jnp.zeros(6), eps * jnp.eye(6)
+
+    def one(omega):
+        rotation, jr = SO3.exp_and_right_jacobian(omega)
+        flipped = SO3(-rotation.wxyz)
+        fused = (rotation.wxyz, jr, *rotation.log_and_right_jacobian_inverse())
+        fused = (*fused, *flipped.log_and_right_jacobian_inverse())
+        reference = (SO3.exp(omega).wxyz, SO3.right_jacobian(omega))
+        for r in (rotation, flipped):
+            reference = (*reference, r.log(), SO3.right_jacobian_inverse(r.log()))
+        differences = jax.vmap(lambda d: fused_local(omega, d))(jnp.concatenate([steps, -steps]))
+        numeric = (differences[:6] - differences[6:]).T / (2 * eps)
+        forward = jax.jacfwd(fused_local, argnums=1)(omega, zero)
+        reverse = jax.jacrev(fused_local, argnums=1)(omega, zero)
+        return fused, reference, (forward, reverse, numeric)
+
+    return jax.vmap(one)(omegas)
+
+
+def test_fused_so3_kernels_values_and_derivatives():
+    r"""`SO3.exp_and_right_jacobian` and `SO3.log_and_right_jacobian_inverse` equal `exp`,
+    `right_jacobian`, `log` and `right_jacobian_inverse` (series elsewhere) at the identity,
+    1e-9 and 1e-4 from it, on both sides of their series switch ($\theta = 0.5$), at random
+    angles and near $\pi$ (for $q$ and $-q$), vmapped and unbatched; their forward and reverse
+    derivatives equal central differences in local coordinates (float64)."""
+    rng = np.random.default_rng(3)
+    axes = rng.normal(size=(len(FUSED_ANGLES), 3))
+    omegas = np.array(FUSED_ANGLES)[:, None] * axes / np.linalg.norm(axes, axis=1)[:, None]
+    fused, reference, (forward, reverse, numeric) = fused_checks(jnp.asarray(omegas), 1e-7)
+    for name, a, b, atol in zip(
+        ("q", "J_r", "log", "J_r^-1", "log(-q)", "J_r^-1(-q)"), fused, reference,
+        (1e-15, 3e-16, 1e-15, 5e-16, 1e-15, 5e-16),
+    ):  # fmt: skip
+        np.testing.assert_allclose(a, b, rtol=0, atol=atol, err_msg=name)
+    single_rotation, single_jr = SO3.exp_and_right_jacobian(jnp.asarray(omegas[3]))
+    np.testing.assert_allclose(single_rotation.wxyz, fused[0][3], rtol=0, atol=1e-16)
+    np.testing.assert_allclose(single_jr, fused[1][3], rtol=0, atol=1e-16)
+    np.testing.assert_allclose(fused[1][0], np.eye(3), rtol=0, atol=0)
+    assert np.all(np.isfinite(forward)) and np.all(np.isfinite(reverse))
+    np.testing.assert_allclose(forward, numeric, rtol=0, atol=2e-7)
+    np.testing.assert_allclose(reverse, forward, rtol=0, atol=1e-13)
+    # at zero (the Taylor branch): d J_r = -½[dω]×, d J_r^{-1} = ½[dω]×
+    x = skew_of([1.0, 0.0, 0.0]).ravel()
+    np.testing.assert_allclose(forward[0, 3:12, 0], -0.5 * x, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(forward[0, 15:24, 3], 0.5 * x, rtol=0, atol=1e-15)
+
+
+def skew_of(v):
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
 def test_bias_random_walk_blocks():
     """The bias random-walk factor's closed-form blocks are $-I$ and $I$ of $b_j - b_i$, as its
     autodiff Jacobian."""

@@ -3,9 +3,10 @@ the notebooks cannot rot (STYLE point 10); the committed notebooks carry their o
 
 Each notebook runs in a fresh kernel of this interpreter (a kernelspec written to a temporary
 folder, so a `python3` kernel installed elsewhere on the machine is never picked up), with
-`LIEAX_NOTEBOOK_SMALL=1`, which the notebooks read to shrink their sizes, and with this
-process's environment otherwise (`LIEAX_DATA_DIR` when it is set: the notebooks read the shared
-data then, and generate data without it). A notebook must finish within
+`LIEAX_NOTEBOOK_SMALL=1`, which the notebooks read to shrink their sizes, and with
+`LIEAX_DATA_DIR` empty, so that they run on the data they generate (as on a machine without the
+shared data; their committed outputs show the shared data, and the tests of `lieax.io`, `graph`
+and `icp` read it), and with this process's environment otherwise. A notebook must finish within
 `LIEAX_NOTEBOOK_TIME_LIMIT` seconds (default 120: the aim is under a minute on a 2-core CI
 machine; the limit leaves room for a loaded one). Errors raised while figures are drawn (after a
 cell has run) do not stop the execution, so the outputs are searched for errors as well.
@@ -48,7 +49,7 @@ def kernel_specs(tmp_path_factory):
         "argv": [sys.executable, "-m", "ipykernel_launcher", "-f", "{connection_file}"],
         "display_name": "lieax tests (this interpreter)",
         "language": "python",
-        "env": {"LIEAX_NOTEBOOK_SMALL": "1"},
+        "env": {"LIEAX_NOTEBOOK_SMALL": "1", "LIEAX_DATA_DIR": ""},
     }
     (folder / KERNEL / "kernel.json").write_text(json.dumps(spec))
     return folder

@@ -32,8 +32,11 @@ class Factor:
       pytree of them).
     - `args`: one `var[index]` per argument of `residual`, `index` an integer array `(m,)`.
     - `data`: a pytree of arrays with leading axis `m` (or `None`).
-    - `sqrt_information`: $R$, `(k, k)` shared or `(m, k, k)`; or `information` $\Omega$
-      (its Cholesky factor is taken). Default identity.
+    - `sqrt_information`: $R$, `(k, k)` shared or `(m, k, k)`; or `information` $\Omega$, or
+      `covariance` $\Sigma = \Omega^{-1}$ (GTSAM's `noiseModel::Gaussian::Information` and
+      `Covariance`; converted by `square_root_information`, `ValueError` naming the factor
+      kind and the first matrix that is not symmetric positive definite). At most one of the
+      three; default identity.
     - `loss`: a robust loss (`lieax.lstsq.Huber`, `Cauchy`, ...) or `None`.
     - `jacobian_fn`: optional `jacobian_fn(*xs, data) -> (residual, (J_a, ...))`, blocks
       `(k, tangent_dim)` in right-local coordinates, for one instance.
@@ -48,6 +51,7 @@ class Factor:
         *,
         sqrt_information=None,
         information=None,
+        covariance=None,
         loss=None,
         jacobian_fn=None,
         name=None,
@@ -67,13 +71,30 @@ class Factor:
             )
         self.count = counts.pop()
         self.data = data
-        if sqrt_information is not None and information is not None:
-            raise ValueError(f"Factor {name!r}: give sqrt_information or information, not both.")
-        if information is not None:
-            sqrt_information = _sqrt_information(information, name)
+        given = [
+            option
+            for option, value in (
+                ("sqrt_information", sqrt_information),
+                ("information", information),
+                ("covariance", covariance),
+            )
+            if value is not None
+        ]
+        if len(given) > 1:
+            raise ValueError(
+                f"Factor {name!r}: give one of sqrt_information, information and covariance, "
+                f"not {' and '.join(given)}."
+            )
+        if information is not None or covariance is not None:
+            sqrt_information = square_root_information(
+                information if covariance is None else covariance,
+                f"Factor {name!r}: {given[0]}",
+                covariance=covariance is not None,
+            )
         self.sqrt_information = sqrt_information
         self.loss = loss
         self.jacobian_fn = jacobian_fn
+        self.residual_size = None  # k, set when a `FactorGraph` checks the kind
 
     @classmethod
     def make(cls, residual, args, data=None, **options):
@@ -97,19 +118,47 @@ def _index_array(index, name, position):
     return index.astype(np.int64)
 
 
-def _sqrt_information(information, name):
-    r"""$R$ upper triangular with $R^\top R = \Omega$ (`ValueError` unless positive definite)."""
-    information = np.asarray(information, dtype=np.float64)
-    batch = information.reshape(-1, *information.shape[-2:])
+def square_root_information(matrix, what="information matrix", *, covariance=False):
+    r"""The square-root information $R$, $R^\top R = \Omega$, of a batch `(..., d, d)` of
+    information matrices $\Omega$ or, with `covariance=True`, of covariances
+    $\Sigma = \Omega^{-1}$ (numpy float64; the one conversion of `Factor`, `lieax.graph` and the
+    IMU factors).
+
+    - information: $R = L^\top$, upper triangular, for the Cholesky factorization
+      $\Omega = L L^\top$ (GTSAM's `noiseModel::Gaussian::Information`).
+    - covariance: $R = L^{-1}$, lower triangular, for $\Sigma = L L^\top$:
+      $R^\top R = L^{-\top} L^{-1} = \Sigma^{-1}$ without forming $\Sigma^{-1}$ ($R$'s
+      condition number is the square root of $\Sigma$'s; GTSAM's
+      `noiseModel::Gaussian::Covariance` inverts $\Sigma$ first). Either way
+      $\|R r\|^2 = r^\top \Omega r$.
+
+    Each matrix must be finite, symmetric to $10^{-9}$ of its largest entry (its symmetric part
+    is factored) and positive definite; else `ValueError`: "`what` `i` is not symmetric
+    positive definite (eigenvalues ...)", `i` the first bad one in the flattened batch.
+    """
+    matrix = np.asarray(matrix, dtype=np.float64)
+    if matrix.ndim < 2 or matrix.shape[-1] != matrix.shape[-2]:
+        raise ValueError(f"{what} must have shape (..., d, d), got {matrix.shape}.")
+    batch = matrix.reshape(-1, *matrix.shape[-2:])
+    transposed = np.swapaxes(batch, 1, 2)
+    finite = np.all(np.isfinite(batch), axis=(1, 2))
+    scale = np.max(np.abs(batch), axis=(1, 2), initial=0.0)
+    symmetric = finite & np.all(np.abs(batch - transposed) <= 1e-9 * scale[:, None, None], (1, 2))
+    batch = 0.5 * (batch + transposed)
     try:
-        if not np.all(np.isfinite(batch)) or not np.allclose(batch, np.swapaxes(batch, 1, 2)):
+        if not np.all(symmetric):
             raise np.linalg.LinAlgError
-        lower = np.linalg.cholesky(batch)
+        lower = np.linalg.cholesky(batch)  # raises unless every matrix is positive definite
     except np.linalg.LinAlgError:
+        eigenvalues = np.linalg.eigvalsh(np.where(finite[:, None, None], batch, 0.0))
+        bad = ~symmetric | (eigenvalues[:, 0] <= 0)
+        first = int(np.argmax(bad))
         raise ValueError(
-            f"Factor {name!r}: information is not symmetric positive definite."
+            f"{what} {first} is not symmetric positive definite (eigenvalues "
+            f"{np.array2string(eigenvalues[first], precision=3)})."
         ) from None
-    return np.swapaxes(lower, 1, 2).reshape(information.shape)
+    root = np.linalg.inv(lower) if covariance else np.swapaxes(lower, 1, 2)
+    return root.reshape(matrix.shape)
 
 
 # forward mode for the blocks while the arguments' tangents have at most this many coordinates
@@ -129,8 +178,10 @@ def linearize_one(factor, xs, data):
         value, blocks = factor.jacobian_fn(*xs, *extra)
         return value, tuple(blocks)
     argnums = tuple(range(len(xs)))
-    shapes = jax.tree_util.tree_leaves(jax.eval_shape(factor.residual, *xs, *extra))
-    residual_size = sum(math.prod(leaf.shape) for leaf in shapes)
+    residual_size = factor.residual_size
+    if residual_size is None:
+        shapes = jax.tree_util.tree_leaves(jax.eval_shape(factor.residual, *xs, *extra))
+        residual_size = sum(math.prod(leaf.shape) for leaf in shapes)
     tangent_size = sum(v.tangent_dim for v in factor.vars)
     mode = "fwd" if tangent_size <= _FORWARD_RATIO * residual_size else "rev"
     value, jac = value_and_jacobian(factor.residual, argnums, mode=mode)(*xs, *extra)

@@ -17,9 +17,9 @@ from ..autodiff._tangents import check_retraction, manifold_leaves
 from ..lstsq import NonFiniteStartError, SolveError, Status
 from ..lstsq._solution import is_failure
 from ..retractions import exp
-from ._factors import Factor, linearize_one
+from ._factors import Factor, linearize_one, residual_one
 from ._implicit import solve_implicit
-from ._solve import make_loop
+from ._solve import PARAMETERS, make_loop
 from ._structure import analyze, digest, schur_layout
 from ._variables import Var, instance
 
@@ -79,7 +79,8 @@ class FactorGraph:
                     raise ValueError(f"factor kind {f.name!r} uses a Var not in variables.")
         self.factors = factors
         self.variables = variables
-        self.residual_dims = tuple(_check_factor(f) for f in factors)
+        shapes = {}  # kinds with one residual and the same argument shapes are traced once
+        self.residual_dims = tuple(_check_factor(f, shapes) for f in factors)
         key = (
             tuple(
                 (jax.tree_util.tree_structure(v.value), v.leaf_dims, v.count, digest(v.fixed))
@@ -101,7 +102,7 @@ class FactorGraph:
                 _CACHE.pop(next(iter(_CACHE)))
             _CACHE[key] = cached
         self.layout, self.plans, self._schur, self._loops = cached
-        self._linearize = self._implicit = self._default_data = None
+        self._cost = self._linearize = self._implicit = self._default_data = None
         # what `solve` checks a call against: its options (to the loop), the values' leaves
         self._prepared = {}
         self._initial_leaves, self._initial_treedef = jax.tree_util.tree_flatten(
@@ -141,11 +142,14 @@ class FactorGraph:
         return self._default_data
 
     def cost(self, values=None, data=None):
-        r"""$\tfrac12 \sum \rho(\|R r\|^2)$ at `values` (default the initial values)."""
+        r"""$\tfrac12 \sum \rho(\|R r\|^2)$ at `values` (default the initial values; jitted,
+        compiled once per graph)."""
         from ._assembly import cost
 
+        if self._cost is None:  # one compilation, not one per operation on first use
+            self._cost = jax.jit(lambda v, d: cost(self.factors, self.plans, v, d))
         values = self.initial_values if values is None else tuple(values)
-        return cost(self.factors, self.plans, values, self._data(data))
+        return self._cost(values, self._data(data))
 
     def linearize(self, values=None, data=None):
         """`(cost, diag, off, grad)`: the block normal equations at `values` (fixed instances
@@ -223,21 +227,10 @@ class FactorGraph:
 
         **Returns:** a `SolveResult`.
         """
-        try:
-            key = (solver, eliminate, type(max_iterations), max_iterations, algorithm, damping,
-                   lambda_update, retraction, verbose, type(cg_max_iterations), cg_max_iterations)  # fmt: skip
-            prepared = self._prepared.get(key)
-        except TypeError:  # an unhashable argument: checked (and refused) below
-            key, prepared = None, None
-        # `"auto"` is decided again at every call (cheap), so that the limits stay live
-        if prepared is None or (solver == "auto" and _auto_method(prepared[1]) != prepared[2]):
-            prepared = self._prepare(
-                solver, eliminate, max_iterations, algorithm, damping, lambda_update, retraction,
-                verbose, cg_max_iterations,
-            )  # fmt: skip
-            if key is not None:
-                self._prepared[key] = prepared
-        loop = prepared[0]
+        loop = self._loop(
+            solver, eliminate, max_iterations, algorithm, damping, lambda_update, retraction,
+            verbose, cg_max_iterations,
+        )  # fmt: skip
         if values is None:
             values = self.initial_values  # checked by the `Var`s
             leaves = self._initial_leaves
@@ -245,21 +238,18 @@ class FactorGraph:
             values = tuple(values)
             leaves = self._checked_leaves(values)
         data = self._data(data)
-        dtype = np.result_type(*(x.dtype for x in leaves))
-        params = np.asarray(
-            [
-                lambda_initial,
-                lambda_factor,
-                lambda_max,
-                relative_tolerance,
-                absolute_tolerance,
-                min_model_fidelity,
-                cg_tolerance,
-                max_iterations,
-                diagonal_min,
-                diagonal_max,
-            ],
-            dtype=dtype,
+        params = parameters(
+            np.result_type(*(x.dtype for x in leaves)),
+            lambda_initial=lambda_initial,
+            lambda_factor=lambda_factor,
+            lambda_max=lambda_max,
+            relative_tolerance=relative_tolerance,
+            absolute_tolerance=absolute_tolerance,
+            min_model_fidelity=min_model_fidelity,
+            cg_tolerance=cg_tolerance,
+            max_iterations=max_iterations,
+            diagonal_min=diagonal_min,
+            diagonal_max=diagonal_max,
         )
         traced = any(isinstance(x, jax.core.Tracer) for x in leaves) or any(
             isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(data)
@@ -288,6 +278,28 @@ class FactorGraph:
                     "result back."
                 )
         return result
+
+    def _loop(
+        self, solver, eliminate, max_iterations, algorithm, damping, lambda_update, retraction,
+        verbose, cg_max_iterations,
+    ):  # fmt: skip
+        """The compiled `run(values, data, params) -> (values, summary)` of `solve`'s options
+        (`_solve.make_loop`), kept by the options: a repeated call skips their checks."""
+        try:
+            key = (solver, eliminate, type(max_iterations), max_iterations, algorithm, damping,
+                   lambda_update, retraction, verbose, type(cg_max_iterations), cg_max_iterations)  # fmt: skip
+            prepared = self._prepared.get(key)
+        except TypeError:  # an unhashable argument: checked (and refused) below
+            key, prepared = None, None
+        # `"auto"` is decided again at every call (cheap), so that the limits stay live
+        if prepared is None or (solver == "auto" and _auto_method(prepared[1]) != prepared[2]):
+            prepared = self._prepare(
+                solver, eliminate, max_iterations, algorithm, damping, lambda_update, retraction,
+                verbose, cg_max_iterations,
+            )  # fmt: skip
+            if key is not None:
+                self._prepared[key] = prepared
+        return prepared[0]
 
     def _prepare(
         self, solver, eliminate, max_iterations, algorithm, damping, lambda_update, retraction,
@@ -384,6 +396,12 @@ class FactorGraph:
                 )
 
 
+def parameters(dtype, **values):
+    """The loop's `params` array of `dtype`: `values` (every name of `_solve.PARAMETERS`) in
+    that order."""
+    return np.asarray([values[name] for name in PARAMETERS], dtype=dtype)
+
+
 def _auto_method(layout):
     """The solver `solver="auto"` picks for `layout`: `"dense"` when it is small, or small enough
     and its factor nearly dense (see `_DENSE_FILLED_LIMIT`), else `"cholesky"`."""
@@ -452,9 +470,13 @@ def _result(solution, summary):
     )
 
 
-def _check_factor(f):
-    """The residual dimension `k` of factor kind `f`, its shapes checked by `jax.eval_shape`
-    (nothing is compiled); `ValueError`s name the factor kind."""
+def _check_factor(f, shapes):
+    """The residual dimension `k` of factor kind `f` (also kept as `f.residual_size`), its
+    shapes checked by `jax.eval_shape` (nothing is compiled) of the residual, or of the
+    `jacobian_fn` when it has one (autodiff blocks are `(k, tangent_dim)` by construction; the
+    linearization's trace cost 0.3-0.7 s a kind); `shapes` keeps the shapes by residual,
+    `jacobian_fn` and argument shapes, for the kinds that share them. `ValueError`s name the
+    factor kind."""
     m = f.count
     data_leaves = jax.tree_util.tree_leaves(f.data)
     for leaf in data_leaves:
@@ -481,8 +503,20 @@ def _check_factor(f):
             lambda a: jax.ShapeDtypeStruct(jnp.shape(a)[1:], jnp.result_type(a)), f.data
         )
     )
+    leaves, treedef = jax.tree_util.tree_flatten((xs, one))
+    key = (f.residual, f.jacobian_fn, treedef, tuple((x.shape, x.dtype) for x in leaves))
     try:
-        out, blocks = jax.eval_shape(lambda xs, d: linearize_one(f, xs, d), xs, one)
+        found = shapes.get(key)
+    except TypeError:  # an unhashable residual or jacobian_fn
+        key, found = None, None
+    try:
+        if found is not None:
+            out, blocks = found
+        elif f.jacobian_fn is None:
+            out = jax.eval_shape(lambda xs, d: residual_one(f, xs, d), xs, one)
+            blocks = None
+        else:
+            out, blocks = jax.eval_shape(lambda xs, d: linearize_one(f, xs, d), xs, one)
     except (TypeError, ValueError) as error:
         raise ValueError(
             f"factor kind {f.name!r}: its residual cannot be evaluated on one instance of its "
@@ -492,8 +526,11 @@ def _check_factor(f):
         raise ValueError(
             f"factor kind {f.name!r}: the residual must be a vector (k,), got shape {out.shape}."
         )
+    if key is not None:
+        shapes[key] = out, blocks
     k = out.shape[0]
-    for s, (block, var) in enumerate(zip(blocks, f.vars)):
+    f.residual_size = k
+    for s, (block, var) in enumerate(zip(blocks or (), f.vars)):
         if block.shape != (k, var.tangent_dim):
             raise ValueError(
                 f"factor kind {f.name!r}: the Jacobian block of argument {s} has shape "

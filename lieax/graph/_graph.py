@@ -12,34 +12,13 @@ import dataclasses
 import jax.numpy as jnp
 import numpy as np
 
+from ..factorgraph._factors import square_root_information
+from ..factorgraph._structure import connected_components
 from ..groups._base import AbstractGroup
 from ..groups._se2 import SE2
 from ..groups._se3 import SE3
 
 GROUPS = {2: SE2, 3: SE3}
-
-
-def square_root_information(information, what="information matrix"):
-    r"""$R$ upper triangular with $R^\top R = \Omega$, for a batch of symmetric positive-definite
-    matrices `(..., d, d)` (numpy, checked: `ValueError` naming `what` and the first bad index)."""
-    information = np.asarray(information, dtype=np.float64)
-    if information.ndim < 2 or information.shape[-1] != information.shape[-2]:
-        raise ValueError(f"{what} must have shape (..., d, d), got {information.shape}.")
-    batch = information.reshape(-1, *information.shape[-2:])
-    bad = ~np.all(np.isfinite(batch), axis=(1, 2))
-    asymmetric = ~np.all(
-        np.isclose(batch, np.swapaxes(batch, 1, 2), rtol=1e-9, atol=1e-12), axis=(1, 2)
-    )
-    eigenvalues = np.linalg.eigvalsh(np.where(bad[:, None, None], 1.0, batch))
-    not_pd = bad | asymmetric | (eigenvalues[:, 0] <= 0)
-    if np.any(not_pd):
-        first = int(np.argmax(not_pd))
-        raise ValueError(
-            f"{what} {first} is not symmetric positive definite (eigenvalues "
-            f"{np.array2string(eigenvalues[first], precision=3)})."
-        )
-    lower = np.linalg.cholesky(batch)
-    return np.swapaxes(lower, 1, 2).reshape(information.shape)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -268,9 +247,4 @@ class PoseGraph:
     def components(self):
         """`(count, labels)`: the connected components of the graph, as scipy's
         `connected_components` returns them (labels `(n,)` per pose)."""
-        from scipy.sparse import coo_matrix
-        from scipy.sparse.csgraph import connected_components
-
-        n = self.num_poses
-        adjacency = coo_matrix((np.ones(self.num_edges), (self.between.i, self.between.j)), (n, n))
-        return connected_components(adjacency, directed=False)
+        return connected_components(self.num_poses, self.between.i, self.between.j)

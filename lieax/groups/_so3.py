@@ -16,6 +16,7 @@ Formulas: Solà, Deray, Atchuthan, "A micro Lie theory for state estimation in r
 Sec. IV-B and App. B; the coefficients are the $g_n$ of `lieax.groups._series`.
 """
 
+import math
 import sys
 
 import jax
@@ -102,6 +103,158 @@ def apply_right_jacobian_inverse(omega, x):
     s = dot(omega, omega)[..., None]
     wx = cross(omega, x)
     return x + 0.5 * wx + jr_inverse_coefficient(s) * cross(omega, wx)
+
+
+# ---- fused closed forms: Exp with J_r, Log with J_r^{-1}, one set of coefficients ---------------
+
+# θ² below which the fused forms sum Taylor series (7 terms, 9 for D: below 3e-16 relative there
+# in float64), above which they use the half-angle closed forms (their cancellation, in g3 and D,
+# costs at most 12 eps / θ² = 1e-14 relative at the switch, and nothing in J_r or J_r^{-1}, where
+# the coefficient multiplies [ω]×², |[ω]×²| = θ²; float32 loses as much in its own eps)
+_FUSED_SERIES_LIMIT = 0.25
+# cos(θ/2), sin(θ/2)/θ and g3 = (θ - sin θ)/θ³ in s = θ²
+_HALF_COS = tuple((-1) ** k / (4**k * math.factorial(2 * k)) for k in range(7))
+_HALF_SINC = tuple((-1) ** k / (2 * 4**k * math.factorial(2 * k + 1)) for k in range(7))
+_G3 = tuple((-1) ** k / math.factorial(2 * k + 3) for k in range(7))
+# D(θ) = 1/θ² - cot(θ/2)/(2θ) = Σ_{k≥1} |B_2k| θ^(2k-2) / (2k)! (B_2k the Bernoulli numbers)
+_D = (
+    1 / 12,
+    1 / 720,
+    1 / 30240,
+    1 / 1209600,
+    1 / 47900160,
+    691 / 1307674368000,
+    1 / 74724249600,
+    3617 / 10670622842880000,
+    43867 / 5109094217170944000,
+)
+_D_PRIME = tuple(k * c for k, c in enumerate(_D[1:], start=1))  # dD/ds term by term
+
+
+def _horner(coefficients, s, xp=jnp):
+    result = xp.full_like(s, coefficients[-1])
+    for c in reversed(coefficients[:-1]):
+        result = result * s + c
+    return result
+
+
+def exp_coefficients(s, xp=jnp):
+    r"""$(\cos\tfrac\theta2,\ \sin(\theta/2)/\theta,\ g_1,\ g_2,\ g_3)$ of $s = \theta^2$ (shape of
+    `s`) from one cosine and one sine (`exp_and_right_jacobian`'s docstring), in the array namespace
+    `xp` (`jax.numpy`, or `numpy` for host-side data)."""
+    small = s < _FUSED_SERIES_LIMIT
+    s_safe = xp.where(small, 1.0, s)
+    theta = xp.sqrt(s_safe)
+    half_cos = xp.where(small, _horner(_HALF_COS, s, xp), xp.cos(0.5 * theta))
+    half_sinc = xp.where(small, _horner(_HALF_SINC, s, xp), xp.sin(0.5 * theta) / theta)
+    g1 = 2.0 * half_sinc * half_cos
+    g2 = 2.0 * half_sinc * half_sinc
+    g3 = xp.where(small, _horner(_G3, s, xp), (1.0 - g1) / s_safe)
+    return half_cos, half_sinc, g1, g2, g3
+
+
+def _square_skew(omega, s):
+    r"""$[\omega]_\times^2 = \omega\omega^\top - \theta^2 I$ written out (no 3×3 product)."""
+    return omega[..., :, None] * omega[..., None, :] - s[..., None, None] * jnp.eye(
+        3, dtype=omega.dtype
+    )
+
+
+def jr_inverse_coefficients(s, half_cos, half_sinc, xp=jnp):
+    r"""$(D, D')$ of $s = \theta^2$, $D = 1/\theta^2 - \cot(\theta/2)/(2\theta)$ the coefficient
+    of $[\omega]_\times^2$ in $J_r^{-1}$ (`jr_inverse_coefficient`) and $D' = dD/ds$, from
+    `exp_coefficients`' $\cos\tfrac\theta2$ and $h = \sin(\theta/2)/\theta$:
+    $\cot\tfrac\theta2 = \cos\tfrac\theta2 / (\theta h)$ and
+    $\csc^2\tfrac\theta2 = 1/(\theta h)^2$ give
+    $D = (1 - \cos\tfrac\theta2 / (2h)) / s$ and
+    $D' = -1/s^2 + (\theta\csc^2\tfrac\theta2 + 2\cot\tfrac\theta2)/(8\theta^3)
+    = ((1 + 2h\cos\tfrac\theta2)/(8h^2) - 1)/s^2$ (exact at $\pi$, where
+    $\cos\tfrac\theta2 = 0$); below $s = 0.25$ their series $\sum_{k\ge1}|B_{2k}|s^{k-1}/(2k)!$
+    and its term-by-term derivative (9 terms: below 3e-16 relative; the closed form of $D'$ loses
+    $16\epsilon / D' \approx 3\cdot10^{-12}$ relative at the switch, $D'$ multiplies
+    $O(\theta^3)$ terms). In the array namespace `xp`."""
+    small = s < _FUSED_SERIES_LIMIT
+    s_safe = xp.where(small, 1.0, s)
+    d = xp.where(small, _horner(_D, s, xp), (1.0 - 0.5 * half_cos / half_sinc) / s_safe)
+    closed_prime = ((1.0 + 2.0 * half_sinc * half_cos) / (8.0 * half_sinc**2) - 1.0) / s_safe**2
+    return d, xp.where(small, _horner(_D_PRIME, s, xp), closed_prime)
+
+
+@jax.custom_jvp
+def exp_and_right_jacobian(omega):
+    r"""$(\mathrm{Exp}(\omega), J_r(\omega))$, the quaternion `(*batch, 4)` and `(*batch, 3, 3)`,
+    from one cosine and one sine of $\theta/2$:
+    $q = (\cos\tfrac\theta2, h\,\omega)$ with $h = \sin(\theta/2)/\theta$ (as `exp`), and
+    $J_r = I - g_2[\omega]_\times + g_3[\omega]_\times^2$ (Solà eq. 143) with
+    $g_1 = \sin\theta/\theta = 2h\cos\tfrac\theta2$, $g_2 = (1 - \cos\theta)/\theta^2 = 2h^2$
+    (the half-angle identities $\sin\theta = 2\sin\tfrac\theta2\cos\tfrac\theta2$,
+    $1 - \cos\theta = 2\sin^2\tfrac\theta2$) and $g_3 = (\theta - \sin\theta)/\theta^3 =
+    (1 - g_1)/\theta^2$; below $\theta^2 = 0.25$ their Taylor series in $\theta^2$ (`lieax.groups._series`'s
+    $g_n$). Exact at $\pi$ and beyond (no division by $\sin$). Derivatives: the carrier of
+    $\dot q$ is $J_r\dot\omega$ (`exp`'s rule), that of $J_r$ is `right_jacobian`'s."""
+    s = dot(omega, omega)
+    half_cos, half_sinc, _, g2, g3 = exp_coefficients(s)
+    q = jnp.concatenate([half_cos[..., None], half_sinc[..., None] * omega], axis=-1)
+    jr = (
+        jnp.eye(3, dtype=omega.dtype)
+        - g2[..., None, None] * skew(omega)
+        + g3[..., None, None] * _square_skew(omega, s)
+    )
+    return q, jr
+
+
+@exp_and_right_jacobian.defjvp
+def _exp_and_right_jacobian_jvp(primals, tangents):
+    (omega,), (omega_dot,) = primals, tangents
+    q, jr = exp_and_right_jacobian(omega)
+    _, jr_dot = jax.jvp(right_jacobian, (omega,), (omega_dot,))
+    return (q, jr), (from_local(q, matvec(jr, omega_dot)), jr_dot)
+
+
+@jax.custom_jvp
+def log_and_right_jacobian_inverse(q):
+    r"""$(\mathrm{Log}(q), J_r^{-1}(\mathrm{Log}(q)))$, `(*batch, 3)` and `(*batch, 3, 3)`, from
+    one `atan2`: $\omega$ as `log` ($\theta = 2\,\mathrm{atan2}(|u|, |w|) \le \pi$), and
+    $J_r^{-1} = I + \tfrac12[\omega]_\times + D[\omega]_\times^2$ (Solà eq. 144) with
+    $D = 1/\theta^2 - (1 + \cos\theta)/(2\theta\sin\theta) = 1/\theta^2 - \cot(\theta/2)/(2\theta)
+    = (1 - \theta|w| / (2|u|))/\theta^2$ ($\cot\tfrac\theta2 = |w|/|u|$ for any scale of $q$);
+    below $\theta^2 = 0.25$ its Taylor series $\sum_{k \ge 1} |B_{2k}|\theta^{2k-2}/(2k)!$ (the
+    Laurent series of $\cot$; Abramowitz and Stegun 4.3.70), $1/12$ at zero. Stable near $\pi$
+    ($D \to 1/\pi^2$, $|w| \to 0$). Derivatives: $\dot\omega = J_r^{-1}$ times the carrier of
+    $\dot q$ (`log`'s rule), that of $J_r^{-1}$ is `right_jacobian_inverse`'s."""
+    w, u = q[..., 0], q[..., 1:]
+    norm_u = jnp.sqrt(dot(u, u))
+    nonzero = norm_u > 0
+    safe_norm = jnp.where(nonzero, norm_u, 1.0)
+    abs_w = jnp.abs(w)
+    half = jnp.arctan2(norm_u, abs_w)
+    scale = jnp.where(nonzero, 2.0 * half / safe_norm, 2.0 / abs_w)
+    omega = jnp.where(w < 0, -scale, scale)[..., None] * u
+    theta = 2.0 * half
+    s = theta * theta
+    small = s < _FUSED_SERIES_LIMIT
+    theta_safe = jnp.where(small, 1.0, theta)
+    d = jnp.where(
+        small,
+        _horner(_D, s),
+        (1.0 - 0.5 * theta_safe * abs_w / jnp.where(small, 1.0, norm_u))
+        / (theta_safe * theta_safe),
+    )
+    jr_inv = (
+        jnp.eye(3, dtype=q.dtype)
+        + 0.5 * skew(omega)
+        + d[..., None, None] * _square_skew(omega, dot(omega, omega))
+    )
+    return omega, jr_inv
+
+
+@log_and_right_jacobian_inverse.defjvp
+def _log_and_right_jacobian_inverse_jvp(primals, tangents):
+    (q,), (q_dot,) = primals, tangents
+    omega, jr_inv = log_and_right_jacobian_inverse(q)
+    omega_dot = matvec(jr_inv, to_local(q, q_dot))
+    _, jr_inv_dot = jax.jvp(right_jacobian_inverse, (omega,), (omega_dot,))
+    return (omega, jr_inv), (omega_dot, jr_inv_dot)
 
 
 # ---- kernels with closed-form rules -------------------------------------------------------------
@@ -375,6 +528,19 @@ class SO3(AbstractGroup):
         zero = jnp.zeros_like(roll)
         about = lambda a, b, c: cls.exp(jnp.stack([a, b, c], axis=-1))  # noqa: E731
         return about(zero, zero, yaw) @ about(zero, pitch, zero) @ about(roll, zero, zero)
+
+    @classmethod
+    def exp_and_right_jacobian(cls, tangent):
+        r"""`(SO3.exp(tangent), SO3.right_jacobian(tangent))` from one set of coefficients
+        (`exp_and_right_jacobian`)."""
+        tangent = check_last_axis(tangent, 3, "SO3.exp_and_right_jacobian tangent")
+        q, jr = exp_and_right_jacobian(tangent)
+        return cls._wrap(q), jr
+
+    def log_and_right_jacobian_inverse(self):
+        r"""`(X.log(), SO3.right_jacobian_inverse(X.log()))` from one `atan2`
+        (`log_and_right_jacobian_inverse`)."""
+        return log_and_right_jacobian_inverse(self._params)
 
     def as_rpy(self) -> jax.Array:
         r"""`(roll, pitch, yaw)` on the last axis, inverse of `from_rpy` (pitch in $[-\pi/2, \pi/2]$)."""

@@ -15,26 +15,71 @@ differentiates through the groups' rules (`lieax.value_and_jacobian`), which the
 Conventions: the README's "Conventions"; GTSAM's mapping in `lieax.conventions`.
 """
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .._linalg import skew
-from ..factorgraph._factors import Factor
+from ..factorgraph._factors import Factor, square_root_information
 from ..groups import _so3 as so3
 from ..groups._so3 import SO3
-from ._preintegration import ImuError, ImuParams, Preintegrated, predict, residual_coordinates
+from ._preintegration import ImuError, ImuParams, Preintegrated, predict
 
 
 def imu_residual(pose_i, velocity_i, pose_j, velocity_j, bias_i, pim: Preintegrated, params):
     r"""The unwhitened 9-vector $(r_\theta, r_p, r_v)$ of one IMU factor (module docstring):
-    `pose_i`, `pose_j` `SE3` ($T_{nb}$), velocities `(3,)`, `bias_i` `(6,)`, `pim` one interval."""
+    `pose_i`, `pose_j` `SE3` ($T_{nb}$), velocities `(3,)`, `bias_i` `(6,)`, `pim` one interval.
+    In an inertial frame it is `_prediction_error`'s (the fused SO3 kernels `imu_jacobians` uses);
+    with `params.omega_coriolis`, `predict`'s rotating-frame prediction."""
+    if getattr(params, "omega_coriolis", None) is None:
+        return _prediction_error(pose_i, velocity_i, pose_j, velocity_j, bias_i, pim, params)[0]
     pose_hat, velocity_hat = predict(pim, pose_i, velocity_i, bias_i, params)
     rotation_j = pose_j.rotation()
     r_theta = rotation_j.between(pose_hat.rotation()).log()
     r_p = rotation_j.inverse() @ (pose_hat.translation() - pose_j.translation())
     r_v = rotation_j.inverse() @ (velocity_hat - velocity_j)
     return jnp.concatenate([r_theta, r_p, r_v])
+
+
+class _Error(NamedTuple):
+    """What `imu_jacobians` reuses of `_prediction_error`: the bias-corrected increments, the
+    rotation matrices $R_i$, $R_j$, $R_c$, $J_r(\theta_c)$, $J_r^{-1}(r_\theta)$ and
+    $r_p$, $r_v$."""
+
+    dp_c: jax.Array
+    dv_c: jax.Array
+    ri: jax.Array
+    rj: jax.Array
+    rc: jax.Array
+    jr_c: jax.Array
+    jr_inv: jax.Array
+    r_p: jax.Array
+    r_v: jax.Array
+
+
+def _prediction_error(pose_i, velocity_i, pose_j, velocity_j, bias_i, pim, params):
+    r"""`(r, _Error)`: the inertial-frame residual (module docstring) with
+    $R_c = \mathrm{Exp}(\theta_c)$ and $J_r(\theta_c)$ from `SO3.exp_and_right_jacobian`, and
+    $r_\theta = \mathrm{Log}(R_j^\top R_i R_c)$ and $J_r^{-1}(r_\theta)$ from
+    `SO3.log_and_right_jacobian_inverse` (one sine, cosine and arctangent in all); $\hat p_j$,
+    $\hat v_j$ as `predict`. Differentiable through the groups' rules."""
+    corrected = pim.bias_corrected(bias_i)
+    theta_c, dp_c, dv_c = corrected[:3], corrected[3:6], corrected[6:]
+    rotation_c, jr_c = SO3.exp_and_right_jacobian(theta_c)
+    rotation_i, rotation_j = pose_i.rotation(), pose_j.rotation()
+    r_theta, jr_inv = rotation_j.between(rotation_i @ rotation_c).log_and_right_jacobian_inverse()
+    ri, rj, rc = rotation_i.as_matrix(), rotation_j.as_matrix(), rotation_c.as_matrix()
+    t, g = pim.delta_t, params.n_gravity
+    ri_dp, ri_dv = jnp.stack([dp_c, dv_c]) @ ri.T  # R_i x as xᵀ R_iᵀ
+    position_hat = pose_i.translation() + ri_dp + velocity_i * t + 0.5 * g * t**2
+    velocity_hat = velocity_i + ri_dv + g * t
+    r_p, r_v = (
+        jnp.stack([position_hat - pose_j.translation(), velocity_hat - velocity_j]) @ rj
+    )  # R_jᵀ x
+    residual = jnp.concatenate([r_theta, r_p, r_v])
+    return residual, _Error(dp_c, dv_c, ri, rj, rc, jr_c, jr_inv, r_p, r_v)
 
 
 def imu_jacobians(pose_i, velocity_i, pose_j, velocity_j, bias_i, pim: Preintegrated, params):
@@ -69,37 +114,59 @@ def imu_jacobians(pose_i, velocity_i, pose_j, velocity_j, bias_i, pim: Preintegr
     """
     if getattr(params, "omega_coriolis", None) is not None:
         raise ImuError("imu_jacobians: the closed form is for params.omega_coriolis None.")
-    corrected = pim.bias_corrected(bias_i)
-    theta_c, dp_c, dv_c = corrected[:3], corrected[3:6], corrected[6:]
-    rotation_j = pose_j.rotation()
-    rotation_c = SO3.exp(theta_c)
-    ri, rj, rc = pose_i.rotation().as_matrix(), rotation_j.as_matrix(), rotation_c.as_matrix()
-    rj_t = rj.T
-    q = rj_t @ ri
-    e = q @ rc
-    t, g = pim.delta_t, params.n_gravity
-    r_theta = rotation_j.between(pose_i.rotation() @ rotation_c).log()
-    position_hat = pose_i.translation() + ri @ dp_c + velocity_i * t + 0.5 * g * t**2
-    velocity_hat = velocity_i + ri @ dv_c + g * t
-    r_p = rj_t @ (position_hat - pose_j.translation())
-    r_v = rj_t @ (velocity_hat - velocity_j)
-    jr_inv = so3.right_jacobian_inverse(r_theta)
-    zero, eye = jnp.zeros((3, 3), q.dtype), jnp.eye(3, dtype=q.dtype)
+    residual, e = _prediction_error(pose_i, velocity_i, pose_j, velocity_j, bias_i, pim, params)
+    rj_t = e.rj.T
+    q = rj_t @ e.ri
     jac_b = pim.jacobian_bias
-    blocks = (
-        jnp.block([[zero, jr_inv @ rc.T], [q, -q @ skew(dp_c)], [zero, -q @ skew(dv_c)]]),
-        jnp.concatenate([zero, rj_t * t, rj_t]),
-        jnp.block([[zero, -jr_inv @ e.T], [-eye, skew(r_p)], [zero, skew(r_v)]]),
-        jnp.concatenate([zero, zero, -rj_t]),
-        jnp.concatenate(
-            [jr_inv @ so3.right_jacobian(theta_c) @ jac_b[0:3], q @ jac_b[3:6], q @ jac_b[6:9]]
-        ),
+    # few, wider products (each product is one kernel of the vmapped program)
+    jr_inv_rc_t, jr_inv_jr_c = _split(e.jr_inv @ jnp.concatenate([e.rc.T, e.jr_c], 1), 3)
+    q_dp, q_dv, q_jp, q_jv = _split(
+        q @ jnp.concatenate([skew(e.dp_c), skew(e.dv_c), jac_b[3:6], jac_b[6:9]], 1), 3, 6, 12
     )
-    return jnp.concatenate([r_theta, r_p, r_v]), blocks
+    zero, eye = jnp.zeros((3, 3), q.dtype), jnp.eye(3, dtype=q.dtype)
+    blocks = (
+        jnp.block([[zero, jr_inv_rc_t], [q, -q_dp], [zero, -q_dv]]),
+        jnp.concatenate([zero, rj_t * pim.delta_t, rj_t]),
+        # E = Q R_c, so J_r^{-1} Eᵀ = (J_r^{-1} R_cᵀ) Qᵀ
+        jnp.block([[zero, -jr_inv_rc_t @ q.T], [-eye, skew(e.r_p)], [zero, skew(e.r_v)]]),
+        jnp.concatenate([zero, zero, -rj_t]),
+        jnp.concatenate([jr_inv_jr_c @ jac_b[0:3], q_jp, q_jv]),
+    )
+    return residual, blocks
 
 
-# one compiled program, not one dispatch (and one compilation) per operation on first use
-_residual_covariance = jax.jit(Preintegrated.residual_covariance)
+def _split(matrix, *columns):
+    """The column blocks of `matrix` split before each of `columns`."""
+    return jnp.split(matrix, columns, axis=-1)
+
+
+def _residual_coordinates_host(theta, bias_size=0):
+    r"""`residual_coordinates` on the host, in NumPy (construction holds `theta` as data: no
+    tracing, no compilation), `(m, 9 + bias_size, 9 + bias_size)`: $\Delta R = I + g_1 W +
+    g_2 W^2$, $J_r = I - g_2 W + g_3 W^2$ ($W = [\theta]_\times$, Solà eqs. 77 and 143) with the
+    coefficients of `lieax.groups._so3.exp_coefficients`."""
+    theta = np.asarray(theta, dtype=np.float64)
+    s = np.einsum("...i,...i->...", theta, theta)
+    _, _, g1, g2, g3 = so3.exp_coefficients(s, np)
+    x, y, z = theta[..., 0], theta[..., 1], theta[..., 2]
+    zero = np.zeros_like(x)
+    w = np.stack([np.stack(r, -1) for r in ((zero, -z, y), (z, zero, -x), (-y, x, zero))], -2)
+    eye = np.eye(3)
+    w2 = theta[..., :, None] * theta[..., None, :] - s[..., None, None] * eye
+    rotation_t = np.swapaxes(eye + g1[..., None, None] * w + g2[..., None, None] * w2, -1, -2)
+    size = 9 + bias_size
+    m = np.zeros((*theta.shape[:-1], size, size))
+    m[..., 0:3, 0:3] = eye - g2[..., None, None] * w + g3[..., None, None] * w2
+    m[..., 3:6, 3:6] = m[..., 6:9, 6:9] = rotation_t
+    m[..., 9:, 9:] = np.eye(bias_size)
+    return m
+
+
+def _residual_covariance(pim: Preintegrated):
+    r"""`pim.residual_covariance()` on the host: $M \Sigma M^\top$,
+    $M$ = `_residual_coordinates_host(theta)`, `(m, 9, 9)` NumPy."""
+    m, covariance = _residual_coordinates_host(pim.theta), np.asarray(pim.covariance)
+    return (m @ covariance @ np.swapaxes(m, -1, -2)).astype(covariance.dtype)
 
 
 def imu_factor(
@@ -136,18 +203,15 @@ def imu_factor(
 
 
 def _sqrt_information(covariance, what):
-    r"""$L^{-1}$, `(m, n, n)`, for $L L^\top = \tfrac12(\Sigma + \Sigma^\top)$ the Cholesky
-    factorization of each covariance (`(m, n, n)`): the whitening $\|L^{-1} r\|^2 =
-    r^\top\Sigma^{-1} r$ without forming $\Sigma^{-1}$ (its condition number is $\Sigma$'s,
-    $L^{-1}$'s only its square root). `ImuError` naming `what` unless every one is finite and
-    positive definite."""
-    covariance = 0.5 * (covariance + np.swapaxes(covariance, -1, -2))
+    r"""$L^{-1}$, `(m, n, n)`, for $L L^\top = \Sigma$ the Cholesky factorization of each
+    covariance (`(m, n, n)`): `lieax.factorgraph`'s `square_root_information(covariance=True)`,
+    the whitening $\|L^{-1} r\|^2 = r^\top\Sigma^{-1} r$ without forming $\Sigma^{-1}$.
+    `ImuError` naming `what` and the first bad interval unless every one is finite, symmetric
+    and positive definite."""
     try:
-        if not np.all(np.isfinite(covariance)):
-            raise np.linalg.LinAlgError("non-finite entries")
-        return np.linalg.inv(np.linalg.cholesky(covariance))
-    except np.linalg.LinAlgError as error:
-        raise ImuError(f"{what} covariance is not positive definite ({error}).") from None
+        return square_root_information(covariance, "interval", covariance=True)
+    except ValueError as error:
+        raise ImuError(f"{what} covariance is not positive definite: {error}") from None
 
 
 def _check_intervals(pim):
@@ -199,15 +263,15 @@ def combined_imu_jacobians(
     )
 
 
-@jax.jit
 def _combined_residual_covariance(pim: Preintegrated, covariance):
-    r"""The covariance of `combined_imu_residual`, `(*batch, 15, 15)`: `preintegrate_combined`'s
-    15×15 `covariance` of $(\theta, \Delta p, \Delta v, b_a, b_g)$ as $M \Sigma M^\top$, $M$ =
-    `residual_coordinates(theta, bias_size=6)` (GTSAM 4.3's
+    r"""The covariance of `combined_imu_residual`, `(*batch, 15, 15)` NumPy, on the host:
+    `preintegrate_combined`'s 15×15 `covariance` of $(\theta, \Delta p, \Delta v, b_a, b_g)$ as
+    $M \Sigma M^\top$, $M$ = `residual_coordinates(theta, bias_size=6)`
+    (`_residual_coordinates_host`; GTSAM 4.3's
     `PreintegratedCombinedMeasurements::residualCovariance()`, its `CombinedImuFactor`'s noise
     model, up to the sign of the bias rows)."""
-    m = residual_coordinates(pim.theta, bias_size=6)
-    return m @ covariance @ jnp.swapaxes(m, -1, -2)
+    m, covariance = _residual_coordinates_host(pim.theta, bias_size=6), np.asarray(covariance)
+    return (m @ covariance @ np.swapaxes(m, -1, -2)).astype(covariance.dtype)
 
 
 def combined_imu_factor(

@@ -247,18 +247,19 @@ def _corrected(accel, gyro, bias, params):
 
 def _so3_at(theta, omega):
     r"""$R = \mathrm{Exp}(\theta) = I + g_1 W + g_2 W^2$, $J_r = I - g_2 W + g_3 W^2$,
-    $J_r^{-1} = I + \tfrac12 W + D W^2$ ($W = [\theta]_\times$, $g_n$, $D$ of `lieax.groups._so3`,
-    Solà eqs. 77, 143, 144) and $\partial(J_r^{-1}(\theta)\omega)/\partial\theta =
+    $J_r^{-1} = I + \tfrac12 W + D W^2$ ($W = [\theta]_\times$, $W^2 = \theta\theta^\top -
+    \theta^2 I$; Solà eqs. 77, 143, 144) and $\partial(J_r^{-1}(\theta)\omega)/\partial\theta =
     -\tfrac12[\omega]_\times + D\,((\theta\cdot\omega) I + \theta\omega^\top - 2\omega\theta^\top)
     + 2D'(s)\,\theta\times(\theta\times\omega)\,\theta^\top$ (GTSAM's `DexpFunctor`, its
-    `applyInvDexp` derivative), sharing one $s = \theta^2$ and one $W^2$. Returns
+    `applyInvDexp` derivative), all from one cosine and one sine of $\theta/2$
+    (`lieax.groups._so3.exp_coefficients`, `jr_inverse_coefficients`). Returns
     $(R, J_r, J_r^{-1}, J_r^{-1}\omega, \partial(J_r^{-1}\omega)/\partial\theta)$."""
     s = jnp.dot(theta, theta)
-    w = skew(theta)
-    w2 = w @ w
     eye = jnp.eye(3, dtype=theta.dtype)
-    g1, g2, g3 = g(1, s), g(2, s), g(3, s)
-    d, d_prime = jax.jvp(so3.jr_inverse_coefficient, (s,), (jnp.ones_like(s),))
+    w = skew(theta)
+    w2 = jnp.outer(theta, theta) - s * eye
+    half_cos, half_sinc, g1, g2, g3 = so3.exp_coefficients(s)
+    d, d_prime = so3.jr_inverse_coefficients(s, half_cos, half_sinc)
     rotation = eye + g1 * w + g2 * w2
     jr = eye - g2 * w + g3 * w2
     jr_inv = eye + 0.5 * w + d * w2
