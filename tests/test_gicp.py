@@ -39,10 +39,12 @@ def pose_error(estimate: SE3, truth: SE3):
 
 
 def register(source, target, **kwargs):
+    """`icp.gicp` on the clouds padded to `ROWS`, from an explicit identity `init` (one compiled
+    loop per dtype, shared with the tests that start elsewhere)."""
     s, sm = padded(source)
     t, tm = padded(target)
     options = {"max_correspondence_distance": RADIUS, "source_mask": sm, "target_mask": tm}
-    return icp.gicp(s, t, **{**options, **kwargs})
+    return icp.gicp(s, t, **{"init": SE3.identity(), **options, **kwargs})
 
 
 def reference_covariances(points, k, epsilon=1e-3):
@@ -90,6 +92,18 @@ def test_covariances_match_a_numpy_reference(search, monkeypatch):
     np.testing.assert_allclose(eigenvalues, np.broadcast_to([1e-3, 1.0, 1.0], eigenvalues.shape))
 
 
+def test_covariances_equal_small_gicps():
+    """small_gicp's own `estimate_covariances` (k = 20, its regularization), where installed."""
+    small_gicp = pytest.importorskip("small_gicp")
+    points = np.asarray(icp.synthetic_scene(390, noise=0.002, seed=4)[0])
+    cloud = small_gicp.PointCloud(points)
+    small_gicp.estimate_covariances(cloud, num_neighbors=20)
+    theirs = np.asarray(cloud.covs())[:, :3, :3]
+    cloud_rows, mask = padded(points)
+    ours = np.asarray(icp.estimate_covariances(cloud_rows, k=20, mask=mask, search="kdtree"))
+    np.testing.assert_allclose(ours[: len(points)], theirs, atol=1e-10)
+
+
 @pytest.mark.parametrize("search", ["kdtree", "graph"])
 def test_covariances_of_small_neighbourhoods_are_the_identity(search):
     points = jnp.asarray(np.random.default_rng(0).normal(size=(6, 3)))
@@ -112,22 +126,11 @@ def random_covariances(rng, n):
     return jnp.asarray(a @ np.swapaxes(a, 1, 2) + 0.1 * np.eye(3))
 
 
-@pytest.mark.parametrize("at_the_solution", [False, True])
-def test_normal_equations_match_autodiff_of_the_cost(at_the_solution):
-    r"""$g = \tfrac12 \nabla f$ and $H = J^\top M J$ with $J$ by autodiff of the residuals
-    through `rplus`; at a zero-residual pose $H$ is also the Hessian $\tfrac12 \nabla^2 f$."""
-    rng = np.random.default_rng(1)
-    n = 50
-    pose = SE3.exp(jnp.asarray(rng.normal(size=6) * [0.3, 0.3, 0.3, 1.0, 1.0, 1.0]))
-    source = jnp.asarray(rng.normal(size=(n, 3)))
-    matched = pose @ source + (0.0 if at_the_solution else jnp.asarray(rng.normal(size=(n, 3))))
-    cs, cd = random_covariances(rng, n), random_covariances(rng, n)
-    weights = jnp.asarray(rng.uniform(0.2, 1.0, size=n))
-    hessian, gradient, costs = jax.jit(_gicp.gicp_normal_equations)(
-        pose.parameters(), source, matched, cs, cd, weights
-    )
-    rotation = np.asarray(pose.rotation().as_matrix())
-    m = np.linalg.inv(np.asarray(cd) + rotation @ np.asarray(cs) @ rotation.T)  # fixed at pose
+@jax.jit
+def autodiff_normal_equations(params, source, matched, m, weights):
+    r"""$J^\top W M J$, $\tfrac12 \nabla f$ and $\tfrac12 \nabla^2 f$ of the GICP cost $f$ with $M$
+    fixed, $J$ by autodiff of the residuals through `rplus` at 0 (one compile for every pose)."""
+    pose = SE3(params)
 
     def residuals(xi):
         return pose.rplus(xi) @ source - matched
@@ -136,20 +139,56 @@ def test_normal_equations_match_autodiff_of_the_cost(at_the_solution):
         r = residuals(xi)
         return jnp.sum(weights * jnp.einsum("ni,nij,nj->n", r, m, r))
 
-    zero = jnp.zeros(6)
-    jac = np.asarray(jax.jit(jax.jacfwd(residuals))(zero))  # (n, 3, 6)
-    expected_h = np.einsum("n,nai,nab,nbj->ij", np.asarray(weights), jac, m, jac)
-    np.testing.assert_allclose(hessian, expected_h, rtol=1e-10, atol=1e-10)
-    np.testing.assert_allclose(
-        gradient, 0.5 * np.asarray(jax.jit(jax.grad(cost))(zero)), atol=1e-10
-    )
-    r = np.asarray(residuals(zero))
-    np.testing.assert_allclose(costs, np.einsum("ni,nij,nj->n", r, m, r), rtol=1e-10, atol=1e-20)
-    if at_the_solution:
-        np.testing.assert_allclose(gradient, 0.0, atol=1e-10)
-        np.testing.assert_allclose(
-            hessian, 0.5 * np.asarray(jax.jit(jax.hessian(cost))(zero)), rtol=1e-8, atol=1e-8
+    zero = jnp.zeros(6, params.dtype)
+    jac = jax.jacfwd(residuals)(zero)  # (n, 3, 6)
+    hessian = jnp.einsum("n,nai,nab,nbj->ij", weights, jac, m, jac)
+    return hessian, 0.5 * jax.grad(cost)(zero), 0.5 * jax.hessian(cost)(zero)
+
+
+POSES = {  # rotation vectors and translations: the identity, near it, near pi, random
+    "identity": (np.zeros(3), np.zeros(3)),
+    "1e-9 from the identity": (1e-9 * np.array([0.6, -0.8, 0.0]), np.zeros(3)),
+    "1e-4 rad": (1e-4 * np.array([0.0, 0.6, 0.8]), np.array([0.1, 0.0, -0.2])),
+    "pure translation": (np.zeros(3), np.array([0.3, -1.2, 0.5])),
+    "pi - 1e-4": ((np.pi - 1e-4) * np.array([0.48, 0.6, 0.64]), np.array([0.2, 0.1, 0.0])),
+    "pi - 1e-6": ((np.pi - 1e-6) * np.array([0.0, 0.6, -0.8]), np.array([-0.5, 0.0, 0.3])),
+    "random": (np.array([0.4, -1.1, 0.7]), np.array([1.0, 2.0, -0.5])),
+}
+
+
+@pytest.mark.parametrize("at_the_solution", [False, True])
+def test_normal_equations_match_autodiff_of_the_cost(at_the_solution):
+    r"""$g = \tfrac12 \nabla f$ and $H = J^\top M J$ with $J$ by autodiff of the residuals
+    through `rplus`, at the identity, near it, near $\pi$ and at random poses; at a
+    zero-residual pose $H$ is also the Hessian $\tfrac12 \nabla^2 f$."""
+    rng = np.random.default_rng(1)
+    n = 50
+    source = jnp.asarray(rng.normal(size=(n, 3)))
+    noise = 0.0 if at_the_solution else jnp.asarray(rng.normal(size=(n, 3)))
+    cs, cd = random_covariances(rng, n), random_covariances(rng, n)
+    weights = jnp.asarray(rng.uniform(0.2, 1.0, size=n))
+    normal_equations = jax.jit(_gicp.gicp_normal_equations)
+    for name, (rotation_vector, translation) in POSES.items():
+        rotation = SE3.exp(jnp.asarray(np.concatenate([np.zeros(3), rotation_vector])))
+        pose = SE3.from_translation(jnp.asarray(translation)) @ rotation
+        matched = pose @ source + noise
+        hessian, gradient, costs = normal_equations(
+            pose.parameters(), source, matched, cs, cd, weights
         )
+        r_matrix = np.asarray(pose.rotation().as_matrix())
+        m = np.linalg.inv(np.asarray(cd) + r_matrix @ np.asarray(cs) @ r_matrix.T)  # at pose
+        expected_h, expected_g, cost_hessian = autodiff_normal_equations(
+            pose.parameters(), source, matched, jnp.asarray(m), weights
+        )
+        np.testing.assert_allclose(hessian, expected_h, rtol=1e-10, atol=1e-10, err_msg=name)
+        np.testing.assert_allclose(gradient, expected_g, atol=1e-10, err_msg=name)
+        r = np.asarray(pose @ source - matched)
+        np.testing.assert_allclose(
+            costs, np.einsum("ni,nij,nj->n", r, m, r), rtol=1e-10, atol=1e-20, err_msg=name
+        )
+        if at_the_solution:
+            np.testing.assert_allclose(gradient, 0.0, atol=1e-10, err_msg=name)
+            np.testing.assert_allclose(hessian, cost_hessian, rtol=1e-8, atol=1e-8, err_msg=name)
 
 
 # ---- registration -------------------------------------------------------------------------------
@@ -169,6 +208,65 @@ def test_gicp_recovers_a_known_motion(pair, dtype):
     matched = np.asarray(result.correspondences)
     np.testing.assert_array_equal(matched[:380], np.arange(380))  # the same samples, moved
     assert np.all(matched[380:] == -1)
+
+
+def test_gicp_stops_after_the_first_step_below_its_tolerances(pair):
+    """small_gicp's rule alone (Open3D's tolerances 0): the run stops after the first update whose
+    rotation and translation, in the clouds' own frames, are both below their tolerances, at that
+    update's pose. The clouds sit metres from the origin, where the translation of a step differs
+    from that of the loop's centred frame. Single updates (huge tolerances: stop after one)
+    chained from the start give the run's poses, so its steps."""
+    source, target, _, _ = pair
+    source_offset, target_offset = np.array([3.0, -2.0, 1.5]), np.array([-1.0, 4.0, 2.0])
+    s, sm = padded(np.asarray(source) + source_offset)
+    t, tm = padded(np.asarray(target) + target_offset)
+    cs, ct = icp.estimate_covariances(s, mask=sm), icp.estimate_covariances(t, mask=tm)
+    start = SE3.from_translation(jnp.asarray(target_offset - source_offset))
+
+    def run(init, **tolerances):
+        return icp.gicp(
+            s, t, source_mask=sm, target_mask=tm, source_covariances=cs, target_covariances=ct,
+            max_correspondence_distance=RADIUS, init=init, relative_fitness=0.0,
+            relative_rmse=0.0, **tolerances,
+        )  # fmt: skip
+
+    poses = [start]
+    for _ in range(6):
+        single = run(poses[-1], rotation_epsilon=1e9, translation_epsilon=1e9)
+        assert single.status_name == "CONVERGED" and int(single.iterations) == 1
+        poses.append(single.transform)
+    steps = [before.inverse() @ after for before, after in zip(poses, poses[1:])]
+    rotations = np.array([np.asarray(step.rotation().as_matrix()) for step in steps])
+    translations = np.array([np.asarray(step.translation()) for step in steps])
+    sizes = {
+        "rotation": np.array([np.linalg.norm(np.asarray(step.rotation().log())) for step in steps]),
+        "translation": np.linalg.norm(translations, axis=1),
+    }
+
+    def check(result, first_small):
+        assert result.status_name == "CONVERGED"
+        assert int(result.iterations) == first_small + 1
+        np.testing.assert_allclose(
+            result.transform.parameters(), poses[first_small + 1].parameters(), atol=1e-12
+        )
+
+    for part, size in sizes.items():  # a tolerance between the 3rd update's size and the 4th's
+        assert size[3] < np.min(size[:3]) / 10
+        tolerances = {"rotation_epsilon": 1e9, "translation_epsilon": 1e9}
+        tolerances[f"{part}_epsilon"] = np.sqrt(size[3] * np.min(size[:3]))
+        check(run(start, **tolerances), 3)
+    # The translation is the clouds' own: about the source's centroid (the loop's frame) the
+    # first update moves by another amount, and a tolerance between the two tells them apart.
+    centroid = np.mean(np.asarray(source), axis=0) + source_offset
+    about_centroid = np.linalg.norm(translations + rotations @ centroid - centroid, axis=1)
+    tolerance = np.sqrt(sizes["translation"][0] * about_centroid[0])
+    first_small = int(np.argmax(sizes["translation"] < tolerance))
+    assert first_small != int(np.argmax(about_centroid < tolerance))
+    check(run(start, rotation_epsilon=1e9, translation_epsilon=tolerance), first_small)
+    # The defaults: 0.1° and 1e-3 max_correspondence_distance.
+    small = (sizes["rotation"] < np.deg2rad(0.1)) & (sizes["translation"] < 1e-3 * RADIUS)
+    assert np.any(small) and not small[0]
+    check(run(start), int(np.argmax(small)))
 
 
 def test_gicp_with_a_robust_loss_ignores_outliers(pair):
@@ -227,6 +325,10 @@ def test_gicp_bad_input_is_named(pair):
         icp.gicp(source[:, :2], target, max_correspondence_distance=RADIUS)
     with pytest.raises(ValueError, match="max_correspondence_distance must be positive"):
         icp.gicp(source, target, max_correspondence_distance=0.0)
+    with pytest.raises(ValueError, match="rotation_epsilon must be non-negative"):
+        icp.gicp(source, target, max_correspondence_distance=RADIUS, rotation_epsilon=-1.0)
+    with pytest.raises(ValueError, match="translation_epsilon must be non-negative"):
+        icp.gicp(source, target, max_correspondence_distance=RADIUS, translation_epsilon=np.nan)
 
 
 def test_gicp_nonfinite_and_degenerate_input(pair):

@@ -180,9 +180,10 @@ def test_host_neighbourhoods_survive_repeated_points(library):
 
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
 def test_kdtree_tracking_stays_exact_and_keeps_queries_that_barely_move(dtype):
-    """`track_in_kdtree` over a sequence of shrinking moves (ICP's iterations): every answer is
-    the exact nearest point within the radius (SciPy's), masked queries get none, and once the
-    moves are small most queries are answered without the host."""
+    """`track_in_kdtree` over a sequence of large, then shrinking moves (ICP's iterations): every
+    answer is the exact nearest point within the radius (SciPy's), masked queries get none, the
+    large moves ask the host for the nearest point only (their matches' allowances are 0), and
+    once the moves are small most queries are answered without the host."""
     rng = np.random.default_rng(7)
     target = rng.uniform(-1, 1, (3000, 3)).astype(dtype)
     queries = rng.uniform(-1.2, 1.2, (900, 3)).astype(dtype)
@@ -194,8 +195,12 @@ def test_kdtree_tracking_stays_exact_and_keeps_queries_that_barely_move(dtype):
     )
     warm = _host_kdtree.cold_start(len(queries), dtype)
     tree = cKDTree(target.astype(np.float64))
+    nearest_only = []
     for step in range(10):
         slot, d2, new = track(jnp.asarray(queries), warm)
+        sent = np.any(np.asarray(new.queries) != np.asarray(warm.queries), axis=1)
+        matched = sent & (np.asarray(new.slot) >= 0)
+        nearest_only.append(bool(np.all(np.asarray(new.allowance)[matched] == 0)))
         distance, nearest = tree.query(queries.astype(np.float64))
         within = (distance <= radius) & mask
         assert np.array_equal(np.isfinite(d2), within)
@@ -203,9 +208,10 @@ def test_kdtree_tracking_stays_exact_and_keeps_queries_that_barely_move(dtype):
         np.testing.assert_allclose(np.sqrt(d2[within]), distance[within], atol=tolerance)
         kept = np.all(np.asarray(new.queries) != queries, axis=1)  # (not re-sent: old positions)
         warm = new
-        queries = queries + rng.normal(scale=0.02 / (step + 1) ** 2, size=queries.shape).astype(
-            dtype
-        )
+        scale = 0.1 if step < 3 else 0.02 / (step - 2) ** 2
+        queries = queries + rng.normal(scale=scale, size=queries.shape).astype(dtype)
+    # (the first call, from the cold start, asks for two; the moves of 0.1 then for one)
+    assert nearest_only[:4] == [False, True, True, True] and not any(nearest_only[5:])
     assert np.mean(kept[mask]) > 0.8
 
 

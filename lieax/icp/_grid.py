@@ -23,6 +23,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._coordinates import squared_norms
+
 _PRIMES = (73856093, 19349663, 83492791)
 _COORD_LIMIT = 2.0**30  # cell coordinates are clipped to +-2**30 (int32, exact in float32)
 # The 27 neighbouring cells, nearest first: the own cell, 6 faces, 12 edges, 8 corners.
@@ -147,7 +149,7 @@ def nearest_in_grid(index: GridIndex, queries, radius=None, *, mask=None, chunk=
     slack = 4 * jnp.finfo(queries.dtype).eps * (jnp.abs(scaled) + 1)[:, None, :]
     gap = jnp.where(offsets == -1, inside, jnp.where(offsets == 1, 1 - inside, 0.0))
     gap = jnp.maximum(gap - slack, 0.0) * cell_size
-    box2 = jnp.sum(gap * gap, axis=-1)  # (m, 27)
+    box2 = squared_norms(gap)  # (m, 27)
     starts, counts = index.start[buckets], index.count[buckets]
     wanted = (box2 <= r2) & (counts > 0) & active[:, None]
     cells = jnp.arange(27, dtype=jnp.int32)

@@ -52,7 +52,6 @@ from jax.scipy.linalg import cho_solve
 
 from .._linalg import quat_to_matrix
 from .._runtime_error import raise_if
-from ..autodiff._jacobian import jacobian
 from ..groups._se3 import SE3
 from ..lstsq._solution import SolverResult, Status, is_failure
 from . import _host_kdtree, _neighbors, _search
@@ -234,6 +233,7 @@ def _register(
     kind, source, target, max_distance, target_normals, init, max_iterations, relative_fitness,
     relative_rmse, loss, source_mask, target_mask, exact, normals_k, verbose, throw,
     search="graph", source_covariances=None, target_covariances=None, buckets=True,
+    step_tolerance=None,
 ):  # fmt: skip
     source = check_cloud(source, "source")
     target = check_cloud(target, "target")
@@ -267,6 +267,12 @@ def _register(
     check_parameter(max_distance, "max_correspondence_distance", positive=True)
     check_parameter(relative_fitness, "relative_fitness", positive=False)
     check_parameter(relative_rmse, "relative_rmse", positive=False)
+    if step_tolerance is not None:  # (rotation, translation): see `_small_step`
+        check_parameter(step_tolerance[0], "rotation_epsilon", positive=False)
+        check_parameter(step_tolerance[1], "translation_epsilon", positive=False)
+        step_tolerance = _constant(
+            jnp.stack([jnp.asarray(x, source.dtype) for x in step_tolerance])
+        )
 
     search, prebuilt = _search.check_icp_search(search, target, max_distance)
     dynamic_loss, static_loss = _split_loss(loss)
@@ -283,7 +289,7 @@ def _register(
         source_c, source_mask, target_c, target_mask, normals_c, init_c, max_distance_c,
         _constant(relative_fitness), _constant(relative_rmse), loss_scale_c, options=options,
         static_loss=static_loss, index=prebuilt, source_covariances=covariances_c[0],
-        target_covariances=covariances_c[1],
+        target_covariances=covariances_c[1], step_tolerance=step_tolerance,
     )  # fmt: skip
     if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((data, dynamic_loss))):
         loss_kind, loss_scale = (None, 0.0) if dynamic_loss is None else dynamic_loss
@@ -350,6 +356,25 @@ def _count(flags):
     return jnp.sum(flags.astype(jnp.result_type(float)))
 
 
+def _small_step(params, updated, source_centre, tolerance):
+    r"""Whether the update from the centred pose `params` to `updated` moved by less than
+    `tolerance` = (rotation, translation) in both parts. The update in the clouds' own frames is
+    $D = T_\text{before}^{-1} T = \mathrm{Tr}(c_s)\,D_c\,\mathrm{Tr}(-c_s)$ for the centred poses'
+    $D_c = (R_c, t_c)$ (`lieax.icp._centring`): rotation $R_c$ by the angle
+    $2\,\mathrm{atan2}(\|q_{xyz}\|, |q_w|)$ of its quaternion, translation
+    $t_c + (I - R_c)\,c_s$. small_gicp's `TerminationCriteria` (Koide, small_gicp,
+    `registration/termination_criteria.hpp`) tests the parts of the tangent $\delta$,
+    $D = \mathrm{Exp}(\delta)$: the same angle, and a translation within a factor
+    $1 + O(\theta)$ of this one (no logarithm to compile here)."""
+    step = (SE3._wrap(params).inverse() @ SE3._wrap(updated)).parameters()
+    angle = 2 * jnp.arctan2(jnp.linalg.norm(step[1:4]), jnp.abs(step[0]))
+    turned = jnp.matmul(
+        quat_to_matrix(step[:4]), source_centre, precision=jax.lax.Precision.HIGHEST
+    )
+    translation = step[4:] + source_centre - turned
+    return (angle < tolerance[0]) & (jnp.linalg.norm(translation) < tolerance[1])
+
+
 def _positive(x):
     return jnp.isfinite(x) & (x > 0)
 
@@ -370,7 +395,7 @@ def _constant(x):
 def _solve(
     source, source_mask, target, target_mask, target_normals, init, max_distance,
     relative_fitness, relative_rmse, loss, *, options, static_loss, index=None,
-    source_covariances=None, target_covariances=None,
+    source_covariances=None, target_covariances=None, step_tolerance=None,
 ):  # fmt: skip
     kind, max_iterations, exact, steps, verbose, search, loss_kind = options
     loss = None if loss is None else (loss_kind, loss)  # (the kind static, the scale traced)
@@ -402,6 +427,8 @@ def _solve(
     # Parameters traced under jit / vmap (concrete ones were checked by `_register`).
     valid = _positive(max_distance) & _non_negative(relative_fitness)
     valid = valid & _non_negative(relative_rmse)
+    if step_tolerance is not None:
+        valid = valid & jnp.all(_non_negative(step_tolerance))
     if loss is not None:
         valid = valid & _positive(jnp.asarray(loss[1]).astype(dtype))
     # (Under vmap the loop's body also runs for an INVALID problem, its results discarded: the
@@ -507,6 +534,8 @@ def _solve(
         converged = unchanged(state.fitness, state.rmse) | unchanged(
             state.earlier_fitness, state.earlier_rmse
         )
+        if step_tolerance is not None:
+            converged = converged | _small_step(state.params, params, source_centre, step_tolerance)
         status = jnp.where(
             ~(ok | first),
             Status.DEGENERATE,
@@ -617,24 +646,15 @@ def _transformed_columns(params, points):
     ]
 
 
-def _act_jacobian_rows(pose: SE3, points):
-    r"""$\partial (T \oplus \xi)\,s / \partial \xi = [R, -R[s]_\times]$ is affine in $s$:
-    $J(s) = J(0) + \sum_k s_k (J(e_k) - J(0))$. Returns `(J(0), J(e_k) - J(0))`, shapes `(3, 6)` and
-    `(3, 3, 6)`, from `lieax.jacobian` of `SE3`'s action (its closed-form rule) at four points."""
-    basis = jnp.concatenate([jnp.zeros((1, 3), points.dtype), jnp.eye(3, dtype=points.dtype)])
-    blocks = jax.vmap(jacobian(lambda T, s: T @ s), in_axes=(None, 0))(pose, basis)  # (4, 3, 6)
-    return blocks[0], blocks[1:] - blocks[0]
-
-
 def _plane_rows(params, points, normals):
     r"""$J_i = \partial\, n_i^\top (T \oplus \xi)\, s_i / \partial \xi
     = n_i^\top [R, -R[s_i]_\times] = [m_i^\top, (s_i \times m_i)^\top]$, $m_i = R^\top n_i$,
     for SE3 parameters `params`, transposed: `(6, n)`, column $i$ is $J_i$. The action's Jacobian
     $[R, -R[s]_\times]$ (Solà, Deray, Atchuthan 2018, "A micro Lie theory", appendix D, right
     perturbation) and $-m^\top [s]_\times = (s \times m)^\top$. Written out per coordinate: one
-    fused kernel, where `lieax.jacobian` of the action under `vmap` (`_act_jacobian_rows`)
-    compiles to eight on the CPU; six contiguous rows, where `(n, 6)` rows cost a strided
-    concatenation and a transpose for the reduction (the step 1.5-2x slower at 160k points).
+    fused kernel, where `lieax.jacobian` of the action under `vmap` compiles to eight on the CPU;
+    six contiguous rows, where `(n, 6)` rows cost a strided concatenation and a transpose for the
+    reduction (the step 1.5-2x slower at 160k points).
     `tests/test_icp.py` checks it against `lieax.jacobian` and finite differences."""
     rotation = quat_to_matrix(params[:4])
     m = [sum(rotation[a, j] * normals[:, a] for a in range(3)) for j in range(3)]
