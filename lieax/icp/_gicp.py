@@ -267,10 +267,11 @@ def gicp(
     on either of two rules, after the update that meets it:
     - small_gicp's: the update just made, $T_\text{old}^{-1} T_\text{new}$ in the clouds' own
       frames, rotates by less than `rotation_epsilon` and translates by less than
-      `translation_epsilon` (see `lieax.icp._registration._small_step`). small_gicp's translation default (1 mm) is absolute; the
-      default here is $10^{-3}$ `max_correspondence_distance`, which is small_gicp's 1 mm at its
-      default distance (1 m, LiDAR) and scales with the clouds (10 µm for a 1 cm distance on an
-      object scan): a stop that does not depend on the unit of length.
+      `translation_epsilon` (see `lieax.icp._registration._small_step`). small_gicp's
+      translation default (1 mm) is absolute; the default here is $10^{-3}$
+      `max_correspondence_distance`, which is small_gicp's 1 mm at its default distance (1 m,
+      LiDAR) and scales with the clouds (10 µm for a 1 cm distance on an object scan): a stop
+      that does not depend on the unit of length.
     - Open3D's (the shared loop's): the fitness and the inlier RMSE both changed by less than
       `relative_fitness` and `relative_rmse`.
 
