@@ -212,7 +212,9 @@ class FactorGraph:
         - `algorithm`: `"levenberg_marquardt"` or `"gauss_newton"`.
         - `damping`: `"identity"` ($\lambda I$, GTSAM) or `"marquardt"` ($\lambda$ diag $H$,
           clipped to `[diagonal_min, diagonal_max]`, Ceres).
-        - `lambda_update`: `"gtsam"` or `"nielsen"`.
+        - `lambda_update`: `"gtsam"` (GTSAM 4.3's: divide or multiply by `lambda_factor`) or
+          `"nielsen"` (Madsen-Nielsen-Tingleff's, Ceres', the rule of
+          `lieax.lstsq.LevenbergMarquardt`); see `_solve`.
         - `retraction`: how a step moves the values, a `lieax.retractions.Retraction` (default
           `lieax.retractions.exp`, $x \oplus \delta$; `cayley` is GTSAM's default Pose3 chart).
           The Jacobians and the optimum do not depend on it, the path to the optimum does.

@@ -13,11 +13,14 @@ same clipping `[1e-6, 1e32]`): the step then does not depend on the units of the
 $\lambda$ updates (`lambda_update`): `"gtsam"`, GTSAM 4.3's `LevenbergMarquardtOptimizer`
 (divide by `lambda_factor` on success, multiply on failure, give up at `lambda_max`; a step is
 taken when the fidelity exceeds `min_model_fidelity`); `"nielsen"`, Nielsen's rule as Ceres'
-`LevenbergMarquardtStrategy`: on success $\lambda \leftarrow \lambda \max(\tfrac13,
-1 - (2\rho - 1)^3)$, $\nu \leftarrow 2$, on failure $\lambda \leftarrow \lambda\nu$,
-$\nu \leftarrow 2\nu$ (Madsen, Nielsen and Tingleff, "Methods for non-linear least squares
-problems", 2004, Sec. 3.2). `algorithm="gauss_newton"` takes every finite step with
-$\lambda = 0$. An iteration ends with a taken step or, without one, when the cost change is below
+`LevenbergMarquardtStrategy` and `lieax.lstsq.LevenbergMarquardt` (Madsen, Nielsen and
+Tingleff, "Methods for non-linear least squares problems", 2004, Sec. 3.2).
+`algorithm="gauss_newton"` takes every finite step with $\lambda = 0$. These rules (formulas
+and sources in `lieax.lstsq._trust_region`), the gain ratio and the precedence of the status
+codes are shared with `lieax.lstsq.least_squares`; this loop's own are the block-sparse linear
+algebra, the one evaluation per pass and GTSAM's stopping rules, which follow.
+
+An iteration ends with a taken step or, without one, when the cost change is below
 `relative_tolerance` × cost; the run stops when an iteration decreases the cost by at most
 `absolute_tolerance` or `relative_tolerance` × cost (`CONVERGED`), after `max_iterations`
 iterations (`MAX_ITERATIONS`), when $\lambda$ reaches `lambda_max` without a decrease
@@ -53,6 +56,7 @@ from jax import lax
 from ..autodiff._tangents import manifold_leaves, rplus
 from ..groups._base import AbstractGroup
 from ..lstsq import Status
+from ..lstsq import _trust_region as trust_region
 from ..retractions import exp
 from ._assembly import assemble, evaluate
 from ._linear import schur_solve, solve_system
@@ -185,7 +189,7 @@ def make_loop(graph, options):
             new_cost, parts = evaluate(factors, plans, trial, data)
             change = cost - new_cost
             valid = solved & (predicted >= 0) & jnp.isfinite(new_cost)
-            fidelity = change / jnp.where(predicted > 0, predicted, 1.0)
+            fidelity = trust_region.gain_ratio(change, predicted)
             if gauss_newton:
                 success = solved & jnp.isfinite(new_cost)
                 stop_search = jnp.zeros((), bool)
@@ -195,20 +199,21 @@ def make_loop(graph, options):
                 success = (
                     valid
                     & (predicted > jnp.finfo(dtype).eps * cost)
-                    & (fidelity > params["min_model_fidelity"])
+                    & trust_region.accepts(fidelity, params["min_model_fidelity"], inclusive=False)
                 )
                 stop_search = (
                     valid & ~success & (jnp.abs(change) < params["relative_tolerance"] * cost)
                 )
                 if nielsen:
-                    shrink = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * fidelity - 1.0) ** 3)
-                    new_lam = jnp.where(success, lam * shrink, lam * nu)
-                    new_nu = jnp.where(success, 2.0, 2.0 * nu)
+                    new_lam, new_nu = trust_region.nielsen(success, fidelity, lam, nu)
                 else:
-                    factor = params["lambda_factor"]
-                    new_lam = jnp.where(success, lam / factor, lam * factor)
+                    new_lam = trust_region.gtsam(success, lam, params["lambda_factor"])
                     new_nu = nu
-                gave_up = ~success & ~stop_search & (new_lam >= params["lambda_max"])
+                gave_up = (
+                    ~success
+                    & ~stop_search
+                    & trust_region.damping_exhausted(new_lam, params["lambda_max"], inclusive=True)
+                )
             # the start is taken as it is
             success = jnp.where(started, success, jnp.isfinite(new_cost))
             gave_up = gave_up & started
@@ -224,23 +229,17 @@ def make_loop(graph, options):
                     | (jnp.abs(decrease) <= params["relative_tolerance"] * cost)
                 )
             )
-            status = jnp.where(
-                ~jnp.isfinite(next_cost),
-                Status.NONFINITE,
-                jnp.where(
-                    gave_up & (decrease <= 0),
-                    Status.NONFINITE if gauss_newton else Status.DIVERGED,
-                    jnp.where(
-                        converged,
-                        Status.CONVERGED,
-                        jnp.where(
-                            (done | ~started) & (iterations >= max_iterations),
-                            Status.MAX_ITERATIONS,
-                            Status.RUNNING,
-                        ),
-                    ),
-                ),
-            ).astype(jnp.int32)
+            # no step decreased the cost: Levenberg-Marquardt ran out of damping, Gauss-Newton's
+            # step was not finite
+            nonfinite, diverged = ~jnp.isfinite(next_cost), gave_up & (decrease <= 0)
+            if gauss_newton:
+                nonfinite, diverged = nonfinite | diverged, False
+            status = trust_region.status(
+                nonfinite,
+                converged,
+                diverged,
+                (done | ~started) & (iterations >= max_iterations),
+            )
             history = jnp.where(done | ~started, history.at[iterations].set(next_cost), history)
             if options["verbose"]:
                 lax.cond(

@@ -1,11 +1,15 @@
-r"""`least_squares`: the solve loop, compiled once as a `lax.while_loop`, with its status logic,
-its tolerances and the verbose iteration table.
+r"""`least_squares`: the dense solve loop, compiled once as a `lax.while_loop`, with its stopping
+rules, its tolerances and the verbose iteration table.
 
 Each iteration evaluates the cost, $H = J^\top W J$ and $g = J^\top W r$ at the trial point
 $x \oplus \delta$ the previous iteration chose (one linearization of the residual; the first
 iteration evaluates $x_0$), keeps or rejects it on the gain ratio
-$\varrho = (c(x) - c(x \oplus \delta)) / (-g^\top\delta - \tfrac12 \delta^\top H \delta)$,
-checks the stopping rules, and solves the normal equations at the kept point for the next step.
+$\varrho = (c(x) - c(x \oplus \delta)) / (-g^\top\delta - \tfrac12 \delta^\top H \delta)$
+(the solver's `update`), checks the stopping rules, and solves the normal equations at the kept
+point for the next step. The gain ratio, the acceptance and damping rules and the precedence of
+the status codes are `_trust_region`'s, shared with the factor-graph loop; this loop's own are
+its MINPACK-style stopping tests (scaled step, gradient cosine, relative cost change) and its
+treatment of a decrease below the cost's rounding error (the step is trusted).
 Every problem of a `vmap` runs this same loop in lockstep; a problem that has stopped keeps its
 state while the others run on (the batching rule of `while_loop`).
 """
@@ -30,6 +34,7 @@ from ..autodiff._tangents import (
 )
 from ..groups._base import AbstractManifold
 from ..retractions import Retraction, exp
+from . import _trust_region as trust_region
 from ._implicit import with_implicit_derivatives
 from ._losses import AbstractLoss
 from ._problem import linearize
@@ -246,8 +251,9 @@ def _gain_ratio(values, trial_finite):
     cost, cost_trial, step, hessian, gradient = values
     actual = cost - cost_trial
     predicted = -(gradient @ step + 0.5 * step @ (hessian @ step))
-    ratio = actual / jnp.where(predicted > 0, predicted, 1.0)
-    ratio = jnp.where(trial_finite & (predicted > 0), ratio, -jnp.inf)
+    ratio = jnp.where(
+        trial_finite & (predicted > 0), trust_region.gain_ratio(actual, predicted), -jnp.inf
+    )
     resolution = 16 * jnp.finfo(cost.dtype).eps * jnp.abs(cost)
     unmeasurable = trial_finite & (jnp.abs(predicted) <= resolution) & (actual >= -resolution)
     return jnp.where(unmeasurable, 1.0, ratio), actual, predicted
@@ -336,16 +342,9 @@ def _solve(
         )
         nonfinite = ~trial_finite & (first | small_step | (not solver.rejects_steps))
         diverged = ~first & solver.diverged(solver_state, sg(cost), sg(state.cost_history[0]))
-        status = jnp.select(
-            [
-                nonfinite | ~_all_finite(sg(step)),
-                converged,
-                diverged,
-                iteration >= max_iterations,
-            ],
-            [Status.NONFINITE, Status.CONVERGED, Status.DIVERGED, Status.MAX_ITERATIONS],
-            Status.RUNNING,
-        ).astype(jnp.int32)
+        status = trust_region.status(
+            nonfinite | ~_all_finite(sg(step)), converged, diverged, iteration >= max_iterations
+        )
         if verbose:
             jax.debug.callback(
                 _print_row,

@@ -18,6 +18,10 @@ a method, such as `LevenbergMarquardt.scaling`, are static) whose methods the lo
 
 `rejects_steps` says whether a rejected (non-finite) trial point is an ordinary event
 (Levenberg-Marquardt shrinks the step and tries again) or the end of the solve (Gauss-Newton).
+
+The decisions themselves (acceptance, Nielsen's damping rule, the divergence tests) are those of
+`_trust_region`, which the factor-graph loop shares; what is this module's own is the dense
+linear algebra (the scaling of the variables, the damped system and its solve).
 """
 
 import dataclasses
@@ -26,6 +30,7 @@ from typing import ClassVar
 import jax
 import jax.numpy as jnp
 
+from . import _trust_region as trust_region
 from ._normal_equations import solve_spd
 
 _SCALINGS = ("minpack", "jacobi", "clipped")
@@ -93,7 +98,7 @@ class GaussNewton(AbstractSolver):
         return finite, state
 
     def diverged(self, state, cost, initial_cost):
-        return cost > self.divergence_factor * initial_cost
+        return trust_region.cost_diverged(cost, initial_cost, self.divergence_factor)
 
     def damping(self, state):
         return jnp.zeros(())
@@ -108,7 +113,8 @@ class LevenbergMarquardt(AbstractSolver):
     Nielsen's rule: a step with $\varrho \ge$ `min_gain_ratio` is kept and
     $\mu \leftarrow \mu \max(\tfrac13, 1 - (2\varrho - 1)^3)$, $\nu \leftarrow 2$;
     otherwise it is rejected and $\mu \leftarrow \nu\mu$, $\nu \leftarrow 2\nu$ (Madsen,
-    Nielsen, Tingleff, "Methods for non-linear least squares problems", 2004, Sec. 3.2).
+    Nielsen, Tingleff, "Methods for non-linear least squares problems", 2004, Sec. 3.2; the rule
+    of `lieax.factorgraph`'s `lambda_update="nielsen"` too: both call `_trust_region.nielsen`).
 
     The system is solved in scaled variables $\tilde\delta = S^{-1}\delta$:
     $(S H S + \mu \tilde D)\,\tilde\delta = -S g$, $\delta = S\tilde\delta$
@@ -194,15 +200,13 @@ class LevenbergMarquardt(AbstractSolver):
 
     def update(self, state, gain_ratio, finite):
         damping, factor, scale = state
-        accept = finite & (gain_ratio >= self.min_gain_ratio)
-        shrink = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * gain_ratio - 1.0) ** 3)
-        damping = jnp.where(accept, damping * shrink, damping * factor)
-        factor = jnp.where(accept, 2.0, 2.0 * factor)
+        accept = finite & trust_region.accepts(gain_ratio, self.min_gain_ratio, inclusive=True)
+        damping, factor = trust_region.nielsen(accept, gain_ratio, damping, factor)
         damping = jnp.clip(damping, self.min_damping, 2.0 * self.max_damping)
         return accept, (damping, factor.astype(damping.dtype), scale)
 
     def diverged(self, state, cost, initial_cost):
-        return state[0] > self.max_damping
+        return trust_region.damping_exhausted(state[0], self.max_damping, inclusive=False)
 
     def damping(self, state):
         return state[0]
