@@ -17,9 +17,9 @@ Three solvers work on these blocks:
   elimination tree, supernodes with relaxed amalgamation, and a schedule that groups fronts of
   the same height in the tree and similar size into batches. The numeric part runs on
   the host with numpy and LAPACK (called from the jitted loop through `host_call`): per batch,
-  one sparse 0/1 product assembles the fronts (original entries and the extend-add of the
-  children's update matrices), then LAPACK factors the pivot blocks and one batched product
-  forms the Schur complement (Duff and Reid's multifrontal method; Liu, "The multifrontal
+  one sparse ±1 product assembles the fronts' pivot columns (original entries, less the update
+  products of descendants), then LAPACK factors the pivot blocks and one batched product forms
+  the front's update product (Duff and Reid's multifrontal method; Liu, "The multifrontal
   method for sparse matrix solution", SIAM Review 1992).
 - `dense_solve`: the dense matrix and its Cholesky factor, inside JAX, for graphs of a few
   hundred unknowns (`lieax.graph.optimize` picks it below a measured crossover).
@@ -228,14 +228,15 @@ def _amalgamate(n, structure, parent, max_pivots, zero_fraction):
 class _Batch:
     """One batch of fronts of the same height in the elimination tree, padded to `pivots` +
     `updates` blocks: the indices of its blocks, where its entries come from, and where its
-    update matrix goes."""
+    update product goes."""
 
     pivot_index: np.ndarray  # (B, P) block of each pivot slot, n for padding
     update_index: np.ndarray  # (B, U) block of each update slot, n for padding
-    assembly: object  # scipy CSR (B S S, rows of the work array): 0/1 entries
-    padding: np.ndarray  # (B, P d) 1.0 on padded pivot rows
-    work_offset: int  # first row of this batch's update matrices in the work array
-    padded: bool  # whether any front is padded
+    assembly: object  # scipy CSR (B S d P, rows of the work array): ±1 entries
+    work_offset: int  # first row of this batch's update products in the work array
+    targets: np.ndarray  # the distinct update blocks of its fronts (`solve_factored`)
+    scatter: object  # None when no block is an update block of two of its fronts, else scipy
+    # CSR (targets, B U): 0/1 entries summing the update slots of each target
 
     @property
     def shape(self):
@@ -308,16 +309,22 @@ class CholeskyPlan:
 
     The numeric phase keeps every entry of the assembly in one work array of rows of `d` scalars
     (a `d × d` block is `d` such rows): the rows of $H$'s diagonal blocks, of its off-diagonal
-    blocks and of their transposes, then the update matrix of every front, each stored as a
-    plain `(U d, U d)` matrix. A batch's fronts are one sparse 0/1 matrix times that array,
-    reshaped to `(B, S d, S d)` without any transpose; only the lower block triangle is
-    assembled (positions in a front follow the elimination order, so an update's lower blocks
-    land in its parent's lower blocks, and nothing reads the upper ones). Every batch but the
-    roots gets the inverses of its pivot blocks' Cholesky factors (batched
-    `numpy.linalg.cholesky`, then `_lower_inverse`), so that its triangular solves, here and in
-    the substitutions, are batched products; the roots keep their factors for `_lower_solve`.
-    The Schur complements are written in place into the work array for the parents, and the
-    work array is kept between factorizations.
+    blocks and of their transposes, a `d × d` identity (added to the padded pivot blocks by the
+    assembly), then the update product $L_{21} L_{21}^\top$ of every front, each stored as a
+    plain `(U d, U d)` matrix. A batch's fronts are one sparse ±1 matrix times that array,
+    reshaped to `(B, S d, P d)` without any transpose: only their pivot columns, and of those
+    only the lower block triangle (positions in a front follow the elimination order, and
+    nothing reads the upper blocks). A front's Schur complement $F_{22} - L_{21} L_{21}^\top$
+    is never formed: $F_{22}$ holds nothing but its children's Schur complements (an entry of
+    $H$ is assembled in the front where its earlier block is a pivot), so each block of an
+    update product is subtracted once, in the front where its column becomes a pivot, instead
+    of being extended and subtracted from front to front up to there (measured with the other
+    changes of that session, the host solve: 0.85x the time on smallGrid3D, 0.75-0.9x on
+    sphere2500 and M3500, interleaved in one process). Every batch but the roots gets the
+    inverses of its pivot blocks' Cholesky factors (`_cholesky_inverse`), so that its triangular
+    solves, here and in the substitutions, are batched products; the roots keep their factors
+    for `_cholesky_solve`. The update products are written in place into the work array, which
+    is kept between factorizations.
 
     **Attributes:** `order` (the elimination order of the blocks), `stats` (the ordering, fronts,
     batches, tree height, multiply-adds of one factorization with and without padding, stored
@@ -388,14 +395,14 @@ class CholeskyPlan:
         n, d, p = pattern.num_blocks, pattern.block_size, pattern.num_pairs
         rows, cols = pattern.rows, pattern.cols
         order, position = symbolic.order, symbolic.position
-        piv, upd, kids = symbolic.pivots, symbolic.updates, symbolic.children
+        piv, upd = symbolic.pivots, symbolic.updates
         members_of = symbolic.batches
         num_fronts = len(piv)
         work = np.array([_front_work(len(a), len(b)) for a, b in zip(piv, upd)])
 
         where = np.empty((num_fronts, 2), dtype=np.int64)  # front -> (batch, position)
         shapes = []
-        work_rows = (n + 2 * p) * d
+        work_rows = (n + 2 * p + 1) * d  # H's blocks, the identity (padding), update products
         offsets = []
         for g, members in enumerate(members_of):
             where[members, 0] = g
@@ -420,25 +427,31 @@ class CholeskyPlan:
         # every block is d segments (rows of d scalars) of the work array, at base + r * stride
         dst = [[] for _ in members_of]
         src = [[] for _ in members_of]
+        sign = [[] for _ in members_of]
 
-        def add(k, r, c, source_base, source_stride):
-            """Blocks (r, c) of front k from the work array; only the lower block triangle
-            (r >= c) is assembled: the factorization reads no other block."""
+        def add(k, r, c, source_base, source_stride, value=1.0):
+            """Blocks (r, c) of front k from the work array, times `value`; only the lower block
+            triangle (r >= c) of the pivot columns (c < pivots) is assembled: the factorization
+            reads no other block."""
             g, b = where[k]
-            s = shapes[g][1] + shapes[g][2]
+            s, bp = shapes[g][1] + shapes[g][2], shapes[g][1]
             r, c = np.broadcast_arrays(np.asarray(r), np.asarray(c))
             source = np.broadcast_to(np.asarray(source_base), r.shape)
             lower = r >= c
             r, c, source = r[lower], c[lower], source[lower]
-            base = ((b * s + r) * d) * s + c
+            base = ((b * s + r) * d) * bp + c
             t = np.arange(d)
-            dst[g].append((base[..., None] + t * s).ravel())
-            src[g].append((source[..., None] + t * source_stride).ravel())
+            stride = np.broadcast_to(np.asarray(source_stride), lower.shape)[lower]
+            dst[g].append((base[..., None] + t * bp).ravel())
+            src[g].append((source[..., None] + t * stride[..., None]).ravel())
+            sign[g].append(np.full(dst[g][-1].shape, value))
 
-        # diagonal blocks of H
+        # diagonal blocks of H, and the identity on padded pivots
         for k in range(num_fronts):
             s_piv = np.arange(len(piv[k]))
             add(k, s_piv, s_piv, order[piv[k]] * d, 1)
+            s_pad = np.arange(len(piv[k]), shapes[where[k, 0]][1])
+            add(k, s_pad, s_pad, (n + 2 * p) * d, 1)
         # off-diagonal blocks: in the front where the earlier of the two is a pivot
         pa, pb = position[rows], position[cols]
         owner = front_of[np.minimum(pa, pb)]
@@ -447,20 +460,26 @@ class CholeskyPlan:
             sa, sb = slots(k, pa[q]), slots(k, pb[q])
             add(k, sa, sb, (n + q) * d, 1)  # H[r, c]
             add(k, sb, sa, (n + p + q) * d, 1)  # H[c, r] = H[r, c]^T
-        # children's update matrices (extend-add)
-        for k in range(num_fronts):
-            for c in kids[k]:
+        # the fronts' update products L21 L21^T, each block subtracted in the front where its
+        # column is a pivot (a descendant's update is never copied through the fronts between)
+        entries = []  # per front: (row position, column position, source row, stride)
+        for c in range(num_fronts):
+            u = upd[c]
+            if len(u):
                 gc, bc = where[c]
                 cu = shapes[gc][2]
-                s = slots(k, upd[c])
-                t = np.arange(len(s))
-                add(
-                    k,
-                    np.repeat(s, len(s)),
-                    np.tile(s, len(s)),
-                    offsets[gc] + ((bc * cu + t)[:, None] * d * cu + t[None, :]).ravel(),
-                    cu,
-                )
+                t1, t2 = np.tril_indices(len(u))
+                source = offsets[gc] + (bc * cu + t1) * d * cu + t2
+                entries.append((u[t1], u[t2], source, np.full(len(t1), cu)))
+        if entries:
+            row_pos, col_pos, source, stride = map(np.concatenate, zip(*entries))
+            target = front_of[col_pos]
+            by_target = np.argsort(target, kind="stable")
+            bounds = np.searchsorted(target[by_target], np.arange(num_fronts + 1))
+            for k in range(num_fronts):
+                q = by_target[bounds[k] : bounds[k + 1]]
+                if len(q):
+                    add(k, slots(k, row_pos[q]), slots(k, col_pos[q]), source[q], stride[q], -1.0)
 
         batches, flops = [], 0.0
         for g, members in enumerate(members_of):
@@ -473,13 +492,25 @@ class CholeskyPlan:
                 update_index[b, : len(upd[k])] = order[upd[k]]
             d_all, s_all = np.concatenate(dst[g]), np.concatenate(src[g])
             assembly = csr_matrix(
-                (np.ones(len(d_all)), (d_all, s_all)), shape=(bsize * s * d * s, work_rows)
+                (np.concatenate(sign[g]), (d_all, s_all)), shape=(bsize * s * d * bp, work_rows)
             )
             assembly.sum_duplicates()
-            padding = np.repeat((pivot_index == n).astype(np.float64), d, axis=1)
+            slot = np.flatnonzero(update_index.ravel() < n)
+            targets, target = np.unique(update_index.ravel()[slot], return_inverse=True)
+            scatter = None
+            if len(targets) < len(slot):
+                scatter = csr_matrix(
+                    (np.ones(len(slot)), (target.ravel(), slot)),
+                    shape=(len(targets), update_index.size),
+                )
             batches.append(
                 _Batch(
-                    pivot_index, update_index, assembly, padding, offsets[g], bool(padding.any())
+                    pivot_index,
+                    update_index,
+                    assembly,
+                    offsets[g],
+                    targets,
+                    scatter,
                 )
             )
             flops += bsize * _front_work(bp, bu) * d**3
@@ -502,56 +533,65 @@ class CholeskyPlan:
         (numpy arrays), per batch `(M, L21)`: `L21` `(B, U d, P d)`, and `M` `(B, P d, P d)` the
         inverses $L_{11}^{-1}$ of the pivot blocks' Cholesky factors, so that both substitutions
         are batched products; for a batch of roots (no update rows, `L21` None) `M` is $L_{11}$
-        itself, as two triangular solves there cost a fraction of the inverse (the root front
-        is the largest: 180 × 180 on smallGrid3D).
+        itself, as one `potrs` there costs a fraction of the inverse (the root front is the
+        largest: 180 × 180 on smallGrid3D).
         Raises `numpy.linalg.LinAlgError` when $H$ is not positive definite."""
         n, d, p = self.pattern.num_blocks, self.pattern.block_size, self.pattern.num_pairs
         diag, off = np.asarray(diag), np.asarray(off)
         work = self._work(diag.dtype)
         work[: n * d] = diag.reshape(n * d, d)
         work[n * d : (n + p) * d] = off.reshape(p * d, d)
-        work[(n + p) * d : (n + 2 * p) * d] = np.swapaxes(off, 1, 2).reshape(p * d, d)
+        work[(n + p) * d : (n + 2 * p) * d] = off.transpose(0, 2, 1).reshape(p * d, d)
+        work[(n + 2 * p) * d : (n + 2 * p + 1) * d] = np.eye(d)
         factors = []
         for batch in self.batches:
             B, P, U = batch.shape
             pd, ud = P * d, U * d
-            front = (batch.assembly @ work).reshape(B, pd + ud, pd + ud)
-            schur = work[batch.work_offset : batch.work_offset + B * ud * U].reshape(B, ud, ud)
-            f11 = front[:, :pd, :pd]
-            if batch.padded:
-                f11[:, np.arange(pd), np.arange(pd)] += batch.padding
+            front = (batch.assembly @ work).reshape(B, pd + ud, pd)
+            f11 = front[:, :pd]
             if U == 0:
                 factors.append((np.linalg.cholesky(f11), None))
                 continue
-            l11_inv = _lower_inverse(np.linalg.cholesky(f11))
-            l21 = front[:, pd:, :pd] @ np.swapaxes(l11_inv, 1, 2)
-            # the Schur complement, written in place into the work array for the parents
-            np.matmul(l21, np.swapaxes(l21, 1, 2), out=schur)
-            np.subtract(front[:, pd:, pd:], schur, out=schur)
+            l11_inv = _cholesky_inverse(f11)
+            l21 = front[:, pd:] @ l11_inv.transpose(0, 2, 1)
+            # the update product, written in place into the work array for the ancestors
+            update = work[batch.work_offset : batch.work_offset + B * ud * U].reshape(B, ud, ud)
+            np.matmul(l21, l21.transpose(0, 2, 1), out=update)
             factors.append((l11_inv, l21))
         return factors
 
     def solve_factored(self, factors, rhs):
-        """$H^{-1}$ `rhs` for `rhs` `(n, d)` (numpy), by forward and back substitution."""
+        """$H^{-1}$ `rhs` for `rhs` `(n, d)` (numpy), by forward and back substitution. A batch
+        whose fronts share no update block subtracts its updates by one indexed assignment
+        (row n, the padding's, takes whichever update comes last; it reaches only padded pivots,
+        whose columns of `L21` are zero), another sums them per block first (a sparse 0/1
+        product): `numpy.subtract.at`, which accumulates repeated rows, cost 11 µs a batch on
+        smallGrid3D where either costs 3-5 µs, a third of the whole substitution. A batch of
+        roots does both substitutions at once in the forward pass (`_cholesky_solve`)."""
         n, d = self.pattern.num_blocks, self.pattern.block_size
         x = np.zeros((n + 1, d), dtype=rhs.dtype)
         x[:n] = rhs
         for batch, (m, l21) in zip(self.batches, factors):
             B, P, U = batch.shape
             b = x[batch.pivot_index].reshape(B, P * d, 1)
-            y = _lower_solve(m, b) if l21 is None else m @ b
+            if l21 is None:  # roots: both substitutions at once (nothing else reads their rows)
+                x[batch.pivot_index] = _cholesky_solve(m, b).reshape(B, P, d)
+                continue
+            y = m @ b
             x[batch.pivot_index] = y.reshape(B, P, d)
             if U:
-                np.add.at(x, batch.update_index, -(l21 @ y).reshape(B, U, d))
+                update = (l21 @ y).reshape(B, U, d)
+                if batch.scatter is None:  # a plain indexed update (only the padding row repeats)
+                    x[batch.update_index] -= update
+                else:
+                    x[batch.targets] -= batch.scatter @ update.reshape(B * U, d)
         for batch, (m, l21) in zip(reversed(self.batches), reversed(factors)):
+            if l21 is None:
+                continue
             B, P, U = batch.shape
             y = x[batch.pivot_index].reshape(B, P * d, 1)
-            if l21 is None:
-                y = _lower_solve(m, y, transpose=True)
-            else:
-                y -= np.swapaxes(l21, 1, 2) @ x[batch.update_index].reshape(B, U * d, 1)
-                y = np.swapaxes(m, 1, 2) @ y
-            x[batch.pivot_index] = y.reshape(B, P, d)
+            y -= l21.transpose(0, 2, 1) @ x[batch.update_index].reshape(B, U * d, 1)
+            x[batch.pivot_index] = (m.transpose(0, 2, 1) @ y).reshape(B, P, d)
         x[n] = 0.0
         return x[:n]
 
@@ -606,6 +646,50 @@ def _lower_inverse(lower):
     result[:, :h, :h] = a_inv
     result[:, h:, h:] = d_inv
     result[:, h:, :h] = -(d_inv @ (lower[:, h:, :h] @ a_inv))
+    return result
+
+
+def _cholesky_inverse(matrix):
+    r"""$L^{-1}$ for the Cholesky factors $L L^\top$ of a batch `(B, n, n)` of symmetric positive
+    definite matrices (only their lower triangles are read): for orders 9 to 63, LAPACK's `potrf`
+    and `trtri` one matrix at a time on the same Fortran-ordered copy (below order 64 OpenBLAS
+    runs both on the calling thread, see `_SINGLE_THREAD_LIMIT`), which skips the batched
+    `numpy.linalg.cholesky`'s layout copies and calls; `_lower_inverse` of
+    `numpy.linalg.cholesky` otherwise."""
+    n = matrix.shape[-1]
+    if n <= _BATCHED_LIMIT or n >= _SINGLE_THREAD_LIMIT:
+        return _lower_inverse(np.linalg.cholesky(matrix))
+    from scipy.linalg import lapack
+
+    potrf, trtri = lapack.get_lapack_funcs(("potrf", "trtri"), (matrix,))
+    result = np.empty_like(matrix)
+    for b in range(matrix.shape[0]):
+        # the C-ordered lower triangle is the Fortran-ordered upper triangle of the transpose
+        upper, info = potrf(matrix[b].T, lower=0, clean=1)
+        if info != 0:
+            raise np.linalg.LinAlgError("matrix is not positive definite")
+        inverse, info = trtri(upper, lower=0, overwrite_c=1)
+        if info != 0:
+            raise np.linalg.LinAlgError("singular triangular factor")
+        result[b] = inverse.T
+    return result
+
+
+def _cholesky_solve(lower, rhs):
+    r"""$(L L^\top)^{-1}$ `rhs` for a batch `(B, n, n)` of lower-triangular $L$ and `rhs`
+    `(B, n, 1)`: LAPACK's `potrs` one matrix at a time (in place on the transpose, as
+    `_trtri_each`). With one right-hand side OpenBLAS's triangular solves stay on the calling
+    thread at every order (measured with two threads allowed: process CPU time equals wall time
+    up to order 400), and one call does both substitutions of a root front: 12 µs where
+    `_lower_solve`'s two recursions took 50 µs (order 180, smallGrid3D's root)."""
+    from scipy.linalg import lapack
+
+    (potrs,) = lapack.get_lapack_funcs(("potrs",), (lower,))
+    result = np.empty_like(rhs)
+    for b in range(lower.shape[0]):
+        result[b], info = potrs(lower[b].T, rhs[b], lower=0)
+        if info != 0:
+            raise np.linalg.LinAlgError("singular triangular factor")
     return result
 
 
