@@ -73,6 +73,19 @@ def test_gram_sum_matches_products_and_segment_sum(chunk, monkeypatch):
     )
 
 
+@pytest.mark.parametrize("k", [1, 2, 3, 9])
+def test_small_products_match_matmul(k):
+    # elementwise sums up to `_UNROLLED` terms, products beyond (k = 9)
+    rng = np.random.default_rng(k)
+    a, b = jnp.asarray(rng.normal(size=(7, 4, k))), jnp.asarray(rng.normal(size=(7, k, 5)))
+    at, x = jnp.swapaxes(a, 1, 2), jnp.asarray(rng.normal(size=(7, k)))
+    np.testing.assert_allclose(_gram.small_matmul(a, b), a @ b, rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(_gram.small_tmatmul(at, b), a @ b, rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(
+        _gram.small_matvec(a, x), (a @ x[..., None])[..., 0], rtol=1e-13, atol=1e-13
+    )
+
+
 def test_gram_plan_without_terms():
     plan = _gram.gram_plan([], [], [], 3, 0, 0)
     out = _gram.gram_sum(plan, jnp.zeros((0, 2, 3)), jnp.zeros((0, 2, 2)))

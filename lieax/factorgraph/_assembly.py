@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._factors import linearize_one, residual_one
-from ._gram import gram_sum
+from ._gram import gram_sum, small_tmatmul
 from ._variables import instance
 
 
@@ -138,12 +138,11 @@ def assemble(layout, plans, parts):
                     gram_sum(gram, weighted[s], jnp.concatenate([blocks[s], r[..., None]], -1))
                 )
                 continue
-            wt = jnp.swapaxes(weighted[s], 1, 2)
-            both = jnp.concatenate([wt @ blocks[s], jnp.einsum("mab,mb->ma", wt, r)[..., None]], -1)
+            both = small_tmatmul(weighted[s], jnp.concatenate([blocks[s], r[..., None]], -1))
             per_kind[k][0].append(both)
             per_kind[k][1].append(index)
         for s, t, key, slots, flipped in plan.couplings:
-            block = jnp.swapaxes(weighted[s], 1, 2) @ blocks[t]
+            block = small_tmatmul(weighted[s], blocks[t])
             if isinstance(flipped, np.ndarray):
                 block = jnp.where(flipped[:, None, None], jnp.swapaxes(block, 1, 2), block)
             elif flipped:
@@ -153,18 +152,27 @@ def assemble(layout, plans, parts):
             per_pair[j][1].append(slots)
     for k, (pieces, indices) in enumerate(per_kind):
         if pieces:
+            indices = np.concatenate(indices)
             summed[k].append(
                 jax.ops.segment_sum(
-                    jnp.concatenate(pieces), np.concatenate(indices), layout.counts[k]
+                    jnp.concatenate(pieces),
+                    indices,
+                    layout.counts[k],
+                    indices_are_sorted=bool(np.all(indices[1:] >= indices[:-1])),
                 )
             )
         if summed[k]:
             both = sum(summed[k][1:], summed[k][0])
             diag[k], grad[k] = both[..., :-1], both[..., -1]
     for j, (pieces, slots) in enumerate(per_pair):
-        off[j] = jax.ops.segment_sum(
-            jnp.concatenate(pieces), np.concatenate(slots), off[j].shape[0]
-        )
+        slots = np.concatenate(slots)
+        count = off[j].shape[0]
+        if len(slots) == count and np.bincount(slots, minlength=count).max(initial=1) == 1:
+            # one term per slot (bundle adjustment's camera-point blocks): a gather, where XLA
+            # CPU's scatter is a serial loop
+            off[j] = jnp.concatenate(pieces)[np.argsort(slots)]
+        else:
+            off[j] = jax.ops.segment_sum(jnp.concatenate(pieces), slots, count)
     for k, free in enumerate(layout.free):
         if not free.all():
             eye = jnp.eye(layout.dims[k], dtype=dtype)

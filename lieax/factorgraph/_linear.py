@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._gram import gram_sum
+from ._gram import gram_sum, small_matmul, small_matvec
 from ._sparse import cholesky_solve, dense_solve, pcg
 
 
@@ -116,7 +116,7 @@ def schur_solve(layout, plan, method, diag, off, rhs, **options):
     for r, (key, _, _, point, transposed) in plan.links.items():
         block = off[keys.index(key)]
         bt[r] = block if transposed else _t(block)
-        qbt[r] = q[point] @ bt[r]
+        qbt[r] = small_matmul(q[point], bt[r])
     red = plan.layout
     red_keys = list(red.pairs)
     new = {k: j for j, k in enumerate(plan.kept)}
@@ -145,10 +145,8 @@ def schur_solve(layout, plan, method, diag, off, rhs, **options):
     x_kept = solve_system(red, method, tuple(s_diag), tuple(s_off), tuple(s_rhs), **options)
     back = b_e
     for r, (_, _, inst, point, _) in plan.links.items():
-        back = back - jax.ops.segment_sum(
-            jnp.einsum("kab,kb->ka", bt[r], x_kept[new[r]][inst]), point, n_e
-        )
-    x_e = jnp.einsum("kab,kb->ka", q, back)
+        back = back - jax.ops.segment_sum(small_matvec(bt[r], x_kept[new[r]][inst]), point, n_e)
+    x_e = small_matvec(q, back)
     x = [None] * len(layout.dims)
     for k, xk in zip(plan.kept, x_kept):
         x[k] = xk
