@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from lieax import SE3, icp
-from lieax.icp import _neighbors
+from lieax.icp import _neighbors, _registration
 from lieax.lstsq import Cauchy, Huber
 
 ROWS = 400  # rows of every padded synthetic cloud (>= the PCL bunny pair's 397 points)
@@ -257,6 +257,35 @@ def test_fitness_and_rmse_are_open3d_definitions(pair):
     )
     correspondences = np.asarray(result.correspondences)[: len(source)]
     np.testing.assert_array_equal(correspondences, np.where(inliers, index, -1))
+
+
+def test_presample_reaches_the_direct_pose_and_batches():
+    """`presample` (by default every 8th source point first, then all of them) converges to the
+    pose of the direct run, compiles one loop for both stages, batches under `vmap`; 0 skips the
+    first stage and a share outside [0, 1] is refused."""
+    source, target, normals, truth = icp.synthetic_pair(4000, rotation_deg=8.0, translation=0.08)
+    noisy = jnp.asarray(
+        np.asarray(target) + np.random.default_rng(5).normal(size=target.shape) * 0.005
+    )
+    options = {
+        "target_normals": normals, "max_correspondence_distance": RADIUS,
+        "relative_fitness": 1e-12, "relative_rmse": 1e-12, "max_iterations": 60,
+    }  # fmt: skip
+    direct = icp.point_to_plane(source, noisy, presample=0, **options)
+    compiled = _registration._solve._cache_size()
+    staged = icp.point_to_plane(source, noisy, **options)
+    assert _registration._solve._cache_size() == compiled  # (the direct run's loop, reused)
+    assert direct.status_name == staged.status_name == "CONVERGED"
+    rotation, translation = pose_error(staged.transform, direct.transform)
+    assert rotation < 1e-9 and translation < 1e-9
+    np.testing.assert_array_equal(staged.correspondences, direct.correspondences)
+    inits = SE3.exp(jnp.asarray([[0.0] * 6, [0.02, -0.01, 0.0, 0.0, 0.03, -0.02]]))
+    batched = jax.vmap(lambda init: icp.point_to_plane(source, noisy, init=init, **options))(inits)
+    for i in range(2):
+        rotation, translation = pose_error(batched.transform[i], direct.transform)
+        assert rotation < 1e-9 and translation < 1e-9
+    with pytest.raises(icp.ICPInputError, match="presample"):
+        icp.point_to_plane(source, noisy, presample=1.5, **options)
 
 
 def test_robust_loss_resists_outliers(pair):

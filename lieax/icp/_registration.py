@@ -25,6 +25,12 @@ are recomputed exactly (within `max_correspondence_distance`), and the loop resu
 changed the fitness or RMSE (unless two exact checks in a row agree), so the result is the one
 exact nearest neighbours give.
 
+Presampling (`point_to_plane`, default `presample=0.125`): every 8th source point is registered
+first, to looser tolerances, and the whole source from there: the iterations in which the pose
+still slides (every match changes, so the host k-d tree's warm start keeps none) then query an
+eighth of the points. The first stage masks the other rows of the same arrays, so both stages run
+one compiled loop; the converged pose is the full registration's.
+
 Shapes: by default (`buckets=True`) the clouds are padded (masked rows) to capacity buckets,
 the next size of the form $c \cdot 2^k$, $c \in \{5, 6, 7, 8\}$ (`lieax.icp._batch.bucket_size`:
 at most 25% padded rows, four shapes per doubling), and the results sliced back: a stream of
@@ -74,6 +80,10 @@ from ._robust import split_loss as _split_loss
 MIN_CORRESPONDENCES = 6
 _IDENTITY = (1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 _DESCENT_STEPS = 2
+# `point_to_plane(presample=...)`: the first registration's tolerances (the fitness's; the RMSE's
+# in units of max_correspondence_distance), and the fewest points it runs on.
+_PRESAMPLE_TOLERANCE = 1e-4
+_PRESAMPLE_MIN_POINTS = 500
 
 
 class _ICPResultFields(NamedTuple):
@@ -148,6 +158,7 @@ def point_to_plane(
     throw=True,
     search="auto",
     buckets=True,
+    presample=0.125,
 ) -> ICPResult:
     r"""Point-to-plane ICP: minimize $\sum_i \rho\big((n_i^\top (T s_i - d_i))^2\big)$ over
     $T$ = `T_target_source`, re-matching $d_i$ (nearest target point of $T s_i$) every iteration.
@@ -181,6 +192,15 @@ def point_to_plane(
       sizes reuse a compiled loop (see `bucket_size`: four sizes per doubling, at most 25%
       padded rows); `False` compiles for the exact shapes. The results are those of the
       unpadded call (`correspondences` has `n` entries and indexes the unpadded target).
+    - `presample`: register every $k$-th source point first, $k$ = `round(1 / presample)`, to
+      looser tolerances (1e-4 for the fitness, 1e-4 `max_correspondence_distance` for the RMSE,
+      or the given ones if looser), then the whole source from that pose to the given criteria;
+      0 (or a source of fewer than 500 $k$ points, or `search="graph"`) registers the whole
+      source from `init` directly. The first iterations, where the pose still slides and every
+      match changes (the host k-d tree's warm start keeps none), then query a $k$-th of the
+      points; the result is the full registration's, converged from closer. Both stages run one
+      compiled loop (the first masks the other rows). `iterations` counts the pose updates of
+      both stages.
 
     **Returns:** an `ICPResult`; `transform` and `inlier_rmse` are differentiable (forward and
     reverse mode) with respect to `source`, `target`, `target_normals` (given, or estimated from
@@ -193,6 +213,7 @@ def point_to_plane(
         "plane", source, target, max_correspondence_distance, target_normals, init,
         max_iterations, relative_fitness, relative_rmse, loss, source_mask, target_mask,
         exact, normals_k, verbose, throw, search=search, buckets=buckets,
+        presample=presample,
     )  # fmt: skip
 
 
@@ -233,7 +254,7 @@ def _register(
     kind, source, target, max_distance, target_normals, init, max_iterations, relative_fitness,
     relative_rmse, loss, source_mask, target_mask, exact, normals_k, verbose, throw,
     search="graph", source_covariances=None, target_covariances=None, buckets=True,
-    step_tolerance=None,
+    step_tolerance=None, presample=0.0,
 ):  # fmt: skip
     source = check_cloud(source, "source")
     target = check_cloud(target, "target")
@@ -285,12 +306,39 @@ def _register(
     constant = jax.tree.map(_constant, (data, init_params, max_distance, dynamic_loss))
     (source_c, target_c, normals_c, covariances_c), init_c, max_distance_c, loss_c = constant
     loss_scale_c = None if loss_c is None else loss_c[1]
-    result = _solve(
-        source_c, source_mask, target_c, target_mask, normals_c, init_c, max_distance_c,
-        _constant(relative_fitness), _constant(relative_rmse), loss_scale_c, options=options,
-        static_loss=static_loss, index=prebuilt, source_covariances=covariances_c[0],
-        target_covariances=covariances_c[1], step_tolerance=step_tolerance,
+    dtype = source.dtype
+    fitness_c, rmse_c = (
+        jnp.asarray(_constant(x), dtype) for x in (relative_fitness, relative_rmse)
+    )
+    solve = functools.partial(
+        _solve, target=target_c, target_mask=target_mask, target_normals=normals_c,
+        max_distance=max_distance_c, loss=loss_scale_c, options=options, static_loss=static_loss,
+        index=prebuilt, source_covariances=covariances_c[0], target_covariances=covariances_c[1],
+        step_tolerance=step_tolerance,
     )  # fmt: skip
+    init_c = jnp.asarray(_IDENTITY, dtype) if init_c is None else init_c
+    stride = _presample_stride(presample, n, search)
+    presampled = None
+    if stride > 1:
+        # Every stride-th source point, to looser tolerances: a mask on the same arrays, so that
+        # both stages run one compiled loop (the host k-d tree is sent only the sampled rows).
+        sampled = source_mask & (jnp.arange(source.shape[0]) % stride == 0)
+        loose = jnp.asarray(_PRESAMPLE_TOLERANCE, dtype)
+        presampled = solve(
+            source_c, sampled, init=init_c, relative_fitness=jnp.maximum(fitness_c, loose),
+            relative_rmse=jnp.maximum(rmse_c, loose * max_distance_c),
+        )  # fmt: skip
+        usable = (presampled.status == Status.CONVERGED) | (
+            presampled.status == Status.MAX_ITERATIONS
+        )
+        init_c = jnp.where(usable, presampled.transform.parameters(), init_c)
+    result = solve(
+        source_c, source_mask, init=init_c, relative_fitness=fitness_c, relative_rmse=rmse_c
+    )
+    if presampled is not None:
+        result = result._replace(
+            iterations=result.iterations + jnp.where(usable, presampled.iterations, 0)
+        )
     if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((data, dynamic_loss))):
         loss_kind, loss_scale = (None, 0.0) if dynamic_loss is None else dynamic_loss
         result = with_implicit_derivatives(
@@ -300,6 +348,20 @@ def _register(
         )  # fmt: skip
     result = result._replace(correspondences=_first_rows(result.correspondences, n))
     return _raise_on_failure(result, max_distance) if throw else result
+
+
+def _presample_stride(presample, n, search):
+    """The stride of the presampled first registration (`point_to_plane(presample=...)`): 1 (none)
+    for `presample` 0 or 1, for sources of fewer than `_PRESAMPLE_MIN_POINTS` presampled points,
+    and for `search="graph"` (its index would be built twice)."""
+    if isinstance(presample, bool) or not isinstance(presample, (int, float, np.floating)):
+        raise ICPInputError(f"presample must be a number in [0, 1], got {presample!r}.")
+    if not 0 <= presample <= 1:
+        raise ICPInputError(f"presample must be a number in [0, 1], got {presample!r}.")
+    if presample == 0 or search == "graph":
+        return 1
+    stride = max(1, round(1 / presample))
+    return stride if n // stride >= _PRESAMPLE_MIN_POINTS else 1
 
 
 def _raise_on_failure(result, max_distance):
@@ -404,7 +466,7 @@ def _solve(
     if target_normals is None:
         target_normals = jnp.zeros_like(target)
     target_normals = target_normals.astype(dtype)
-    init = jnp.asarray(_IDENTITY, dtype) if init is None else init.astype(dtype)
+    init = init.astype(dtype)
     max_distance, relative_fitness, relative_rmse = (
         jnp.asarray(x).astype(dtype) for x in (max_distance, relative_fitness, relative_rmse)
     )
