@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from lieax import SE3, icp
-from lieax.icp import _gicp, _host_kdtree
+from lieax.icp import _gicp, _host_kdtree, _normals
 from lieax.lstsq import Cauchy
 
 ROWS = 400
@@ -116,6 +116,36 @@ def test_covariances_of_small_neighbourhoods_are_the_identity(search):
         icp.estimate_covariances(points, k=4)
     with pytest.raises(ValueError, match="search must be 'auto', 'graph' or 'kdtree'"):
         icp.estimate_covariances(points, search="grid")
+
+
+def test_host_covariances_differentiate_and_batch_as_the_jax_path():
+    """The k-d tree path sums the neighbourhoods on the host: its derivatives (neighbourhoods
+    held fixed), `vmap` and float32 results are those of the JAX sums over the same
+    neighbourhoods (`_covariances_of_neighbours`)."""
+    points = np.asarray(icp.synthetic_scene(390, noise=0.002, seed=4)[0])
+    cloud, mask = padded(points)
+    found = _normals.neighbourhoods(cloud, mask, 20, search="kdtree")
+
+    def jax_path(c):
+        return _gicp._covariances_of_neighbours(c, mask, found)
+
+    def host_path(c):
+        return icp.estimate_covariances(c, k=20, mask=mask, search="kdtree")
+
+    direction = jnp.asarray(np.random.default_rng(1).normal(size=cloud.shape))
+    value, tangent = jax.jvp(host_path, (cloud,), (direction,))
+    expected_value, expected_tangent = jax.jvp(jax_path, (cloud,), (direction,))
+    np.testing.assert_allclose(value, expected_value, atol=1e-10)
+    np.testing.assert_allclose(tangent, expected_tangent, atol=1e-8)
+    stacked = jnp.stack([cloud, cloud[::-1]])
+    batched = jax.vmap(lambda c, m: icp.estimate_covariances(c, k=20, mask=m))(
+        stacked, jnp.stack([mask, mask[::-1]])
+    )
+    np.testing.assert_allclose(batched[0], value, atol=1e-12)
+    np.testing.assert_allclose(batched[1], value[::-1], atol=1e-12)
+    single = icp.estimate_covariances(cloud.astype(jnp.float32), k=20, mask=mask)
+    assert single.dtype == jnp.float32
+    np.testing.assert_allclose(single, value, atol=1e-4)
 
 
 # ---- the normal equations -----------------------------------------------------------------------

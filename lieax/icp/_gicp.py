@@ -19,8 +19,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import as_float_array
+from .._host_call import host_call
 from ..groups._se3 import SE3
-from . import _neighbors, _normals, _search
+from . import _host_kdtree, _neighbors, _normals, _search
 from ._batch import pad_to_bucket
 from ._checks import check_cloud, check_count, check_mask, check_parameter
 from ._normals import _UPPER, offset_covariances, smallest_eigenvector
@@ -53,8 +54,9 @@ def estimate_covariances(points, *, k=20, mask=None, search="auto"):
     - `k`: neighbourhood size, the point itself included (small_gicp's default, 20).
     - `mask`: `(n,)` bools, False for padding; those rows get the identity.
     - `search`: how the neighbours are found, as for `estimate_normals`: `"kdtree"`, the host
-      k-d tree (`lieax.icp._host_kdtree.nearest_valid_rows`: pykdtree's where it is installed,
-      else SciPy's; exact; CPU only), `"graph"`, the fixed-shape neighbour graph (any backend;
+      k-d tree (pykdtree's where it is installed, else SciPy's; exact; CPU only; the sums over
+      each neighbourhood are made on the host too, see `_kdtree_covariances`), `"graph"`, the
+      fixed-shape neighbour graph (any backend;
       99.96% of the bunny's neighbourhoods exact), or `"auto"` (`"kdtree"` on a CPU, else
       `"graph"`).
 
@@ -68,8 +70,8 @@ def estimate_covariances(points, *, k=20, mask=None, search="auto"):
     if search == "auto":
         search = "kdtree" if _search.platform_of(points) == "cpu" else "graph"
     if search == "kdtree":
-        found = _normals.neighbourhoods(points, mask, k, search="kdtree")
-        return _covariances_of_neighbours(points, mask, found)
+        _host_kdtree.check_on_host(points, "the points")
+        return _kdtree_covariances(points, mask, k, _host_kdtree.default_library())
     return _estimate(points, mask, k=k)
 
 
@@ -105,12 +107,82 @@ def _covariances_of_neighbours(points, mask, found):
     return _regularized(safe, neighbours, found >= 0, valid)
 
 
+@functools.partial(jax.custom_jvp, nondiff_argnums=(2, 3))
+def _kdtree_covariances(points, mask, k, library):
+    """`estimate_covariances(search="kdtree")`: the neighbours' sums on the host, in the k-d tree's
+    callback (`_host_covariance_entries`), the eigenvector and the regularization in JAX.
+
+    The host skips what the JAX path of `_covariances_of_neighbours` pays for: the `(n, k)`
+    indices' trip back to XLA and XLA's gather of `(n, 3, k)` copies (on the Kinect cloud of
+    `benchmarks/gicp.py`, 67k points, about 2x the time of the NumPy sums). Derivatives (the
+    neighbourhoods held fixed) are those of `_covariances_of_neighbours`, the JVP rule below."""
+    return _kdtree_covariances_primal(points, mask, k=k, library=library)
+
+
+@functools.partial(jax.jit, static_argnames=("k", "library"))
+def _kdtree_covariances_primal(points, mask, *, k, library):
+    valid = mask & jnp.all(jnp.isfinite(points), axis=1)
+    host = functools.partial(_host_covariance_entries, k=k, library=library)
+    result = jax.ShapeDtypeStruct((points.shape[0], 6), points.dtype)
+    entries = host_call(host, result, points, valid)
+    upper = [entries[:, j] for j in range(6)]
+    covariance = jnp.stack(
+        [jnp.stack([_entry(upper, a, b) for b in range(3)], -1) for a in range(3)], -2
+    )
+    count = jnp.minimum(k, jnp.sum(valid))  # every valid point has min(k, valid points) members
+    return _plane_regularized(covariance, count, valid)
+
+
+@_kdtree_covariances.defjvp
+def _kdtree_covariances_jvp(k, library, primals, tangents):
+    points, mask = primals
+    found = _normals.neighbourhoods(points, mask, k, search="kdtree")
+    return jax.jvp(lambda p: _covariances_of_neighbours(p, mask, found), (points,), tangents[:1])
+
+
+def _host_covariance_entries(points, valid, k, library):
+    r"""Host side of `_kdtree_covariances`: the six upper entries `(00, 01, 02, 11, 12, 22)` of
+    the sample covariance of each valid row of `points` `(n, 3)` and its `k - 1` nearest valid
+    rows (fewer where there are fewer), `(n, 6)` in the points' dtype, 0 in the rows not `valid`.
+
+    One `host_tree` of the valid rows (`library`), queried with them, as
+    `_host_kdtree.nearest_valid_rows`; then, in float64 with the offsets $o_j = p_j - p$ from the
+    point, $\frac1c \sum_j o_j o_j^\top - \bar o \bar o^\top$ (small_gicp's sums, about the
+    point rather than the origin), one coordinate at a time: three `(n, k)` gathers, no
+    `(n, k, 3)` copy."""
+    out = np.zeros((points.shape[0], 6), points.dtype)
+    rows = np.flatnonzero(valid)
+    if rows.size == 0:
+        return out
+    count = min(k, rows.size)
+    every = rows.size == points.shape[0]  # (no gather or scatter of the rows: the usual case)
+    cloud = np.ascontiguousarray(points if every else points[rows])
+    _, nearest = _host_kdtree.host_tree(cloud, library).query(cloud, k=count)
+    nearest = np.asarray(nearest, np.intp).reshape(rows.size, count)
+    columns = np.ascontiguousarray(cloud.T, np.float64)
+    offsets = [np.take(column, nearest) - column[:, None] for column in columns]
+    means = [np.sum(offset, axis=1) / count for offset in offsets]
+    entries = np.empty((rows.size, 6), np.float64)
+    for j, (a, b) in enumerate(_UPPER):
+        products = np.einsum("ij,ij->i", offsets[a], offsets[b]) / count
+        entries[:, j] = products - means[a] * means[b]
+    out[slice(None) if every else rows] = entries
+    return out
+
+
 def _regularized(centre, neighbours, inside, valid):
     r"""$I - (1 - \varepsilon) n n^\top$ from the sample covariance of `neighbours` `(n, 3, k)`
     where `inside` `(n, k)`; the identity where fewer than 5 are inside or `valid` is False."""
     covariance, count = offset_covariances(neighbours - centre[:, :, None], inside)
+    return _plane_regularized(covariance, count, valid)
+
+
+def _plane_regularized(covariance, count, valid):
+    r"""$I - (1 - \varepsilon) n n^\top$, $n$ the eigenvector of the smallest eigenvalue of each
+    `(n, 3, 3)` covariance of `count` points; the identity where `count` is below 5 or `valid`
+    is False."""
     normal = smallest_eigenvector(covariance)
-    eye = jnp.eye(3, dtype=centre.dtype)
+    eye = jnp.eye(3, dtype=covariance.dtype)
     regularized = eye - (1.0 - EPSILON) * normal[:, :, None] * normal[:, None, :]
     return jnp.where((valid & (count >= MIN_NEIGHBOURS))[:, None, None], regularized, eye)
 
