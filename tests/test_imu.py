@@ -284,7 +284,8 @@ def test_float32_under_vmap(with_arm):
 
 def test_differentiable_batched_and_not():
     """Reverse and forward mode through `preintegrate`, alone and under `vmap` (whose batched scan
-    is `custom_vmap`'d; its derivatives are the 3×3-block scan's), agree."""
+    is `custom_vmap`'d; its derivatives are the 3×3-block scan's), agree, and equal central
+    differences."""
     gyro, accel, dt = (np.stack(x) for x in zip(*[stream(30 + k, samples=20) for k in range(2)]))
     batched = jax.vmap(imu.preintegrate, in_axes=(0, 0, 0, None, None))
 
@@ -295,6 +296,12 @@ def test_differentiable_batched_and_not():
         return batched(gyro, accel, dt, bias, PARAMS_ARM).delta_p[1].sum()
 
     expected = jax.grad(one)(jnp.asarray(BIAS))
+    h = 1e-6
+    differences = [
+        (one(jnp.asarray(BIAS) + h * e) - one(jnp.asarray(BIAS) - h * e)) / (2 * h)
+        for e in np.eye(6)
+    ]
+    np.testing.assert_allclose(expected, differences, rtol=1e-6, atol=1e-9)
     for derivative in (jax.grad(both), jax.jacfwd(both), jax.jit(jax.grad(both))):
         np.testing.assert_allclose(derivative(jnp.asarray(BIAS)), expected, rtol=1e-12)
 
