@@ -261,8 +261,8 @@ def test_fitness_and_rmse_are_open3d_definitions(pair):
 
 def test_presample_reaches_the_direct_pose_and_batches():
     """`presample` (by default every 8th source point first, then all of them) converges to the
-    pose of the direct run, compiles one loop for both stages, batches under `vmap`; 0 skips the
-    first stage and a share outside [0, 1] is refused."""
+    pose of the direct run, compiles one loop for both stages, batches under `vmap`; 0 and
+    `max_iterations=1` skip the first stage and a share outside [0, 1] is refused."""
     source, target, normals, truth = icp.synthetic_pair(4000, rotation_deg=8.0, translation=0.08)
     noisy = jnp.asarray(
         np.asarray(target) + np.random.default_rng(5).normal(size=target.shape) * 0.005
@@ -284,6 +284,13 @@ def test_presample_reaches_the_direct_pose_and_batches():
     for i in range(2):
         rotation, translation = pose_error(batched.transform[i], direct.transform)
         assert rotation < 1e-9 and translation < 1e-9
+    one_step = {**options, "max_iterations": 1}  # (stepping by hand: no first stage)
+    stepped = icp.point_to_plane(source, noisy, **one_step)
+    assert int(stepped.iterations) == 1
+    rotation, translation = pose_error(
+        stepped.transform, icp.point_to_plane(source, noisy, presample=0, **one_step).transform
+    )
+    assert rotation < 1e-12 and translation < 1e-12
     with pytest.raises(icp.ICPInputError, match="presample"):
         icp.point_to_plane(source, noisy, presample=1.5, **options)
 

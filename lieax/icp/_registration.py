@@ -81,9 +81,11 @@ MIN_CORRESPONDENCES = 6
 _IDENTITY = (1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 _DESCENT_STEPS = 2
 # `point_to_plane(presample=...)`: the first registration's tolerances (the fitness's; the RMSE's
-# in units of max_correspondence_distance), and the fewest points it runs on.
+# in units of max_correspondence_distance), the fewest points it runs on, and the smallest
+# `max_iterations` it runs for (a caller asking for a few iterations steps the whole source).
 _PRESAMPLE_TOLERANCE = 1e-4
 _PRESAMPLE_MIN_POINTS = 500
+_PRESAMPLE_MIN_ITERATIONS = 10
 
 
 class _ICPResultFields(NamedTuple):
@@ -195,12 +197,12 @@ def point_to_plane(
     - `presample`: register every $k$-th source point first, $k$ = `round(1 / presample)`, to
       looser tolerances (1e-4 for the fitness, 1e-4 `max_correspondence_distance` for the RMSE,
       or the given ones if looser), then the whole source from that pose to the given criteria;
-      0 (or a source of fewer than 500 $k$ points, or `search="graph"`) registers the whole
-      source from `init` directly. The first iterations, where the pose still slides and every
+      0 (or a source of fewer than 500 $k$ points, `max_iterations` below 10, or
+      `search="graph"`) registers the whole source from `init` directly. The first iterations, where the pose still slides and every
       match changes (the host k-d tree's warm start keeps none), then query a $k$-th of the
       points; the result is the full registration's, converged from closer. Both stages run one
-      compiled loop (the first masks the other rows). `iterations` counts the pose updates of
-      both stages.
+      compiled loop (the first masks the other rows). Each stage is capped at `max_iterations`;
+      `iterations` counts the pose updates of both.
 
     **Returns:** an `ICPResult`; `transform` and `inlier_rmse` are differentiable (forward and
     reverse mode) with respect to `source`, `target`, `target_normals` (given, or estimated from
@@ -317,7 +319,7 @@ def _register(
         step_tolerance=step_tolerance,
     )  # fmt: skip
     init_c = jnp.asarray(_IDENTITY, dtype) if init_c is None else init_c
-    stride = _presample_stride(presample, n, search)
+    stride = _presample_stride(presample, n, search, max_iterations)
     presampled = None
     if stride > 1:
         # Every stride-th source point, to looser tolerances: a mask on the same arrays, so that
@@ -350,15 +352,16 @@ def _register(
     return _raise_on_failure(result, max_distance) if throw else result
 
 
-def _presample_stride(presample, n, search):
+def _presample_stride(presample, n, search, max_iterations):
     """The stride of the presampled first registration (`point_to_plane(presample=...)`): 1 (none)
     for `presample` 0 or 1, for sources of fewer than `_PRESAMPLE_MIN_POINTS` presampled points,
-    and for `search="graph"` (its index would be built twice)."""
+    for `max_iterations` below `_PRESAMPLE_MIN_ITERATIONS` (one call, one update for a caller
+    stepping ICP by hand), and for `search="graph"` (its index would be built twice)."""
     if isinstance(presample, bool) or not isinstance(presample, (int, float, np.floating)):
         raise ICPInputError(f"presample must be a number in [0, 1], got {presample!r}.")
     if not 0 <= presample <= 1:
         raise ICPInputError(f"presample must be a number in [0, 1], got {presample!r}.")
-    if presample == 0 or search == "graph":
+    if presample == 0 or search == "graph" or max_iterations < _PRESAMPLE_MIN_ITERATIONS:
         return 1
     stride = max(1, round(1 / presample))
     return stride if n // stride >= _PRESAMPLE_MIN_POINTS else 1
