@@ -145,20 +145,15 @@ def _host_covariance_entries(points, valid, k, library):
     the sample covariance of each valid row of `points` `(n, 3)` and its `k - 1` nearest valid
     rows (fewer where there are fewer), `(n, 6)` in the points' dtype, 0 in the rows not `valid`.
 
-    One `host_tree` of the valid rows (`library`), queried with them, as
-    `_host_kdtree.nearest_valid_rows`; then, in float64 with the offsets $o_j = p_j - p$ from the
-    point, $\frac1c \sum_j o_j o_j^\top - \bar o \bar o^\top$ (small_gicp's sums, about the
-    point rather than the origin), one coordinate at a time: three `(n, k)` gathers, no
-    `(n, k, 3)` copy."""
+    The neighbourhoods are `_host_kdtree.valid_row_neighbours`'; then, in float64 with the
+    offsets $o_j = p_j - p$ from the point, $\frac1c \sum_j o_j o_j^\top - \bar o \bar o^\top$
+    (small_gicp's sums, about the point rather than the origin), one coordinate at a time: three
+    `(n, k)` gathers, no `(n, k, 3)` copy."""
     out = np.zeros((points.shape[0], 6), points.dtype)
-    rows = np.flatnonzero(valid)
-    if rows.size == 0:
+    rows, cloud, nearest = _host_kdtree.valid_row_neighbours(points, valid, k, library)
+    if nearest is None:
         return out
-    count = min(k, rows.size)
-    every = rows.size == points.shape[0]  # (no gather or scatter of the rows: the usual case)
-    cloud = np.ascontiguousarray(points if every else points[rows])
-    _, nearest = _host_kdtree.host_tree(cloud, library).query(cloud, k=count)
-    nearest = np.asarray(nearest, np.intp).reshape(rows.size, count)
+    count = nearest.shape[1]
     columns = np.ascontiguousarray(cloud.T, np.float64)
     offsets = [np.take(column, nearest) - column[:, None] for column in columns]
     means = [np.sum(offset, axis=1) / count for offset in offsets]
@@ -166,7 +161,7 @@ def _host_covariance_entries(points, valid, k, library):
     for j, (a, b) in enumerate(_UPPER):
         products = np.einsum("ij,ij->i", offsets[a], offsets[b]) / count
         entries[:, j] = products - means[a] * means[b]
-    out[slice(None) if every else rows] = entries
+    out[slice(None) if rows.size == out.shape[0] else rows] = entries  # (no scatter: usual)
     return out
 
 

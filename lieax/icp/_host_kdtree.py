@@ -141,18 +141,30 @@ def host_tree(points, library=None):
     return cKDTree(points, balanced_tree=False)
 
 
+def valid_row_neighbours(points, valid, k, library=None):
+    """The valid rows of `points` `(n, 3)` and their neighbourhoods among themselves (NumPy, on
+    the host; one `host_tree` (`library`) of the valid rows): `(rows, cloud, nearest)` with
+    `rows` `(m,)` their indices, `cloud` `(m, 3)` their points (contiguous) and `nearest`
+    `(m, min(k, m))` the nearest valid rows of each, itself among them, nearest first, as indices
+    into `rows`; `cloud` and `nearest` are `None` when no row is valid."""
+    rows = np.flatnonzero(valid)
+    if rows.size == 0:
+        return rows, None, None
+    count = min(k, rows.size)
+    every = rows.size == points.shape[0]  # (no gather of the rows: the usual case)
+    cloud = np.ascontiguousarray(points if every else points[rows])
+    _, nearest = host_tree(cloud, library).query(cloud, k=count)
+    return rows, cloud, np.asarray(nearest, np.intp).reshape(rows.size, count)
+
+
 def nearest_valid_rows(points, valid, k, library=None):
     """The `k` nearest valid rows of every valid row of `points` `(n, 3)` (itself among them;
     NumPy, on the host), `(n, k)` int32 row indices nearest first, `-1` where there are fewer
-    valid rows and in the rows not `valid`; one `host_tree` (`library`) of the valid rows."""
+    valid rows and in the rows not `valid` (`valid_row_neighbours`)."""
     found = np.full((points.shape[0], k), -1, np.int32)
-    rows = np.flatnonzero(valid)
-    if rows.size == 0:
-        return found
-    count = min(k, rows.size)
-    cloud = np.ascontiguousarray(points[rows])
-    _, nearest = host_tree(cloud, library).query(cloud, k=count)
-    found[rows, :count] = rows[np.asarray(nearest, np.int64).reshape(rows.size, count)]
+    rows, _, nearest = valid_row_neighbours(points, valid, k, library)
+    if nearest is not None:
+        found[rows, : nearest.shape[1]] = rows[nearest]
     return found
 
 
