@@ -582,8 +582,9 @@ def _solve(
             )
         elif search == "kdtree":  # exact; the host sees only queries whose match may change
             slot, d2, warm = _host_kdtree.track_in_kdtree(
-                index, in_index(queries), max_distance, state.warm, mask=source_mask
-            )
+                index, in_index(queries), max_distance, state.warm,
+                mask=source_mask & (state.status == Status.RUNNING),
+            )  # fmt: skip
         else:  # exact in every iteration
             slot, d2 = _search.match(index, in_index(queries), max_distance, source_mask)
         d2 = jnp.where(source_mask, centred(queries, slot, d2), jnp.inf)
