@@ -19,29 +19,58 @@ import numpy as np
 from jax import lax
 
 
-def pure_callback_host_call(fn, result, *args):
+def pure_callback_host_call(fn, result, *args, batched=None):
     """`host_call` through `jax.pure_callback` (public API; slower per call)."""
-    return jax.pure_callback(
-        lambda *a: np.asarray(fn(*(np.asarray(x) for x in a)), result.dtype),
-        result,
-        *args,
-        vmap_method="sequential",
-    )
+    if batched is None:
+        return jax.pure_callback(
+            lambda *a: np.asarray(fn(*(np.asarray(x) for x in a)), result.dtype),
+            result,
+            *args,
+            vmap_method="sequential",
+        )
+    ranks = [jnp.ndim(a) for a in args]
+
+    def call(*arrays):  # under (nested) vmap every operand carries the same leading batch axes
+        arrays = [np.asarray(x) for x in arrays]
+        lead = arrays[0].shape[: arrays[0].ndim - ranks[0]]
+        if not lead:
+            return np.asarray(fn(*arrays), result.dtype)
+        flat = [x.reshape(-1, *x.shape[len(lead) :]) for x in arrays]
+        return np.asarray(batched(*flat), result.dtype).reshape(*lead, *result.shape)
+
+    return jax.pure_callback(call, result, *args, vmap_method="broadcast_all")
 
 
-def host_call(fn, result, *args):
+def host_call(fn, result, *args, batched=None):
     """`fn(*args)` on the host, from traced code.
 
     **Arguments:**
     - `fn`: takes NumPy arrays and returns one NumPy array (a pure function of its inputs).
     - `result`: a `jax.ShapeDtypeStruct`, the shape and dtype of `fn`'s result.
     - `args`: JAX arrays.
+    - `batched`: optional, `fn` over a batch: takes every argument with one leading batch axis
+      `(B, ...)` and returns `(B, *result.shape)`. Under `vmap` (nested or not) it is called once
+      for the whole batch; without it, `fn` is called once per batch element.
 
-    **Returns:** `fn(*args)` as a JAX array. Under `vmap`, `fn` is called once per batch element.
+    **Returns:** `fn(*args)` as a JAX array.
     """
     if _HOST_CALL is None:
-        return pure_callback_host_call(fn, result, *args)
-    return _HOST_CALL.bind(*args, fn=fn, shape=tuple(result.shape), dtype=np.dtype(result.dtype))
+        return pure_callback_host_call(fn, result, *args, batched=batched)
+    return _HOST_CALL.bind(
+        *args, fn=fn, shape=tuple(result.shape), dtype=np.dtype(result.dtype), batched=batched
+    )
+
+
+def _flattening(batched, shape):
+    """`batched` for arguments with two leading batch axes `(B1, B0, ...)` (the batching rule of a
+    call that is already batched): flattened to `(B1 * B0, ...)`, the result reshaped back."""
+
+    def call(*arrays):
+        lead = arrays[0].shape[:2]
+        flat = [a.reshape(-1, *a.shape[2:]) for a in arrays]
+        return np.asarray(batched(*flat)).reshape(*lead, *shape)
+
+    return call
 
 
 def _primitive_supported(emit_python_callback) -> bool:
@@ -64,13 +93,13 @@ def _host_call_primitive():
 
     primitive = Primitive("lieax_host_call")
 
-    def impl(*args, fn, shape, dtype):
+    def impl(*args, fn, shape, dtype, batched):
         return jnp.asarray(np.asarray(fn(*(np.asarray(a) for a in args)), dtype))
 
-    def abstract_eval(*args, fn, shape, dtype):
+    def abstract_eval(*args, fn, shape, dtype, batched):
         return jax.core.ShapedArray(shape, dtype)
 
-    def lowering(ctx, *args, fn, shape, dtype):
+    def lowering(ctx, *args, fn, shape, dtype, batched):
         def call(*arrays):
             return (np.asarray(fn(*arrays), dtype),)
 
@@ -86,13 +115,21 @@ def _host_call_primitive():
         )
         return result
 
-    def batch(args, dims, *, fn, shape, dtype):
+    def batch(args, dims, *, fn, shape, dtype, batched):
         size = next(a.shape[d] for a, d in zip(args, dims) if d is not None)
         args = [
             jnp.broadcast_to(a, (size, *a.shape)) if d is None else jnp.moveaxis(a, d, 0)
             for a, d in zip(args, dims)
         ]
-        out = lax.map(lambda xs: primitive.bind(*xs, fn=fn, shape=shape, dtype=dtype), args)
+        if batched is not None:  # one call for the batch
+            out = primitive.bind(
+                *args, fn=batched, shape=(size, *shape), dtype=dtype,
+                batched=_flattening(batched, shape),
+            )  # fmt: skip
+            return out, 0
+        out = lax.map(
+            lambda xs: primitive.bind(*xs, fn=fn, shape=shape, dtype=dtype, batched=None), args
+        )
         return out, 0
 
     primitive.def_impl(impl)

@@ -66,3 +66,37 @@ def test_guard_checks_the_keywords_the_lowering_passes():
     from jax._src.callback import emit_python_callback
 
     assert _host_call._primitive_supported(emit_python_callback)
+
+
+def _host_solve_batch(matrices, rhs):
+    assert matrices.ndim == 3 and rhs.ndim == 2  # one call with the batch axis first
+    _host_solve_batch.calls += 1
+    return np.linalg.solve(matrices, rhs[..., None])[..., 0]
+
+
+@pytest.mark.parametrize("path", PATHS)
+def test_batched_host_function_is_called_once_for_a_batch(problem, path):
+    """`batched=`: under `vmap` and nested `vmap`, one call with the batch axes flattened into
+    one, the results those of the element function; an unbatched operand is broadcast."""
+    call = PATHS[path]
+    matrices, rhs = problem
+    expected = np.linalg.solve(np.asarray(matrices), np.asarray(rhs)[..., None])[..., 0]
+
+    def solve(m, b):
+        result = jax.ShapeDtypeStruct(b.shape, b.dtype)
+        return call(_host_solve, result, m, b, batched=_host_solve_batch)
+
+    _host_solve_batch.calls = 0
+    batched = jax.jit(jax.vmap(solve))(matrices, rhs)
+    np.testing.assert_allclose(batched, expected, rtol=1e-12)
+    assert _host_solve_batch.calls == 1
+    shared = jax.jit(jax.vmap(solve, in_axes=(None, 0)))(matrices[0], rhs)
+    np.testing.assert_allclose(
+        shared, np.linalg.solve(np.asarray(matrices[0]), np.asarray(rhs).T).T, rtol=1e-12
+    )
+    nested = jax.jit(jax.vmap(jax.vmap(solve)))(
+        jnp.stack([matrices, matrices[::-1]]), jnp.stack([rhs, rhs[::-1]])
+    )
+    np.testing.assert_allclose(nested, np.stack([expected, expected[::-1]]), rtol=1e-12)
+    single = jax.jit(solve)(matrices[1], rhs[1])  # no vmap: the element function
+    np.testing.assert_allclose(single, expected[1], rtol=1e-12)

@@ -298,6 +298,23 @@ def test_vmap_over_targets_builds_one_host_tree_each(pair):
         np.testing.assert_allclose(result.distance[b][within], reference[within], atol=1e-12)
 
 
+def test_vmap_groups_host_queries_by_tree_and_radius(pair):
+    """Under `vmap` the host answers the whole batch in one call, one tree query per (tree,
+    radius): elements that share a tree but not a radius, or a radius but not a tree, still get
+    their own exact answers."""
+    source, target, _, _ = pair
+    targets = jnp.stack([target, target + 0.01, target])
+    radii = jnp.asarray([0.1, 0.1, 0.03])
+    index = jax.vmap(lambda t: _search.build_index(t, search="kdtree"))(targets)
+    assert int(index.tree[0]) == int(index.tree[2]) != int(index.tree[1])
+    result = jax.jit(jax.vmap(lambda ix, r: _search.nearest(ix, source, radius=r)))(index, radii)
+    for b in range(3):
+        reference, _ = cKDTree(np.asarray(targets[b])).query(np.asarray(source), 1)
+        within = reference <= float(radii[b])
+        assert np.array_equal(np.isfinite(result.distance[b]), within)
+        np.testing.assert_allclose(result.distance[b][within], reference[within], atol=1e-12)
+
+
 def test_prebuilt_index_is_reused(pair):
     source, target, normals, _ = pair
     first = _search.build_index(target, search="kdtree")

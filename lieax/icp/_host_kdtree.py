@@ -10,7 +10,8 @@ in a few microseconds. So the tree lives on the host:
   target, or every element of a `vmap` that shares a target, reuses it), and hands back an integer
   id that travels in the traced `KDTreeIndex`;
 - `nearest_in_kdtree` sends the queries and the id each time, and gets the nearest valid target
-  point within the radius back (under `vmap`, one host call per element).
+  point within the radius back (under `vmap`, one host call for the whole batch, with one tree
+  query per target: `_per_target`).
 
 Warm starts. ICP's iterations use `track_in_kdtree`, which keeps the answer of a query that moved
 less than half the gap between its nearest and second-nearest distances (see there), and asks the
@@ -279,7 +280,7 @@ def nearest_in_kdtree(index: KDTreeIndex, queries, radius=jnp.inf, *, mask=None,
         kept = active & index.valid[previous] & (slack * previous_d2 <= spacing * spacing)
     out = host_call(
         _query, jax.ShapeDtypeStruct((m, 2), queries.dtype), index.tree, queries, radius,
-        active & ~kept,
+        active & ~kept, batched=_per_target(_query),
     )  # fmt: skip
     # A slot below 2**24 is exact in float32.
     slot, d2 = out[:, 1].astype(jnp.int32), out[:, 0]
@@ -370,7 +371,7 @@ def track_in_kdtree(index: KDTreeIndex, queries, radius, warm: KDTreeWarmStart, 
     pairs = _float_count(sent & (moved < gap)) >= _PAIR_SHARE * _float_count(sent)
     out = host_call(
         _track_query, jax.ShapeDtypeStruct((m, 2), dtype), index.tree, queries, radius, sent,
-        pairs,
+        pairs, batched=_per_target(_track_query),
     )  # fmt: skip
     fresh_slot, fresh_allowance = out[:, 0].astype(jnp.int32), out[:, 1]  # (slots below 2**24)
     fresh_hits = sent & (fresh_slot >= 0)
@@ -390,6 +391,33 @@ def track_in_kdtree(index: KDTreeIndex, queries, radius, warm: KDTreeWarmStart, 
 def _float_count(flags):
     """The number of True entries, as a float sum (one kernel on XLA's CPU backend)."""
     return jnp.sum(flags.astype(jnp.result_type(float)))
+
+
+def _per_target(host):
+    """`host(tree_id, queries (m, 3), radius, active (m,), *flags)` -> `(m, c)` for a batch (the
+    `batched` of `host_call`, under `vmap`): `(B, m, c)`. Elements that share a tree, radius and
+    flags (a batch of starts for one target) send their queries in one tree query: one pass of
+    pykdtree's threads over them all, where a call per element pays the host call and the threads'
+    start-up `B` times."""
+
+    def batched(tree_ids, queries, radii, active, *flags):
+        keys = np.stack([np.asarray(x, np.float64) for x in (tree_ids, radii, *flags)], axis=1)
+        _, element_group = np.unique(keys, axis=0, return_inverse=True)
+        element_group = element_group.reshape(-1)
+        out = None
+        for group in range(element_group.max() + 1):
+            members = np.flatnonzero(element_group == group)
+            first = members[0]
+            flat = host(
+                tree_ids[first], queries[members].reshape(-1, 3), radii[first],
+                active[members].reshape(-1), *(f[first] for f in flags),
+            )  # fmt: skip
+            if out is None:
+                out = np.empty((*queries.shape[:2], flat.shape[-1]), flat.dtype)
+            out[members] = flat.reshape(members.size, queries.shape[1], -1)
+        return out
+
+    return batched
 
 
 def _track_query(tree_id, queries, radius, active, pairs):
