@@ -11,15 +11,13 @@ Tables:
 1. One registration from the identity: the Stanford bunny at 2 mm (about 7k points) and in full
    (about 40k), lieax in float32 and float64; errors against the reference transform and against
    Open3D's result.
-2. 64 registrations of the 2 mm pair from 64 perturbed initial guesses: lieax in one `vmap`ped
-   call against Open3D in a Python loop.
-3. Growth with cloud size (both scans resampled to 10k, 40k and 160k points): compile time, the
-   cost of one iteration (matching by graph descent and the Gauss-Newton step), the one-off costs
-   (index build, exact check) and the totals.
-4. Matching exactness: the share of source points whose match is their exact nearest neighbour
+2. Growth with cloud size (both scans resampled to 10k, 40k, 160k and 640k points): compile
+   time, the default search's phases (host k-d tree build, one matching step cold and warm, one
+   Gauss-Newton step) and the totals.
+3. Matching exactness: the share of source points whose match is their exact nearest neighbour
    (within the distance) for the graph descent alone and after the exact check, against SciPy's
    cKDTree.
-5. Every kind of scan (`benchmarks/neighbors.py`'s clouds: the bunny at 2 mm and in full, 1 cm;
+4. Every kind of scan (`benchmarks/neighbors.py`'s clouds: the bunny at 2 mm and in full, 1 cm;
    outdoor LiDAR on a 0.5 m grid, 1 m; a Kinect frame on a 1 cm grid against a shifted-grid,
    cropped, moved copy, 5 cm): Open3D against lieax with each `search` backend, float64, Open3D's
    target normals given to both, Open3D's criteria 1e-6 / 30 and 1e-10 / 60; then the per-phase
@@ -204,69 +202,7 @@ def single(data_dir, rounds):
     return markdown_table(headers, rows), notes
 
 
-# ---- 2. a batch of initial guesses --------------------------------------------------------------
-
-
-def perturbations(count, seed, degrees=5.0, metres=0.005):
-    """`count` initial guesses around the identity: rotations of up to `degrees` about random
-    axes, translations of up to `metres` in random directions."""
-    rng = np.random.default_rng(seed)
-    axes = rng.normal(size=(count, 3))
-    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
-    directions = rng.normal(size=(count, 3))
-    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
-    omega = axes * np.deg2rad(rng.uniform(0, degrees, (count, 1)))
-    v = directions * rng.uniform(0, metres, (count, 1))
-    return SE3.exp(jnp.asarray(np.concatenate([v, omega], axis=1)))
-
-
-def batch(data_dir, count, rounds):
-    source, target, reference = load_pair(data_dir, "bunny_v0.002.npz")
-    normals = open3d_normals(target)
-    inits = perturbations(count, seed=7)
-    init_matrices = np.asarray(inits.as_matrix())
-    o3d_run = open3d_runner(source, target, normals)
-    s, t, n = (jnp.asarray(a, jnp.float32) for a in (source, target, normals))
-    params = inits.parameters().astype(jnp.float32)
-
-    @jax.jit
-    def batched(params):
-        return jax.vmap(
-            lambda p: icp.point_to_plane(
-                s, t, target_normals=n, max_correspondence_distance=MAX_DISTANCE, init=SE3(p)
-            )
-        )(params)
-
-    variants = {
-        "open3d loop": timed(lambda: [o3d_run(m) for m in init_matrices]),
-        "lieax vmap": lambda: batched(params),
-    }
-    timings = time_interleaved(variants, rounds, warmup=1, min_sample_s=0)
-    results = batched(params)
-    poses = np.asarray(results.transform.as_matrix(), np.float64)
-    o3d_poses = [np.asarray(o3d_run(m).transformation) for m in init_matrices]
-    gaps = [rotation_deg(p, q) for p, q in zip(poses, o3d_poses)]
-    reached = np.mean([rotation_deg(p, reference) < 0.5 for p in poses])
-    reached_o3d = np.mean([rotation_deg(p, reference) < 0.5 for p in o3d_poses])
-    rows = [[
-        f"{count} × bunny 2 mm",
-        format_seconds(timings["open3d loop"].median),
-        format_seconds(timings["lieax vmap"].median),
-        format_ratio(timings["open3d loop"].median, timings["lieax vmap"].median),
-        f"{timings['lieax vmap'].compile_s:.1f} s",
-    ]]  # fmt: skip
-    note = (
-        f"iterations per run {int(np.min(results.iterations))}–{int(np.max(results.iterations))} "
-        f"(the batch runs {int(np.max(results.iterations))}); statuses "
-        f"{dict(zip(*np.unique(results.status_name, return_counts=True)))}; within 0.5° of the "
-        f"reference: lieax {reached:.0%}, Open3D {reached_o3d:.0%}; lieax vs Open3D per run: "
-        f"median {np.median(gaps):.4f}°, max {np.max(gaps):.4f}°"
-    )
-    headers = ["registrations", "Open3D loop", "lieax vmap (f32)", "speed-up", "lieax compile"]
-    return markdown_table(headers, rows), note
-
-
-# ---- 3. growth with cloud size ------------------------------------------------------------------
+# ---- 2. growth with cloud size ------------------------------------------------------------------
 
 
 def growth(data_dir, sizes, rounds):
@@ -288,9 +224,9 @@ def growth(data_dir, sizes, rounds):
             f"{size // 1000}k",
             f"{timings['lieax'].compile_s:.1f} s",
             format_seconds(parts["build"]),
-            format_seconds(parts["match"]),
+            format_seconds(parts["cold match"]),
+            format_seconds(parts["warm match"]),
             format_seconds(parts["step"]),
-            format_seconds(parts["exact"]),
             f"{int(result.iterations)} / {n_o3d}",
             format_seconds(timings["open3d"].median / n_o3d),
             format_seconds(timings["lieax"].median),
@@ -298,50 +234,47 @@ def growth(data_dir, sizes, rounds):
             format_ratio(timings["lieax"].median, timings["open3d"].median),
         ])  # fmt: skip
     headers = [
-        "points", "lieax compile", "index build", "match / it.", "GN step / it.", "exact check",
+        "points", "lieax compile", "index build", "match / it. (cold)", "match / it. (warm)",
+        "GN step / it.",
         "iterations (lieax / Open3D)", "Open3D / it.", "lieax total", "Open3D total", "ratio",
     ]  # fmt: skip
     return markdown_table(headers, rows)
 
 
 def component_timings(source, target, normals, reference, rounds):
-    """Seconds for the pieces of one registration, at the reference pose (float32): index build,
-    one matching step (descent warm-started from the converged matches), one Gauss-Newton step
-    (Jacobian rows through `lieax.jacobian`), and the exact check."""
+    """Seconds for the pieces of one registration with the default search (the host k-d tree,
+    pykdtree), at the reference pose (float32): index build (a fresh tree), one matching step with
+    every query sent to the tree (a cold one, as after a large move) and one warm-started from the
+    converged matches (as near convergence), and one Gauss-Newton step (normal equations and
+    solve)."""
+    import neighbors
+
     s, t, n = (jnp.asarray(a, jnp.float32) for a in (source, target, normals))
     params = SE3.from_matrix(jnp.asarray(reference, jnp.float32)).parameters()
-    build = jax.jit(_neighbors.build_index)
+    build = neighbors.builder("kdtree pykdtree", MAX_DISTANCE)
     index = build(t)
     queries = _registration.transform_points(params, s)
-    first = _neighbors.nearest(index, queries, radius=MAX_DISTANCE, exact=False)
-    track = jax.jit(
-        lambda i, q, p: _neighbors.track(i, q, p, max_steps=_registration._DESCENT_STEPS)[:2]
-    )
-    slot, d2 = track(index, queries, first.slot)
+    cold = neighbors.matcher("kdtree", MAX_DISTANCE, warm=False)
+    warm = neighbors.matcher("kdtree", MAX_DISTANCE)
+    slot, d2 = cold(index, queries, None)
     inliers = d2 <= MAX_DISTANCE**2
     normals_slots = n[index.order]
     step = jax.jit(
-        lambda p, q, m, w: _registration._plane_step(
+        lambda p, m, w: _registration._plane_step(
             p, s, index.points[m], normals_slots[m], w, lambda x: jnp.ones_like(x)
         )
     )
-    certified = _neighbors.certify(index, slot, d2, MAX_DISTANCE)
-    exact = jax.jit(
-        lambda i, q, sl, e, c: _neighbors.refine_uncertified(
-            i, q, sl, e, c, MAX_DISTANCE, scan=False
-        )
-    )
     variants = {
-        "build": lambda: build(t),
-        "match": lambda: track(index, queries, slot),
-        "step": lambda: step(params, queries, slot, inliers),
-        "exact": lambda: exact(index, queries, slot, d2, certified),
+        "build": lambda: neighbors.fresh_build(build, t),
+        "cold match": lambda: cold(index, queries, None),
+        "warm match": lambda: warm(index, queries, slot),
+        "step": lambda: step(params, slot, inliers),
     }
     timings = time_interleaved(variants, rounds, warmup=1)
     return {key: timing.median for key, timing in timings.items()}
 
 
-# ---- 4. exactness -------------------------------------------------------------------------------
+# ---- 3. exactness -------------------------------------------------------------------------------
 
 
 def exactness(data_dir):
@@ -502,19 +435,18 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data-dir", default=os.environ.get("LIEAX_DATA_DIR"))
     parser.add_argument("--rounds", type=int, default=5)
-    parser.add_argument("--batch", type=int, default=64)
-    parser.add_argument("--sizes", default="10000,40000,160000")
-    parser.add_argument("--quick", action="store_true", help="2 rounds, a batch of 8, 10k only")
+    parser.add_argument("--sizes", default="10000,40000,160000,640000")
+    parser.add_argument("--quick", action="store_true", help="2 rounds, 10k only")
     parser.add_argument("--searches", default=SCAN_SEARCHES, help="backends in the scans table")
     parser.add_argument(
         "--skip", default="",
-        help="comma-separated sections to skip: single,batch,growth,exactness,scans",
+        help="comma-separated sections to skip: single,growth,exactness,scans",
     )  # fmt: skip
     args = parser.parse_args()
     if args.data_dir is None:
         sys.exit("Set LIEAX_DATA_DIR (or --data-dir) to the shared data folder.")
     if args.quick:
-        args.rounds, args.batch, args.sizes = 2, 8, "10000"
+        args.rounds, args.sizes = 2, "10000"
     skip = set(filter(None, args.skip.split(",")))
     print(f"# ICP benchmark\n\n{machine_description()}, Open3D {o3d.__version__}, "
           f"{os.cpu_count()} CPUs; {time.strftime('%Y-%m-%d %H:%M')}\n")  # fmt: skip
@@ -522,11 +454,6 @@ def main():
         table, notes = single(args.data_dir, args.rounds)
         print("## One registration from the identity\n\n" + table + "\n")
         print("\n".join(f"- {note}" for note in notes) + "\n")
-    if "batch" not in skip:
-        table, note = batch(args.data_dir, args.batch, max(2, args.rounds // 2))
-        print(
-            f"## {args.batch} registrations from perturbed initial guesses\n\n{table}\n\n- {note}\n"
-        )
     if "growth" not in skip:
         sizes = [int(s) for s in args.sizes.split(",")]
         print(
