@@ -8,9 +8,12 @@ certified values to four significant digits, and its iterations: MINPACK's `lmde
 `lieax.lstsq.least_squares` with each `LevenbergMarquardt(scaling=...)`: `"clipped"` (lieax's
 former damping, Marquardt's diagonal clipped to $[10^{-6}, 10^{32}]$), `"jacobi"` (Ceres'
 `jacobi_scaling`) and `"minpack"` (the default: MINPACK's running maximum of the column norms).
-All three share the current stopping rules and the Jacobi-scaled Cholesky factorization; lieax
-before this change (the clipped damping, an unscaled factorization and absolute gradient and
-step tests) solved none of the rescaled problems. An iteration of
+All three use Nielsen's damping rule (the default); the last column is the `"minpack"` scaling
+with MINPACK's trust-region radius instead (`damping_update="minpack"`: `lmder`'s radius update
+and `lmpar`'s damping for the radius), which takes MINPACK's steps. All share the current
+stopping rules and the Jacobi-scaled Cholesky factorization; lieax before the scaling option (the
+clipped damping, an unscaled factorization and absolute gradient and step tests) solved none of
+the rescaled problems. An iteration of
 lieax is one evaluation of the residual and its Jacobian, rejected steps included, as MINPACK's
 function evaluations. Every lieax solve runs at most 1,000 iterations in float64.
 
@@ -31,6 +34,10 @@ import test_lstsq_scaling as suite  # noqa: E402
 import lieax.lstsq as ls  # noqa: E402
 
 SCALINGS = ("clipped", "jacobi", "minpack")
+SOLVERS = {
+    **{f"lieax `{name}`": ls.LevenbergMarquardt(scaling=name) for name in SCALINGS},
+    "lieax `minpack`, MINPACK's radius": ls.LevenbergMarquardt(damping_update="minpack"),
+}
 
 
 def cell(problem, b, iterations, status=None) -> str:
@@ -40,21 +47,18 @@ def cell(problem, b, iterations, status=None) -> str:
 
 
 def main():
-    header = ["problem", "variant", "start", "MINPACK"] + [f"lieax `{name}`" for name in SCALINGS]
+    header = ["problem", "variant", "start", "MINPACK", *SOLVERS]
     print("| " + " | ".join(header) + " |")
     print("|" + "---|" * len(header))
-    totals = {name: 0 for name in ("MINPACK", *SCALINGS)}
+    totals = {name: 0 for name in ("MINPACK", *SOLVERS)}
     for problem in suite.PROBLEMS:
-        results = {
-            name: suite.lieax_results(problem, ls.LevenbergMarquardt(scaling=name))
-            for name in SCALINGS
-        }
+        results = {name: suite.lieax_results(problem, solver) for name, solver in SOLVERS.items()}
         minpack = suite.minpack_results(problem)
         for index, (variant, start, _) in enumerate(suite.cases(problem)):
             b, nfev, _ = minpack[index]
             row = [problem.name, variant, str(start), cell(problem, b, nfev)]
             totals["MINPACK"] += suite.solved(problem, b)
-            for name in SCALINGS:
+            for name in SOLVERS:
                 b, iterations, status = results[name][index]
                 row.append(cell(problem, b, iterations, status))
                 totals[name] += suite.solved(problem, b)
@@ -62,7 +66,7 @@ def main():
     cases = sum(len(suite.cases(problem)) for problem in suite.PROBLEMS)
     print(
         f"| **solved** | | | {totals['MINPACK']}/{cases} | "
-        + " | ".join(f"{totals[name]}/{cases}" for name in SCALINGS)
+        + " | ".join(f"{totals[name]}/{cases}" for name in SOLVERS)
         + " |"
     )
 

@@ -1,7 +1,9 @@
 """Tests of `lieax.lstsq._trust_region`, the Levenberg-Marquardt / Gauss-Newton decisions that
 `least_squares` and the factor-graph loop share: the damping sequences of Nielsen's and GTSAM's
-rules against hand-computed ones, the gain ratio, the acceptance and divergence conventions, the
-precedence of the status codes, and that the dense solver's update is the shared rule."""
+rules and MINPACK's radius update against hand-computed ones, the gain ratio, the acceptance and
+divergence conventions, the precedence of the status codes, that the dense solver's update is the
+shared rule, MINPACK's `lmpar` (`_normal_equations.damping_for_radius`), and the order of the
+phases of the iteration both loops run (`_iteration.body`)."""
 
 from fractions import Fraction
 
@@ -10,8 +12,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from lieax.lstsq import LevenbergMarquardt, Status
+from lieax.lstsq import LevenbergMarquardt, Status, _iteration
 from lieax.lstsq import _trust_region as trust_region
+from lieax.lstsq._normal_equations import damping_for_radius
 
 jax.config.update("jax_enable_x64", True)
 
@@ -97,10 +100,120 @@ def test_levenberg_marquardt_update_is_nielsen_clipped(scaling):
     damping, factor = state[0], state[1]
     for accept, ratio in [(True, 1.0), (True, 1.0), (False, 0.0), (True, 0.5)] + [(False, 0.0)] * 6:
         finite = jnp.asarray(True)
-        kept, state = solver.update(state, jnp.asarray(ratio if accept else -1.0), finite)
+        ratio_in = jnp.asarray(ratio if accept else -1.0)
+        kept, state = solver.update(state, ratio_in, finite, jnp.asarray(1.0), jnp.asarray(2.0))
         assert bool(kept) == accept
         damping, factor = trust_region.nielsen(kept, jnp.asarray(ratio), damping, factor)
         damping = jnp.clip(damping, 1e-3, 20.0)
         np.testing.assert_allclose(state[0], damping, rtol=1e-15)
         np.testing.assert_allclose(state[1], factor, rtol=1e-15)
     assert bool(solver.diverged(state, 0.0, 0.0))  # clipped at twice the bound, beyond it
+
+
+def minpack(finite, ratio, actual, slope, step_norm, radius, damping, cost=1.0):
+    """`trust_region.minpack` on Python numbers, as `(radius, damping)` floats."""
+    radius, damping = trust_region.minpack(
+        jnp.asarray(finite), jnp.asarray(ratio), jnp.asarray(actual), jnp.asarray(cost),
+        jnp.asarray(slope), jnp.asarray(step_norm), jnp.asarray(radius), jnp.asarray(damping),
+    )  # fmt: skip
+    return float(radius), float(damping)
+
+
+def test_minpack_radius_update_by_hand():
+    # rho >= 3/4: twice the step, half the damping, whatever the radius was
+    assert minpack(True, 0.9, 0.5, -1.0, 1.0, 5.0, 4.0) == (2.0, 2.0)
+    # 1/4 < rho < 3/4: unchanged, unless the step was Gauss-Newton's (damping 0)
+    assert minpack(True, 0.5, 0.5, -1.0, 1.0, 5.0, 4.0) == (5.0, 4.0)
+    assert minpack(True, 0.5, 0.5, -1.0, 1.0, 5.0, 0.0) == (2.0, 0.0)
+    # rho <= 1/4 with a decrease: tau = 1/2 of min(radius, 10 |D step|)
+    assert minpack(True, 0.25, 0.1, -1.0, 1.0, 5.0, 4.0) == (2.5, 8.0)
+    assert minpack(True, 0.1, 0.1, -1.0, 0.2, 5.0, 4.0) == (1.0, 8.0)
+    # a rise: tau minimizes the quadratic through c, the slope g.step = -1 and the trial cost
+    # c - actual along the step, tau = 0.5 * (-1) / (-1 - 0.25) = 0.4 (1/10 at the least)
+    radius, damping = minpack(True, -0.5, -0.25, -1.0, 1.0, 5.0, 4.0)
+    np.testing.assert_allclose((radius, damping), (2.0, 10.0), rtol=1e-15)
+    assert minpack(True, -5.0, -20.0, -1.0, 1.0, 5.0, 4.0) == (0.5, 40.0)
+    # a residual grown tenfold (cost 100 times) or not finite: a tenth
+    assert minpack(True, -1e3, -99.0, -1e-6, 1.0, 5.0, 4.0) == (0.5, 40.0)
+    assert minpack(False, -np.inf, np.nan, -1.0, 1.0, 5.0, 4.0) == (0.5, 40.0)
+
+
+def test_damping_for_radius_fits_the_step_in_the_radius():
+    rng = np.random.default_rng(1)
+    jac = rng.normal(size=(12, 5)) * np.array([1.0, 1e-2, 1.0, 1e-4, 0.3])
+    matrix, rhs = jac.T @ jac, jac.T @ rng.normal(size=12)
+    gauss_newton = np.linalg.norm(np.linalg.solve(matrix, rhs))
+    for radius in gauss_newton * np.array([1e-6, 1e-3, 0.1, 0.5, 0.85]):
+        for guess in (0.0, 1e-9, 1e3):
+            mu = float(damping_for_radius(jnp.asarray(matrix), jnp.asarray(rhs), radius, guess))
+            assert mu > 0
+            norm = np.linalg.norm(np.linalg.solve(matrix + mu * np.eye(5), rhs))
+            assert abs(norm - radius) <= 0.1 * radius, (radius, guess, norm)
+    # the Gauss-Newton step when it fits (within 10 %), whatever the guess
+    for radius in gauss_newton * np.array([1 / 1.1 + 1e-9, 1.0, 10.0, np.inf]):
+        assert float(damping_for_radius(matrix, rhs, radius, 1.0)) == 0.0
+
+
+def test_damping_for_radius_of_a_singular_system():
+    """A variable no residual touches and a repeated column: the regularized Gauss-Newton step
+    stands in for the least-squares one, and a damped step still fits the radius."""
+    jac = np.array([[1.0, 1.0, 0.0], [2.0, 2.0, 0.0], [0.0, 1.0, 0.0], [3.0, 1.0, 0.0]])
+    matrix = jac.T @ jac
+    rhs = jac.T @ np.array([1.0, -1.0, 2.0, 0.5])
+    regularized = np.linalg.norm(np.linalg.lstsq(jac, np.array([1.0, -1.0, 2.0, 0.5]))[0])
+    assert float(damping_for_radius(matrix, rhs, 2 * regularized, 1.0)) == 0.0
+    mu = float(damping_for_radius(matrix, rhs, 0.1 * regularized, 1.0))
+    norm = np.linalg.norm(np.linalg.solve(matrix + mu * np.eye(3), rhs))
+    assert abs(norm - 0.1 * regularized) <= 0.01 * regularized
+
+
+def test_minpack_damping_update_in_the_solver():
+    """`LevenbergMarquardt(damping_update="minpack")`: the first step is Gauss-Newton's and its
+    length the first radius; `update` is `trust_region.minpack` on the step it made."""
+    solver = LevenbergMarquardt(damping_update="minpack")
+    rng = np.random.default_rng(2)
+    jac = rng.normal(size=(8, 3)) * np.array([1e3, 1.0, 1e-3])
+    hessian, gradient = jnp.asarray(jac.T @ jac), jnp.asarray(jac.T @ rng.normal(size=8))
+    step, state = solver.step(solver.init(3, jnp.float64), hessian, gradient)
+    np.testing.assert_allclose(step, -np.linalg.solve(jac.T @ jac, gradient), rtol=1e-9)
+    damping, radius, scale, step_norm, slope = map(np.asarray, state)
+    assert damping == 0.0
+    np.testing.assert_allclose(scale, np.linalg.norm(jac, axis=0), rtol=1e-12)
+    np.testing.assert_allclose(step_norm, np.linalg.norm(scale * np.asarray(step)), rtol=1e-12)
+    np.testing.assert_allclose(radius, step_norm, rtol=1e-15)
+    np.testing.assert_allclose(slope, np.asarray(gradient) @ np.asarray(step), rtol=1e-12)
+    # a poor step that raised the cost: the radius shrinks and the next step fits it
+    kept, state = solver.update(state, jnp.asarray(-2.0), jnp.asarray(True), -0.5, 1.0)
+    assert not bool(kept)
+    expected, _ = minpack(True, -2.0, -0.5, slope, step_norm, radius, 0.0)
+    np.testing.assert_allclose(state[1], expected, rtol=1e-15)
+    step, state = solver.step(state, hessian, gradient)
+    assert float(state[0]) > 0.0
+    assert abs(float(state[3]) - expected) <= 0.1 * expected
+
+
+def test_iteration_runs_the_phases_in_order():
+    calls = []
+
+    def phase(name, result):
+        def run(*arguments):
+            calls.append((name, arguments))
+            return result
+
+        return run
+
+    body = _iteration.body(
+        phase("evaluate", "evaluation"),
+        phase("decide", "decision"),
+        phase("test", ("status", "record")),
+        phase("relinearize", ("point", "status after")),
+        phase("propose", "next state"),
+    )
+    assert body("state") == "next state"
+    assert calls == [
+        ("evaluate", ("state",)),
+        ("decide", ("state", "evaluation")),
+        ("test", ("state", "evaluation", "decision")),
+        ("relinearize", ("state", "evaluation", "decision", "status")),
+        ("propose", ("state", "evaluation", "decision", "record", "point", "status after")),
+    ]

@@ -16,9 +16,11 @@ taken when the fidelity exceeds `min_model_fidelity`); `"nielsen"`, Nielsen's ru
 `LevenbergMarquardtStrategy` and `lieax.lstsq.LevenbergMarquardt` (Madsen, Nielsen and
 Tingleff, "Methods for non-linear least squares problems", 2004, Sec. 3.2).
 `algorithm="gauss_newton"` takes every finite step with $\lambda = 0$. These rules (formulas
-and sources in `lieax.lstsq._trust_region`), the gain ratio and the precedence of the status
-codes are shared with `lieax.lstsq.least_squares`; this loop's own are the block-sparse linear
-algebra, the one evaluation per pass and GTSAM's stopping rules, which follow.
+and sources in `lieax.lstsq._trust_region`), the gain ratio, the precedence of the status codes
+and the iteration itself (`lieax.lstsq._iteration.body`: evaluate the trial point, decide, test,
+relinearize the kept point, propose the next step) are shared with `lieax.lstsq.least_squares`;
+this loop's own are the phases' contents: the block-sparse linear algebra, the one evaluation per
+pass and GTSAM's stopping rules, which follow.
 
 An iteration ends with a taken step or, without one, when the cost change is below
 `relative_tolerance` × cost; the run stops when an iteration decreases the cost by at most
@@ -49,13 +51,15 @@ so the loop's finiteness and stationarity tests are floating sums (one kernel ea
 boolean `all` over an array is three) and the parameters are read inside the loop.
 """
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 from jax import lax
 
 from ..autodiff._tangents import manifold_leaves, rplus
 from ..groups._base import AbstractGroup
-from ..lstsq import Status
+from ..lstsq import Status, _iteration
 from ..lstsq import _trust_region as trust_region
 from ..retractions import exp
 from ._assembly import assemble, evaluate
@@ -74,6 +78,42 @@ PARAMETERS = (
     "diagonal_min",
     "diagonal_max",
 )
+
+
+class _State(NamedTuple):
+    """The loop's state: the kept values, the trial point proposed from them with its predicted
+    decrease (and whether its solve was finite), the normal equations at the kept values, the
+    damping (Nielsen's factor `nu`), counters, status and cost history; `started` is False
+    until the first pass has evaluated the start."""
+
+    values: tuple
+    trial: tuple
+    cost: jax.Array
+    predicted: jax.Array
+    solved: jax.Array
+    system: tuple
+    lam: jax.Array
+    nu: jax.Array
+    iterations: jax.Array
+    solves: jax.Array
+    status: jax.Array
+    history: jax.Array
+    started: jax.Array
+
+
+class _Decision(NamedTuple):
+    """A pass's decisions: the gain ratio, whether the trial point is taken, whether the damping
+    is exhausted, whether the iteration is done, the iteration count, the cost kept, and the
+    damping rule's next `lam` and `nu`."""
+
+    fidelity: jax.Array
+    success: jax.Array
+    gave_up: jax.Array
+    done: jax.Array
+    iterations: jax.Array
+    next_cost: jax.Array
+    lam: jax.Array
+    nu: jax.Array
 
 
 def _normalized(tree):
@@ -177,21 +217,26 @@ def make_loop(graph, options):
         history = jnp.full((options["history_size"],), jnp.nan, dtype)
         running = jnp.asarray(Status.RUNNING, jnp.int32)
         false = jnp.zeros((), bool)
-        state = (values, values, nan, nan, false, system, lam0, nu0, zero, zero, running,
-                 history, false)  # fmt: skip
+        state = _State(values, values, nan, nan, false, system, lam0, nu0, zero, zero, running,
+                       history, false)  # fmt: skip
 
-        def body(state):
-            values, trial, cost, predicted, solved, system, lam, nu, iterations, solves = state[:10]
-            status, history, started = state[10:]
-            # read inside the loop, where XLA fuses each read into its use (read before it, each
-            # would be a kernel of its own)
+        def evaluate_trial(state):
+            # the parameters are read inside the loop, where XLA fuses each read into its use
+            # (read before it, each would be a kernel of its own)
             params = named(vector)
-            new_cost, parts = evaluate(factors, plans, trial, data)
+            new_cost, parts = evaluate(factors, plans, state.trial, data)
+            return params, new_cost, parts
+
+        def decide(state, evaluation):
+            cost, predicted, lam, nu, started = (
+                state.cost, state.predicted, state.lam, state.nu, state.started
+            )  # fmt: skip
+            params, new_cost, _ = evaluation
             change = cost - new_cost
-            valid = solved & (predicted >= 0) & jnp.isfinite(new_cost)
+            valid = state.solved & (predicted >= 0) & jnp.isfinite(new_cost)
             fidelity = trust_region.gain_ratio(change, predicted)
             if gauss_newton:
-                success = solved & jnp.isfinite(new_cost)
+                success = state.solved & jnp.isfinite(new_cost)
                 stop_search = jnp.zeros((), bool)
                 gave_up = ~success
                 new_lam, new_nu = lam, nu
@@ -218,8 +263,18 @@ def make_loop(graph, options):
             success = jnp.where(started, success, jnp.isfinite(new_cost))
             gave_up = gave_up & started
             done = started & (success | stop_search | gave_up)
-            iterations = iterations + done.astype(jnp.int32)
+            iterations = state.iterations + done.astype(jnp.int32)
             next_cost = jnp.where(success | ~started, new_cost, cost)
+            return _Decision(
+                fidelity, success, gave_up, done, iterations, next_cost, new_lam, new_nu
+            )
+
+        def test(state, evaluation, decision):
+            cost, started = state.cost, state.started
+            done, gave_up, iterations, next_cost = (
+                decision.done, decision.gave_up, decision.iterations, decision.next_cost
+            )  # fmt: skip
+            params, new_cost, _ = evaluation
             decrease = cost - next_cost
             converged = (
                 done
@@ -240,6 +295,7 @@ def make_loop(graph, options):
                 diverged,
                 (done | ~started) & (iterations >= max_iterations),
             )
+            history = state.history
             history = jnp.where(done | ~started, history.at[iterations].set(next_cost), history)
             if options["verbose"]:
                 lax.cond(
@@ -247,18 +303,25 @@ def make_loop(graph, options):
                     lambda: jax.debug.print(
                         "iteration {it:3d}  cost {c:.10g} -> {nc:.10g}  gain ratio {f:.3f}  "
                         "lambda {l:.1e}  accepted {ok}",
-                        it=iterations, c=cost, nc=new_cost, f=fidelity, l=lam, ok=success,
+                        it=iterations, c=cost, nc=new_cost, f=decision.fidelity, l=state.lam,
+                        ok=decision.success,
                     ),
                     lambda: None,
                 )  # fmt: skip
-            values = jax.tree_util.tree_map(lambda a, b: jnp.where(success, a, b), trial, values)
-            lam = jnp.where(~started | (done & ~success), lam, new_lam)
-            nu = jnp.where(started, new_nu, nu)
-            # a taken step's evaluation is the first half of its linearization
+            return status, history
+
+        # a taken step's evaluation is the first half of its linearization
+        def relinearize(state, evaluation, decision, status):
+            success, started = decision.success, state.started
+            values = jax.tree_util.tree_map(
+                lambda a, b: jnp.where(success, a, b), state.trial, state.values
+            )
+            lam = jnp.where(~started | (decision.done & ~success), state.lam, decision.lam)
+            nu = jnp.where(started, decision.nu, state.nu)
             system, finite = lax.cond(
                 success & (status == Status.RUNNING),
-                lambda: assembled(parts, dtype),
-                lambda: (system, jnp.ones((), bool)),
+                lambda: assembled(evaluation[2], dtype),
+                lambda: (state.system, jnp.ones((), bool)),
             )
             status = jnp.where(finite, status, Status.NONFINITE).astype(jnp.int32)
             # a point with an exactly zero gradient (a zero error: GTSAM's `errorTol` = 0) is
@@ -267,17 +330,25 @@ def make_loop(graph, options):
             status = jnp.where(
                 (status == Status.RUNNING) & stationary, Status.CONVERGED, status
             ).astype(jnp.int32)
+            return (values, system, lam, nu), status
+
+        def propose(state, evaluation, decision, history, point, status):
+            values, system, lam, nu = point
             go_on = status == Status.RUNNING
             trial, predicted, solved = lax.cond(
                 go_on,
-                lambda: attempt(values, system, lam, params),
+                lambda: attempt(values, system, lam, evaluation[0]),
                 lambda: (values, jnp.zeros((), dtype), jnp.zeros((), bool)),
             )
-            solves = solves + go_on.astype(jnp.int32)
-            return (values, trial, next_cost, predicted, solved, system, lam, nu, iterations,
-                    solves, status, history, jnp.ones((), bool))  # fmt: skip
+            return _State(
+                values, trial, decision.next_cost, predicted, solved, system, lam, nu,
+                decision.iterations, state.solves + go_on.astype(jnp.int32), status, history,
+                jnp.ones((), bool),
+            )  # fmt: skip
 
-        state = lax.while_loop(lambda s: s[10] == Status.RUNNING, body, state)
+        body = _iteration.body(evaluate_trial, decide, test, relinearize, propose)
+
+        state = lax.while_loop(lambda s: s.status == Status.RUNNING, body, state)
         values, _, cost, _, _, _, lam, _, iterations, solves, status, history, _ = state
         scalars = jnp.stack([cost, lam, *(a.astype(dtype) for a in (iterations, solves, status))])
         return values, jnp.concatenate([scalars, history])

@@ -7,9 +7,10 @@ iteration evaluates $x_0$), keeps or rejects it on the gain ratio
 $\varrho = (c(x) - c(x \oplus \delta)) / (-g^\top\delta - \tfrac12 \delta^\top H \delta)$
 (the solver's `update`), checks the stopping rules, and solves the normal equations at the kept
 point for the next step. The gain ratio, the acceptance and damping rules and the precedence of
-the status codes are `_trust_region`'s, shared with the factor-graph loop; this loop's own are
-its MINPACK-style stopping tests (scaled step, gradient cosine, relative cost change) and its
-treatment of a decrease below the cost's rounding error (the step is trusted).
+the status codes are `_trust_region`'s, and the order of the iteration's phases is
+`_iteration.body`'s, both shared with the factor-graph loop; this loop's own are its dense linear
+algebra, its MINPACK-style stopping tests (scaled step, gradient cosine, relative cost change)
+and its treatment of a decrease below the cost's rounding error (the step is trusted).
 Every problem of a `vmap` runs this same loop in lockstep; a problem that has stopped keeps its
 state while the others run on (the batching rule of `while_loop`).
 """
@@ -34,6 +35,7 @@ from ..autodiff._tangents import (
 )
 from ..groups._base import AbstractManifold
 from ..retractions import Retraction, exp
+from . import _iteration
 from . import _trust_region as trust_region
 from ._implicit import with_implicit_derivatives
 from ._losses import AbstractLoss
@@ -286,35 +288,45 @@ def _solve(
 
     # One linearization per iteration, at the trial point the previous iteration chose; the
     # first iteration evaluates x0 (so the residual is traced and compiled once).
-    def body(state: _State) -> _State:
-        first = state.first
-        cost_trial, hessian_trial, gradient_trial = linearize(
-            residual_fn, state.x_trial, args_loop, loss_loop
-        )
-        trial_finite = _all_finite(cost_trial, hessian_trial, gradient_trial) & (
-            ~first | start_finite
-        )
+    def evaluate(state: _State):
+        cost, hessian, gradient = linearize(residual_fn, state.x_trial, args_loop, loss_loop)
+        finite = _all_finite(cost, hessian, gradient) & (~state.first | start_finite)
+        return {"cost": cost, "hessian": hessian, "gradient": gradient, "finite": finite}
 
-        # keep or reject the trial point (x0 is always kept); decisions are not differentiated,
-        # they only select between differentiable values
+    # keep or reject the trial point (x0 is always kept); decisions are not differentiated, they
+    # only select between differentiable values
+    def decide(state: _State, evaluation):
+        first = state.first
         gain_ratio, actual, predicted = _gain_ratio(
-            sg((state.cost, cost_trial, state.step, state.hessian, state.gradient)), trial_finite
+            sg((state.cost, evaluation["cost"], state.step, state.hessian, state.gradient)),
+            evaluation["finite"],
         )
-        accept, solver_state = solver.update(sg(state.solver_state), gain_ratio, trial_finite)
+        accept, solver_state = solver.update(
+            sg(state.solver_state), gain_ratio, evaluation["finite"], actual, sg(state.cost)
+        )
         accept = accept | first
         solver_state = _tree_where(first, solver.init(n, dtype), solver_state)
-        x, cost, hessian, gradient = _tree_where(
+        point = _tree_where(
             accept,
-            (state.x_trial, cost_trial, hessian_trial, gradient_trial),
+            (state.x_trial, evaluation["cost"], evaluation["hessian"], evaluation["gradient"]),
             (state.x, state.cost, state.hessian, state.gradient),
         )
-        iteration = jnp.where(first, state.iteration, state.iteration + 1)
+        return {
+            "point": point,
+            "gain_ratio": gain_ratio,
+            "actual": actual,
+            "predicted": predicted,
+            "accept": accept,
+            "solver_state": solver_state,
+            "iteration": jnp.where(first, state.iteration, state.iteration + 1),
+        }
 
-        step, next_solver_state = solver.step(solver_state, hessian, gradient)
-        step = step.astype(dtype)
-
-        # stop? (at x0 only on a non-finite start or an exactly zero gradient); the gradient as
-        # a cosine, the step in the solver's scaled variables (see `AbstractSolver.scale`)
+    # stop? (at x0 only on a non-finite start or an exactly zero gradient); the gradient as a
+    # cosine at the kept point, the step in the solver's scaled variables (see
+    # `AbstractSolver.scale`)
+    def test(state: _State, evaluation, decision):
+        first, accept = state.first, decision["accept"]
+        _, cost, hessian, gradient = decision["point"]
         column_norms = jnp.sqrt(jnp.maximum(sg(jnp.diagonal(hessian)), 0.0))
         column_norms = jnp.where(column_norms > 0, column_norms, 1.0)
         residual_norm = jnp.sqrt(2.0 * sg(cost))
@@ -327,51 +339,69 @@ def _solve(
         small_step = ~first & (
             step_norm <= parameter_tolerance * (x_norm + parameter_tolerance * scale_norm)
         )
-        small_change = ~first & (jnp.abs(actual) < function_tolerance * sg(state.cost))
+        small_change = ~first & (jnp.abs(decision["actual"]) < function_tolerance * sg(state.cost))
         # a rejected step that promised less than the tolerance: no measurable progress is left
         # (the cost's rounding noise, not the model, decided the rejection)
-        small_promise = ~first & ~accept & (predicted < function_tolerance * sg(state.cost))
+        small_promise = (
+            ~first & ~accept & (decision["predicted"] < function_tolerance * sg(state.cost))
+        )
         # at x0 no step has been tried: only an exactly stationary start stops there
         small_gradient = jnp.where(
             first, jnp.all(sg(gradient) == 0), gradient_norm <= gradient_tolerance
         )
+        trial_finite = evaluation["finite"]
         converged = (
             (small_step & trial_finite)
             | (small_promise & trial_finite)
             | (accept & (small_change | small_gradient))
         )
         nonfinite = ~trial_finite & (first | small_step | (not solver.rejects_steps))
+        solver_state = decision["solver_state"]
         diverged = ~first & solver.diverged(solver_state, sg(cost), sg(state.cost_history[0]))
-        status = trust_region.status(
-            nonfinite | ~_all_finite(sg(step)), converged, diverged, iteration >= max_iterations
-        )
         if verbose:
             jax.debug.callback(
                 _print_row,
                 state.status == Status.RUNNING,  # stopped problems run on masked under vmap
                 first,
-                iteration,
+                decision["iteration"],
                 sg(cost),
-                jnp.where(accept & ~first, actual, 0.0),
+                jnp.where(accept & ~first, decision["actual"], 0.0),
                 gradient_norm,
                 jnp.where(first, 0.0, step_norm),
-                jnp.where(first, 0.0, gain_ratio),
+                jnp.where(first, 0.0, decision["gain_ratio"]),
                 solver.damping(solver_state),
                 accept,
             )
+        # a step that is not finite (`propose`) is NONFINITE too, the status of highest
+        # precedence
+        status = trust_region.status(
+            nonfinite, converged, diverged, decision["iteration"] >= max_iterations
+        )
+        return status, state.cost_history.at[decision["iteration"]].set(sg(cost))
+
+    # every trial point was linearized (`evaluate`): the kept point's is at hand (`decide`)
+    def relinearize(state: _State, evaluation, decision, status):
+        return decision["point"], status
+
+    def propose(state: _State, evaluation, decision, cost_history, point, status):
+        x, cost, hessian, gradient = point
+        step, solver_state = solver.step(decision["solver_state"], hessian, gradient)
+        step = step.astype(dtype)
         return _State(
             x=x,
             cost=cost,
             hessian=hessian,
             gradient=gradient,
-            solver_state=next_solver_state,
+            solver_state=solver_state,
             x_trial=rplus(x, unflatten_tangents(x, step), retraction),
             step=step,
             first=jnp.zeros((), bool),
-            iteration=iteration,
-            status=status,
-            cost_history=state.cost_history.at[iteration].set(sg(cost)),
+            iteration=decision["iteration"],
+            status=jnp.where(_all_finite(sg(step)), status, Status.NONFINITE).astype(jnp.int32),
+            cost_history=cost_history,
         )
+
+    body = _iteration.body(evaluate, decide, test, relinearize, propose)
 
     initial = _State(
         x=x0,

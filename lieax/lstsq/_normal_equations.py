@@ -9,7 +9,7 @@ evaluation over thousands of data points.
 import jax
 import jax.numpy as jnp
 from jax import lax
-from jax.scipy.linalg import cho_solve
+from jax.scipy.linalg import cho_solve, solve_triangular
 
 # no TF32 on GPUs: the normal equations square the condition number
 _HIGHEST = lax.Precision.HIGHEST
@@ -86,3 +86,79 @@ def _solve_spd_jvp(primals, tangents):
     factor = cholesky_with_fallback(matrix)
     solution = solve_factored(factor, rhs)
     return solution, solve_factored(factor, rhs_dot - matrix_dot @ solution)
+
+
+def damping_for_radius(matrix, rhs, radius, damping, max_tries: int = 10):
+    r"""MINPACK's `lmpar`: the Levenberg parameter $\mu \ge 0$ whose step
+    $z(\mu) = (A + \mu I)^{-1} b$ has $\|z(\mu)\| \le \Delta$, for a symmetric positive
+    semi-definite $A$ (`matrix`), $b$ (`rhs`) and the radius $\Delta$ (`radius`): $\mu = 0$
+    when the Gauss-Newton step has $\|z(0)\| \le 1.1\,\Delta$, otherwise $\mu > 0$ with
+    $|\,\|z(\mu)\| - \Delta| \le 0.1\,\Delta$, or the last of `max_tries` tries.
+
+    With $\varphi(\mu) = \|z(\mu)\| - \Delta$ and
+    $\psi(\mu) = z^\top (A + \mu I)^{-1} z / \|z\|^2 = \|L^{-1} z\|^2 / \|z\|^2$
+    ($L L^\top = A + \mu I$), each try takes the Newton step of $1/\|z(\mu)\| - 1/\Delta$
+    (Hebden's), $\mu \leftarrow \max(\mu_l,\ \mu + \varphi(\mu) / (\Delta\,\psi(\mu)))$,
+    inside a bracket $[\mu_l, \mu_u]$ that starts at $\mu_l = \varphi(0) / (\Delta\,\psi(0))$
+    and $\mu_u = \|b\| / \Delta$ and closes on the tries that fall short ($\varphi > 0$:
+    $\mu_l \leftarrow \mu$) or overshoot ($\varphi < 0$: $\mu_u \leftarrow \mu$). The first
+    try is `damping` (the previous $\mu$, as `lmder` updates it) clipped to the bracket,
+    $\|b\| / \|z(0)\|$ if that is 0; a try at 0 is moved to $\max(\text{tiny},
+    10^{-3}\mu_u)$ (Moré, "The Levenberg-Marquardt algorithm: implementation and theory",
+    1978, Sec. 5; MINPACK's `lmpar`, Garbow, Hillstrom and Moré, 1980).
+
+    MINPACK works on a QR factorization of the Jacobian, and for a rank-deficient one starts
+    from $\mu_l = 0$ (and also stops when $\varphi < 0$ stops improving). Here each try factors
+    the normal equations with `cholesky_with_fallback`, the factorization the step itself is
+    then solved with, so that the radius is measured on the step that will be taken; the
+    Gauss-Newton step of a numerically singular $A$ is the regularized one, and $\mu_l$ comes
+    from it (should that overshoot the root, the tries end at $\mu_l$, a step shorter than
+    $\Delta$). Returns $\mu$; not differentiated (it chooses the path).
+    """
+    matrix, rhs, radius, damping = lax.stop_gradient((matrix, rhs, radius, damping))
+    dtype = matrix.dtype
+    tiny = jnp.finfo(dtype).tiny
+    identity = jnp.eye(matrix.shape[-1], dtype=dtype)
+
+    def attempt(mu):
+        r"""$\|z(\mu)\|$ and $\psi(\mu)$."""
+        factor = cholesky_with_fallback(matrix + mu * identity)
+        z = solve_factored(factor, rhs)
+        norm = jnp.sqrt(jnp.sum(z**2))
+        w = solve_triangular(factor, z / jnp.maximum(norm, tiny), lower=True)
+        return norm, jnp.sum(w**2)
+
+    norm, psi = attempt(jnp.zeros((), dtype))
+    fp = norm - radius
+    gauss_newton = fp <= 0.1 * radius
+    lower = jnp.where(gauss_newton, 0.0, fp / (radius * psi))
+    gradient_norm = jnp.sqrt(jnp.sum(rhs**2))
+    upper = gradient_norm / radius
+    upper = jnp.where(upper == 0, tiny / jnp.minimum(radius, 0.1), upper)
+    mu = jnp.minimum(jnp.maximum(damping, lower), upper)
+    mu = jnp.where(mu == 0, gradient_norm / jnp.maximum(norm, tiny), mu)
+
+    def running(carry):
+        return ~carry[-1]
+
+    def body(carry):
+        tries, mu, lower, upper, _ = carry
+        tries = tries + 1
+        mu = jnp.where(mu == 0, jnp.maximum(tiny, 1e-3 * upper), mu)
+        norm, psi = attempt(mu)
+        fp = norm - radius
+        done = (jnp.abs(fp) <= 0.1 * radius) | (tries == max_tries)
+        lower_new = jnp.where(fp > 0, jnp.maximum(lower, mu), lower)
+        upper_new = jnp.where(fp < 0, jnp.minimum(upper, mu), upper)
+        mu_new = jnp.maximum(lower_new, mu + fp / (radius * psi))
+        return (
+            tries,
+            jnp.where(done, mu, mu_new),
+            jnp.where(done, lower, lower_new),
+            jnp.where(done, upper, upper_new),
+            done,
+        )
+
+    carry = (jnp.zeros((), jnp.int32), mu, lower, upper, gauss_newton)
+    mu = lax.while_loop(running, body, carry)[1]
+    return jnp.where(gauss_newton, jnp.zeros((), dtype), mu)

@@ -8,7 +8,9 @@ module:
 
 - how good the step was: the gain ratio `gain_ratio` (actual over predicted decrease);
 - whether to keep it: `accepts`;
-- the next damping: `nielsen` (Madsen-Nielsen-Tingleff, Ceres) or `gtsam` (GTSAM 4.3);
+- the next damping: `nielsen` (Madsen-Nielsen-Tingleff, Ceres) or `gtsam` (GTSAM 4.3), or the
+  next trust-region radius: `minpack` (MINPACK's `lmder`; the dense loop then finds the damping
+  whose step fits the radius, `_normal_equations.damping_for_radius`);
 - whether the solve diverged: `damping_exhausted` (Levenberg-Marquardt: no damping is left to
   try), `cost_diverged` (Gauss-Newton);
 - what to report: `status`, from the loop's own stopping tests.
@@ -62,6 +64,48 @@ def nielsen(accept, gain_ratio, damping, factor) -> tuple[jax.Array, jax.Array]:
     damping = jnp.where(accept, damping * shrink, damping * factor)
     factor = jnp.where(accept, 2.0, 2.0 * factor)
     return damping, factor
+
+
+def minpack(finite, gain_ratio, actual, cost, slope, step_norm, radius, damping):
+    r"""MINPACK's trust-region update (`lmder`), `(radius, damping)` after a step $\delta$ with
+    gain ratio $\varrho$, of scaled length $p = \|D\delta\| \le \Delta$ (`step_norm`,
+    `radius`), solved with the Levenberg parameter $\mu$ (`damping`):
+
+    - $\varrho \le \tfrac14$: $\Delta \leftarrow \tau \min(\Delta, 10 p)$ and
+      $\mu \leftarrow \mu / \tau$, with $\tau = \tfrac12$ if the cost did not rise, else the
+      minimizer of the quadratic through $c(x)$, the slope $g^\top\delta$ and $c(x \oplus
+      \delta)$ along the step, $\tau = \tfrac12\, g^\top\delta / (g^\top\delta + c(x) -
+      c(x \oplus \delta))$; $\tau = \tfrac1{10}$ if that is smaller, or the residual grew tenfold
+      ($c(x \oplus \delta) \ge 100\,c(x)$, or is not finite);
+    - $\varrho \ge \tfrac34$, or $\tfrac14 < \varrho < \tfrac34$ after a Gauss-Newton step
+      ($\mu = 0$): $\Delta \leftarrow 2p$, $\mu \leftarrow \mu / 2$;
+    - otherwise unchanged.
+
+    The step of the next iteration is the one with $\|D\delta\| \le \Delta$
+    (`_normal_equations.damping_for_radius`, MINPACK's `lmpar`, starting from this $\mu$).
+    Moré, "The Levenberg-Marquardt algorithm: implementation and theory", 1978, Sec. 4;
+    MINPACK's `lmder` (Garbow, Hillstrom and Moré, 1980), where `actred` $= \text{actual}/c$,
+    `dirder` $= g^\top\delta / (2c)$ and `temp` $= \tau$. `actual` is
+    $c(x) - c(x \oplus \delta)$, `cost` $c(x)$, `slope` $g^\top\delta$.
+
+    Example: a step of length $p = 1$ with $\varrho = 0.9$ sets $\Delta = 2$ whatever
+    $\Delta$ was; one with $\varrho = 0.1$ that still decreased the cost sets
+    $\Delta = \min(\Delta, 10) / 2$, $\mu = 2\mu$.
+    """
+    shrink = jnp.where(
+        actual >= 0, 0.5, 0.5 * slope / jnp.where(slope + actual < 0, slope + actual, -1.0)
+    )
+    blown_up = ~finite | (actual <= -99.0 * cost)
+    shrink = jnp.where(blown_up | ~(shrink >= 0.1), 0.1, shrink)
+    poor = ~finite | ~(gain_ratio > 0.25)
+    grow = ~poor & ((damping == 0) | (gain_ratio >= 0.75))
+    radius = jnp.where(
+        poor,
+        shrink * jnp.minimum(radius, 10.0 * step_norm),
+        jnp.where(grow, 2.0 * step_norm, radius),
+    )
+    damping = jnp.where(poor, damping / shrink, jnp.where(grow, 0.5 * damping, damping))
+    return radius, damping
 
 
 def gtsam(accept, damping, factor) -> jax.Array:
