@@ -7,7 +7,7 @@ import pytest
 
 from lieax import icp
 from lieax.icp import _normals, _registration
-from lieax.icp._batch import bucket_size, pad_to_bucket
+from lieax.icp._batch import CHUNK_POINTS, bucket_size, chunk_size, pad_to_bucket
 
 
 def test_bucket_sizes():
@@ -72,3 +72,44 @@ def test_a_stream_of_sizes_compiles_one_loop():
         result = icp.point_to_plane(source, target, max_correspondence_distance=0.4)
         assert result.status_name == "CONVERGED" and result.correspondences.shape == (n,)
     assert all(f._cache_size() - n <= 1 for f, n in zip(compiled, before))
+
+
+def test_chunk_sizes():
+    # (about CHUNK_POINTS source points per chunk, at least one element, at most the batch)
+    assert chunk_size(500, 64) == CHUNK_POINTS // 500
+    assert chunk_size(10 * CHUNK_POINTS, 64) == 1
+    assert chunk_size(10, 3) == 3
+
+
+@pytest.mark.parametrize("chunk", [1, 2, 5])
+def test_a_vmapped_batch_in_chunks_gives_each_elements_result(pair, monkeypatch, chunk):
+    """A batch of 5 in chunks of 1 (one at a time), 2 (two chunks and a remainder) and 5 (all in
+    lockstep): every element's result is that of its own call, the derivative with respect to the
+    source too (the chunking applies to the loop only; the implicit derivative is vmapped)."""
+    import jax
+    import jax.numpy as jnp
+
+    from lieax.icp import _batch
+
+    source, target, normals, _ = pair
+    shifts = jnp.linspace(-0.01, 0.01, 5)
+
+    def register(shift, s=source):
+        return icp.point_to_plane(
+            s + shift, target, target_normals=normals, max_correspondence_distance=0.2,
+            throw=False,
+        )  # fmt: skip
+
+    def pose_sum(shift):  # (a shift moves the translation; 1e-3 of it reaches the rotation)
+        return jnp.sum(register(shift).transform.parameters()[1:] * jnp.arange(1.0, 7.0))
+
+    monkeypatch.setattr(_batch, "CHUNK_POINTS", chunk * bucket_size(source.shape[0]))
+    batched = jax.jit(jax.vmap(register))(shifts)
+    derivatives = jax.jit(jax.vmap(jax.grad(pose_sum)))(shifts)
+    for b in range(5):
+        single = register(shifts[b])
+        np.testing.assert_allclose(
+            batched.transform.parameters()[b], single.transform.parameters(), atol=1e-10
+        )
+        assert int(batched.iterations[b]) == int(single.iterations)
+        np.testing.assert_allclose(derivatives[b], jax.grad(pose_sum)(shifts[b]), rtol=1e-8)

@@ -42,7 +42,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._host_call import host_call
-from ._coordinates import squared_norms
+from ._coordinates import row_sums, squared_norms
 
 _CAPACITY = 256
 # id -> [digest, tree, dtype, kept, spacing (filled by the first `kdtree_spacing` call)]
@@ -363,20 +363,29 @@ def track_in_kdtree(index: KDTreeIndex, queries, radius, warm: KDTreeWarmStart, 
     active = active & jnp.all(jnp.isfinite(queries), axis=1)
     radius = jnp.asarray(radius, dtype)
     moved = jnp.sqrt(squared_norms(queries - warm.queries))
-    scale = jnp.max(jnp.where(active[:, None], jnp.abs(queries), 0.0))
+    # (the largest coordinate of each row first: the reduction then reads an (m,) array, not a
+    # materialized (m, 3) one)
+    largest = jnp.maximum(
+        jnp.maximum(jnp.abs(queries[:, 0]), jnp.abs(queries[:, 1])), jnp.abs(queries[:, 2])
+    )
+    scale = jnp.max(jnp.where(active, largest, 0.0))
     slack = 16 * jnp.finfo(dtype).eps * scale
     kept = active & (moved + slack < warm.allowance.astype(dtype))
     sent = active & ~kept
     gap = warm.gap.astype(dtype)
-    pairs = _float_count(sent & (moved < gap)) >= _PAIR_SHARE * _float_count(sent)
+
+    near, total = row_sums([(sent & (moved < gap)).astype(dtype), sent.astype(dtype)])
+    pairs = near >= _PAIR_SHARE * total
     out = host_call(
         _track_query, jax.ShapeDtypeStruct((m, 2), dtype), index.tree, queries, radius, sent,
         pairs, batched=_per_target(_track_query),
     )  # fmt: skip
     fresh_slot, fresh_allowance = out[:, 0].astype(jnp.int32), out[:, 1]  # (slots below 2**24)
     fresh_hits = sent & (fresh_slot >= 0)
-    hits = _float_count(fresh_hits)
-    mean = jnp.sum(jnp.where(fresh_hits, fresh_allowance, 0.0)) / jnp.maximum(hits, 1)
+    hits, allowances = row_sums(
+        [fresh_hits.astype(dtype), jnp.where(fresh_hits, fresh_allowance, 0.0)]
+    )
+    mean = allowances / jnp.maximum(hits, 1)
     gap = jnp.where(pairs & (hits > 0), mean.astype(dtype), gap)
     nearest = jnp.where(kept, warm.slot, fresh_slot)
     allowance = jnp.where(kept, warm.allowance.astype(dtype), fresh_allowance)
@@ -386,11 +395,6 @@ def track_in_kdtree(index: KDTreeIndex, queries, radius, warm: KDTreeWarmStart, 
     d2 = squared_norms(index.points[slot].astype(dtype) - queries)
     d2 = jnp.where(found & (d2 <= radius * radius), d2, jnp.inf)
     return slot, d2, KDTreeWarmStart(reference, nearest, allowance, gap)
-
-
-def _float_count(flags):
-    """The number of True entries, as a float sum (one kernel on XLA's CPU backend)."""
-    return jnp.sum(flags.astype(jnp.result_type(float)))
 
 
 def _per_target(host):
