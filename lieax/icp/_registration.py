@@ -322,19 +322,10 @@ def _register(
         jnp.asarray(_constant(x), dtype) for x in (relative_fitness, relative_rmse)
     )
     init_c = jnp.asarray(_IDENTITY, dtype) if init_c is None else init_c
-
-    def solve(*arrays):  # (every array positional: `chunked_on_cpu` batches them under vmap)
-        *arrays, index, source_covariances, target_covariances, step_tolerance = arrays
-        return _solve(
-            *arrays, options=options, static_loss=static_loss, index=index,
-            source_covariances=source_covariances, target_covariances=target_covariances,
-            step_tolerance=step_tolerance,
-        )  # fmt: skip
-
-    result = chunked_on_cpu(solve, source.shape[0])(
+    result = _solve(
         source_c, source_mask, target_c, target_mask, normals_c, init_c, max_distance_c,
         fitness_c, rmse_c, loss_scale_c, jnp.asarray(presampled), prebuilt, *covariances_c,
-        step_tolerance,
+        step_tolerance, options=options, static_loss=static_loss,
     )  # fmt: skip
     if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((data, dynamic_loss))):
         loss_kind, loss_scale = (None, 0.0) if dynamic_loss is None else dynamic_loss
@@ -460,7 +451,25 @@ def _constant(x):
 
 
 @functools.partial(jax.jit, static_argnames=("options", "static_loss"))
-def _solve(
+def _solve(*arrays, options, static_loss):
+    """`_loop` of the arrays `(source, source_mask, target, target_mask, target_normals, init,
+    max_distance, relative_fitness, relative_rmse, loss, presampled, index, source_covariances,
+    target_covariances, step_tolerance)`, all positional: under `vmap` on a CPU it runs in
+    chunks (`chunked_on_cpu`). Compiled once per shape and static option; the `vmap` rule sits
+    inside the compiled function, so that a call outside `vmap` runs this compiled program."""
+
+    def one(*arrays):
+        *arrays, index, source_covariances, target_covariances, step_tolerance = arrays
+        return _loop(
+            *arrays, options=options, static_loss=static_loss, index=index,
+            source_covariances=source_covariances, target_covariances=target_covariances,
+            step_tolerance=step_tolerance,
+        )  # fmt: skip
+
+    return chunked_on_cpu(one, arrays[0].shape[0])(*arrays)
+
+
+def _loop(
     source, source_mask, target, target_mask, target_normals, init, max_distance,
     relative_fitness, relative_rmse, loss, presampled, *, options, static_loss, index=None,
     source_covariances=None, target_covariances=None, step_tolerance=None,
