@@ -32,11 +32,10 @@ def pure_callback_host_call(fn, result, *args, batched=None):
 
     def call(*arrays):  # under (nested) vmap every operand carries the same leading batch axes
         arrays = [np.asarray(x) for x in arrays]
-        lead = arrays[0].shape[: arrays[0].ndim - ranks[0]]
+        lead = arrays[0].ndim - ranks[0]
         if not lead:
             return np.asarray(fn(*arrays), result.dtype)
-        flat = [x.reshape(-1, *x.shape[len(lead) :]) for x in arrays]
-        return np.asarray(batched(*flat), result.dtype).reshape(*lead, *result.shape)
+        return np.asarray(_on_flattened(batched, arrays, lead, result.shape), result.dtype)
 
     return jax.pure_callback(call, result, *args, vmap_method="broadcast_all")
 
@@ -61,16 +60,18 @@ def host_call(fn, result, *args, batched=None):
     )
 
 
+def _on_flattened(batched, arrays, lead, shape):
+    """`batched` of `arrays` whose first `lead` axes (the same in each) are batch axes, flattened
+    into one; the result reshaped back to `(*those axes, *shape)`."""
+    axes = arrays[0].shape[:lead]
+    flat = [a.reshape(-1, *a.shape[lead:]) for a in arrays]
+    return np.asarray(batched(*flat)).reshape(*axes, *shape)
+
+
 def _flattening(batched, shape):
     """`batched` for arguments with two leading batch axes `(B1, B0, ...)` (the batching rule of a
-    call that is already batched): flattened to `(B1 * B0, ...)`, the result reshaped back."""
-
-    def call(*arrays):
-        lead = arrays[0].shape[:2]
-        flat = [a.reshape(-1, *a.shape[2:]) for a in arrays]
-        return np.asarray(batched(*flat)).reshape(*lead, *shape)
-
-    return call
+    call that is already batched): `_on_flattened` over both."""
+    return lambda *arrays: _on_flattened(batched, arrays, 2, shape)
 
 
 def _primitive_supported(emit_python_callback) -> bool:
