@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _cpu_emitters as cpu_emitters
 from .._checks import as_float_array
 from .._host_call import host_call
 from ..groups._se3 import SE3
@@ -75,7 +76,7 @@ def estimate_covariances(points, *, k=20, mask=None, search="auto"):
     return _estimate(points, mask, k=k)
 
 
-@functools.partial(jax.jit, static_argnames=("k",))
+@cpu_emitters.jit(static_argnames=("k",))
 def _estimate(points, mask, *, k):
     safe = jnp.where(mask[:, None] & jnp.isfinite(points), points, 0.0)
     # 16 adjacent leaves of 16 points: 99.96% of the bunny's 20-neighbourhoods are exact (24 leaves:
@@ -97,7 +98,7 @@ def _estimate(points, mask, *, k):
     return identities.at[slots].set(regularized, mode="drop")
 
 
-@jax.jit
+@cpu_emitters.jit
 def _covariances_of_neighbours(points, mask, found):
     """The covariances over the neighbourhoods `found` (`-1` for none) of `_normals.neighbourhoods`
     (the host k-d tree's: exact)."""
@@ -119,7 +120,7 @@ def _kdtree_covariances(points, mask, k, library):
     return _kdtree_covariances_primal(points, mask, k=k, library=library)
 
 
-@functools.partial(jax.jit, static_argnames=("k", "library"))
+@cpu_emitters.jit(static_argnames=("k", "library"))
 def _kdtree_covariances_primal(points, mask, *, k, library):
     valid = mask & jnp.all(jnp.isfinite(points), axis=1)
     host = functools.partial(_host_covariance_entries, k=k, library=library)

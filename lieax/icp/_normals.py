@@ -21,6 +21,7 @@ import functools
 import jax
 import jax.numpy as jnp
 
+from .. import _cpu_emitters as cpu_emitters
 from .._host_call import host_call
 from . import _host_kdtree, _neighbors, _search
 from ._checks import check_cloud, check_count, check_mask
@@ -79,7 +80,7 @@ def _host_neighbourhoods_call(points, mask, *, k, library):
     return host_call(host, result, points, valid)
 
 
-@functools.partial(jax.jit, static_argnames=("k",))
+@cpu_emitters.jit(static_argnames=("k",))
 def _graph_neighbourhoods(points, mask, *, k):
     """The point and its `k - 1` neighbours in the graph of `_neighbors.build_index`, in the
     cloud's own order."""
@@ -102,7 +103,7 @@ def normals_from_neighbourhoods(points, mask, found, *, radius=None, viewpoint=(
     return _normals(points, mask, found, radius, view)
 
 
-@jax.jit
+@cpu_emitters.jit
 def _normals(points, mask, found, radius, viewpoint):
     valid = mask & jnp.all(jnp.isfinite(points), axis=1)
     safe = jnp.where(valid[:, None], points, 0.0)

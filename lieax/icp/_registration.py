@@ -51,7 +51,6 @@ Derivatives: the loop runs on constants; `transform` and `inlier_rmse` get the i
 derivative of the converged pose (`lieax.icp._implicit`).
 """
 
-import functools
 from typing import NamedTuple
 
 import jax
@@ -59,6 +58,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.linalg import cho_solve
 
+from .. import _cpu_emitters as cpu_emitters
 from .._linalg import quat_to_matrix
 from .._runtime_error import raise_if
 from ..groups._se3 import SE3
@@ -450,7 +450,7 @@ def _constant(x):
 # ---- the jitted loop ----------------------------------------------------------------------------
 
 
-@functools.partial(jax.jit, static_argnames=("options", "static_loss"))
+@cpu_emitters.jit(static_argnames=("options", "static_loss"))
 def _solve(*arrays, options, static_loss):
     """`_loop` of the arrays `(source, source_mask, target, target_mask, target_normals, init,
     max_distance, relative_fitness, relative_rmse, loss, presampled, index, source_covariances,

@@ -1,0 +1,75 @@
+"""`lieax._cpu_emitters`: the point-cloud programs compile with XLA's classic CPU fusion emitters
+where this XLA knows the option, and with XLA's defaults where it does not, to the same results."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from lieax import _cpu_emitters, icp
+
+
+@pytest.fixture
+def unknown_option(monkeypatch):
+    """An XLA that does not know the option (a name no XLA has)."""
+    _cpu_emitters.known.cache_clear()
+    monkeypatch.setattr(_cpu_emitters, "CLASSIC_CPU_EMITTERS", {"xla_lieax_no_such_option": 1})
+    yield
+    _cpu_emitters.known.cache_clear()
+
+
+def test_this_xla_knows_the_option():
+    # The faster programs are the ones CI measures; if an XLA upgrade drops the option, this says so.
+    assert _cpu_emitters.known()
+
+
+def test_an_unknown_option_falls_back_to_the_defaults(unknown_option):
+    assert not _cpu_emitters.known()
+    double = _cpu_emitters.jit(lambda x: 2 * x)
+    np.testing.assert_array_equal(double(jnp.arange(3.0)), [0.0, 2.0, 4.0])
+    assert double._cache_size() == 1
+
+
+def test_both_variants_compile_once_and_agree(monkeypatch):
+    @_cpu_emitters.jit(static_argnames=("power",))
+    def moment(x, power):
+        return jnp.sum(jnp.sin(x) ** power)
+
+    x = jnp.linspace(0.0, 3.0, 1000)
+    classic = moment(x, power=3)
+    assert moment._cache_size() == 1
+    monkeypatch.setattr(_cpu_emitters, "known", lambda: False)
+    default = moment(x, power=3)
+    assert moment._cache_size() == 2
+    np.testing.assert_allclose(classic, default, rtol=1e-12)
+    np.testing.assert_allclose(classic, np.sum(np.sin(np.asarray(x)) ** 3), rtol=1e-12)
+
+
+def test_icp_registers_alike_with_either_emitters(monkeypatch):
+    source, target, normals, _ = icp.synthetic_pair(600, rotation_deg=8.0, translation=0.05, seed=3)
+
+    def register():
+        return icp.point_to_plane(
+            source, target, target_normals=normals, max_correspondence_distance=0.3
+        )
+
+    classic = register()
+    monkeypatch.setattr(_cpu_emitters, "known", lambda: False)
+    default = register()
+    assert classic.status_name == default.status_name == "CONVERGED"
+    assert int(classic.iterations) == int(default.iterations)
+    gap = (classic.transform.inverse() @ default.transform).log()
+    assert float(jnp.max(jnp.abs(gap))) < 1e-9
+    assert jax.numpy.array_equal(classic.correspondences, default.correspondences)
+
+
+def test_a_staged_or_transformed_program_takes_the_defaults():
+    # (JAX refuses compile options on a nested jit; the enclosing program's options apply)
+    double = _cpu_emitters.jit(lambda x: 2 * x)
+    assert jax.grad(lambda x: jnp.sum(double(x)))(jnp.ones(3)).tolist() == [2.0, 2.0, 2.0]
+    assert jax.jacfwd(double)(jnp.ones(2)).tolist() == [[2.0, 0.0], [0.0, 2.0]]
+    np.testing.assert_array_equal(jax.jit(double)(jnp.arange(3.0)), [0.0, 2.0, 4.0])
+    np.testing.assert_array_equal(jax.jit(jax.vmap(double))(jnp.ones((2, 3))), 2 * np.ones((2, 3)))
+    np.testing.assert_array_equal(jax.vmap(double)(jnp.ones((2, 3))), 2 * np.ones((2, 3)))
+    looped = jax.lax.fori_loop(0, 3, lambda i, x: double(x), jnp.ones(2))
+    np.testing.assert_array_equal(looped, [8.0, 8.0])
