@@ -3,7 +3,8 @@
 `lieax._cpu_emitters.jit` compiles the ICP loop, the normals and the GICP covariances with
 `xla_cpu_use_fusion_emitters=False`. This measures that choice in one process: each program run
 with the option (`classic`) and without it (`default`, XLA's MLIR fusion emitters), interleaved,
-warm medians, and the first call (trace + compile + run) of each reported separately. On every
+warm medians, and XLA's compile time for each (the backend compilations of its first call: the
+two variants share JAX's trace and lowering, the same program either way). On every
 scan of `neighbors.load_clouds` (the bunny at 2 mm and in full, the LiDAR pair, the Kinect pair):
 
 - `point_to_plane`: one registration from the identity, the target normals given (the host k-d
@@ -17,12 +18,6 @@ Run `LIEAX_DATA_DIR=../shared/data python benchmarks/cpu_emitters.py [--rounds 7
 import argparse
 import os
 import sys
-
-# OpenMP threads wait passively (set before Open3D and pykdtree load their OpenMP runtimes): with
-# the default policy, Open3D's idle threads slowed the lieax call that follows an Open3D call in
-# this interleaved timing (LiDAR pair: 15.2 ms against 12.6 ms alone), and passive waiting leaves
-# Open3D's own time as it is alone (28.2 against 28.8 ms). `OMP_WAIT_POLICY=ACTIVE` overrides.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import jax
 

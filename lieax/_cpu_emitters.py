@@ -6,14 +6,15 @@ elementwise work and variadic reductions over the rows; with the classic emitter
 (`xla_cpu_use_fusion_emitters=False`) XLA compiles them in 13-36% less time, and the ICP loop
 runs 2-9% faster, the others within noise (jaxlib 0.10.2, 2-core x86-64, the bunny, LiDAR and
 Kinect scans; `benchmarks/cpu_emitters.py` measures both in one process). The first
-point-to-plane call on a 25k-point LiDAR pair, target normals estimated, takes 2.2-2.3 s where
-it took 2.7-3.0 s. The pose-graph programs run slower with the classic emitters (tinyGrid3D
+point-to-plane call on a 25k-point LiDAR pair, target normals estimated, took 2.2-2.3 s against
+2.7-3.0 s without them (fresh processes, alternating). The pose-graph programs run slower with the classic emitters (tinyGrid3D
 0.78 -> 1.01x GTSAM's time, sphere2500 0.66 -> 0.74x), so the option is set per program, not
 for the process.
 
 The option is one of XLA's debug options, and an XLA that does not know it refuses to compile
 ("No such compile option"): `known()` compiles an empty program with it once, and where that
-fails the programs compile with XLA's defaults. Other backends ignore it. JAX takes compile
+fails the programs compile with XLA's defaults. Other backends do not use it (not measured on
+one here). JAX takes compile
 options only for a program compiled on its own, not one staged into an enclosing `jit` or loop
 (whose own options then apply) or transformed (`grad`, `vmap`, which may stage it): a call on
 traced values, or made while a program is being staged, runs a plain `jax.jit`.
