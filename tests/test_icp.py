@@ -295,22 +295,6 @@ def test_presample_reaches_the_direct_pose_and_batches():
         icp.point_to_plane(source, noisy, presample=1.5, **options)
 
 
-def test_automatic_presample_strides():
-    """`presample="auto"`: stride 8, doubled while the first stage keeps 2000 rows (of the padded
-    source: one stride per bucket); 0 takes the same stride with the first stage off; a stride
-    that leaves fewer than 500 rows, a short run or the graph search skip the first stage."""
-    plan = _registration._presample_plan
-    for rows, stride in ((4096, 8), (10240, 8), (32768, 16), (40960, 16), (163840, 64)):
-        assert plan("auto", rows, "kdtree", 30) == (stride, True)
-        assert plan(0, rows, "kdtree", 30) == (stride, False)
-    assert plan(0.25, 40960, "kdtree", 30) == (4, True)
-    assert plan("auto", 3000, "kdtree", 30) == (1, False)  # (375 rows)
-    assert plan("auto", 40960, "kdtree", 5) == (1, False)
-    assert plan("auto", 40960, "graph", 30) == (1, False)
-    with pytest.raises(icp.ICPInputError, match="'auto' or a number"):
-        plan("fast", 40960, "kdtree", 30)
-
-
 def test_robust_loss_resists_outliers(pair):
     source, target, normals, truth = pair
     target = np.asarray(target).copy()

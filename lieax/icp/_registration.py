@@ -25,11 +25,10 @@ are recomputed exactly (within `max_correspondence_distance`), and the loop resu
 changed the fitness or RMSE (unless two exact checks in a row agree), so the result is the one
 exact nearest neighbours give.
 
-Presampling (`point_to_plane`, default `presample="auto"`): every 8th source row is registered
-first (every 16th, 32nd, ... on clouds large enough for the first stage to keep 2000 rows), to
-looser tolerances, and the whole source from there: the iterations in which the pose still
-slides (every match changes, so the host k-d tree's warm start keeps none) then query a fraction
-of the points. The first stage runs on every 8th row alone (a strided slice), so that its
+Presampling (`point_to_plane`, default `presample=0.125`): every 8th source point is registered
+first, to looser tolerances, and the whole source from there: the iterations in which the pose
+still slides (every match changes, so the host k-d tree's warm start keeps none) then query an
+eighth of the points. The first stage runs on every 8th row alone (a strided slice), so that its
 passes over the arrays cost an eighth too: masking the other rows of the full arrays, as before,
 made the first stage on the benchmark's LiDAR pair 2.0x and on its Kinect pair 1.9x slower. Both
 stages run in one compiled program (one preamble, one index); the converged pose is the full
@@ -90,14 +89,7 @@ _DESCENT_STEPS = 2
 _PRESAMPLE_TOLERANCE = 1e-4
 _PRESAMPLE_MIN_POINTS = 500
 _PRESAMPLE_MIN_ITERATIONS = 10
-# `presample="auto"`: the stride starts at 8 and doubles while the first stage keeps this many
-# rows. Against stride 8, warm medians in one process: the full bunny (41k rows) at stride 16
-# 0.75-0.84x the time, 32 0.68-0.81x, 64 0.56-0.72x; the Kinect pair (164k rows) at 32 0.60-0.69x,
-# 64 0.63-0.70x, 128 0.77-0.80x; the bunny resampled to 160k rows at 64 0.51x. The LiDAR pair
-# (10k rows) ran 2.1x slower at stride 16 (640 rows; 38 iterations in all against 32), so 2000
-# rows keeps a margin for scans whose geometry needs more points.
-_PRESAMPLE_AUTO_ROWS = 2000
-_FIRST_STRIDE = 8
+_DEFAULT_PRESAMPLE = 0.125
 
 
 class _ICPResultFields(NamedTuple):
@@ -173,7 +165,7 @@ def point_to_plane(
     throw=True,
     search="auto",
     buckets=True,
-    presample="auto",
+    presample=_DEFAULT_PRESAMPLE,
 ) -> ICPResult:
     r"""Point-to-plane ICP: minimize $\sum_i \rho\big((n_i^\top (T s_i - d_i))^2\big)$ over
     $T$ = `T_target_source`, re-matching $d_i$ (nearest target point of $T s_i$) every iteration.
@@ -207,17 +199,15 @@ def point_to_plane(
       sizes reuse a compiled loop (see `bucket_size`: four sizes per doubling, at most 25%
       padded rows); `False` compiles for the exact shapes. The results are those of the
       unpadded call (`correspondences` has `n` entries and indexes the unpadded target).
-    - `presample`: register every $k$-th source row first, to looser tolerances (1e-4 for the
-      fitness, 1e-4 `max_correspondence_distance` for the RMSE, or the given ones if looser),
-      then the whole source from that pose to the given criteria. `"auto"`: $k = 8$, doubled
-      while the first stage keeps at least 2000 rows (16 at 41k rows, 64 at 164k); a number in
-      (0, 1]: $k$ = `round(1 / presample)`; 0 (or a source of fewer than 500 $k$ rows after
-      padding, `max_iterations` below 10, or `search="graph"`) registers the whole source from
-      `init` directly. The first iterations, where the pose still slides and every match
-      changes (the host k-d tree's warm start keeps none), then work on a $k$-th of the points;
-      the result is the full registration's, converged from closer. Both stages run in one
-      compiled program (0 runs `"auto"`'s, its first stage skipped). Each stage is capped at
-      `max_iterations`; `iterations` counts the pose updates of both.
+    - `presample`: register every $k$-th source point first, $k$ = `round(1 / presample)`, to
+      looser tolerances (1e-4 for the fitness, 1e-4 `max_correspondence_distance` for the RMSE,
+      or the given ones if looser), then the whole source from that pose to the given criteria;
+      0 (or a source of fewer than 500 $k$ points, `max_iterations` below 10, or
+      `search="graph"`) registers the whole source from `init` directly. The first iterations, where the pose still slides and every
+      match changes (the host k-d tree's warm start keeps none), then work on a $k$-th of the
+      points; the result is the full registration's, converged from closer. Both stages run in
+      one compiled program (0 runs the default's, its first stage skipped). Each stage is capped
+      at `max_iterations`; `iterations` counts the pose updates of both.
 
     **Returns:** an `ICPResult`; `transform` and `inlier_rmse` are differentiable (forward and
     reverse mode) with respect to `source`, `target`, `target_normals` (given, or estimated from
@@ -315,7 +305,7 @@ def _register(
     search, prebuilt = _search.check_icp_search(search, target, max_distance)
     dynamic_loss, static_loss = _split_loss(loss)
     loss_kind = None if dynamic_loss is None else dynamic_loss[0]  # (static: one loop per kind)
-    stride, presampled = _presample_plan(presample, source.shape[0], search, max_iterations)
+    stride, presampled = _presample_plan(presample, n, search, max_iterations)
     options = (
         kind, max_iterations, bool(exact), _DESCENT_STEPS, bool(verbose), search, loss_kind,
         stride,
@@ -348,31 +338,27 @@ def _register(
     return _raise_on_failure(result, max_distance) if throw else result
 
 
-def _presample_plan(presample, rows, search, max_iterations):
-    """`(stride, run)` for the presampled first registration (`point_to_plane(presample=...)`) of
-    a source of `rows` rows (after padding: one stride per bucket). The stride shapes the compiled
-    loop (static); `run` is passed traced, so that `presample=0` runs the loop compiled for
-    `"auto"` with its first stage skipped (a caller switching presampling off compiles nothing
-    new). Stride 1 (no first stage compiled) for `presample` above 1/2 and for `None` (the other
-    ICP kinds), for sources of fewer than `_PRESAMPLE_MIN_POINTS` presampled rows, for
-    `max_iterations` below `_PRESAMPLE_MIN_ITERATIONS` (one call, one update for a caller
-    stepping ICP by hand), and for `search="graph"` (not measured with its descent)."""
+def _presample_plan(presample, n, search, max_iterations):
+    """`(stride, run)` for the presampled first registration (`point_to_plane(presample=...)`).
+    The stride shapes the compiled loop (static); `run` is passed traced, so that `presample=0`
+    runs the loop compiled for the default with its first stage skipped (a caller switching
+    presampling off compiles nothing new). Stride 1 (no first stage compiled) for `presample`
+    above 1/2 and for `None` (the other ICP kinds), for sources of fewer than
+    `_PRESAMPLE_MIN_POINTS` presampled points, for `max_iterations` below
+    `_PRESAMPLE_MIN_ITERATIONS` (one call, one update for a caller stepping ICP by hand), and for
+    `search="graph"` (not measured with its descent)."""
     if presample is None:
         return 1, False
-    number = isinstance(presample, (int, float, np.floating)) and not isinstance(presample, bool)
-    if presample != "auto" and not (number and 0 <= presample <= 1):
-        raise ICPInputError(f"presample must be 'auto' or a number in [0, 1], got {presample!r}.")
+    if isinstance(presample, bool) or not isinstance(presample, (int, float, np.floating)):
+        raise ICPInputError(f"presample must be a number in [0, 1], got {presample!r}.")
+    if not 0 <= presample <= 1:
+        raise ICPInputError(f"presample must be a number in [0, 1], got {presample!r}.")
     if search == "graph" or max_iterations < _PRESAMPLE_MIN_ITERATIONS:
         return 1, False
-    if presample == "auto" or presample == 0:
-        stride = _FIRST_STRIDE
-        while rows // (2 * stride) >= _PRESAMPLE_AUTO_ROWS:
-            stride *= 2
-    else:
-        stride = max(1, round(1 / presample))
-    if stride == 1 or rows // stride < _PRESAMPLE_MIN_POINTS:
+    stride = max(1, round(1 / (presample or _DEFAULT_PRESAMPLE)))
+    if stride == 1 or n // stride < _PRESAMPLE_MIN_POINTS:
         return 1, False
-    return stride, presample != 0
+    return stride, presample > 0
 
 
 def _raise_on_failure(result, max_distance):
