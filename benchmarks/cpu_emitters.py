@@ -24,8 +24,6 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp
-import numpy as np
-import open3d as o3d
 from jax import monitoring
 
 from lieax import _cpu_emitters, icp
@@ -41,7 +39,7 @@ from _timing import (
     markdown_table,
     time_interleaved,
 )
-from icp import SCAN_NORMALS, open3d_cloud
+from icp import scan_normals
 
 KNOWN = _cpu_emitters.known
 COMPILE_SECONDS = {"classic": 0.0, "default": 0.0}
@@ -51,13 +49,6 @@ _RUNNING = []
 def _count_compile(event, seconds, **_):
     if event == "/jax/core/compile/backend_compile_duration" and _RUNNING:
         COMPILE_SECONDS[_RUNNING[-1]] += seconds
-
-
-def open3d_normals(label, target):
-    """The target normals `benchmarks/icp.py` gives both libraries on this scan."""
-    cloud = open3d_cloud(target)
-    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(SCAN_NORMALS[label], 30))
-    return np.asarray(cloud.normals).copy()
 
 
 def programs(source, target, normals, radius):
@@ -107,7 +98,7 @@ def main():
     monitoring.register_event_duration_secs_listener(_count_compile)
     rows = []
     for label, (source, target, radius, _) in neighbors.load_clouds(args.data_dir).items():
-        normals = open3d_normals(label, target)
+        normals = scan_normals(label, target)
         for name, run in programs(source, target, normals, radius).items():
             variants = {name: with_emitters(name, run) for name in COMPILE_SECONDS}
             COMPILE_SECONDS.update(classic=0.0, default=0.0)

@@ -327,6 +327,14 @@ SCAN_NORMALS = {"bunny 2 mm": 0.006, "bunny full": 0.006, "LiDAR": 1.5, "Kinect"
 SCAN_SEARCHES = "graph,grid,kdtree"
 
 
+def scan_normals(label, target):
+    """Open3D's normals of the scan `label`'s target (radius `SCAN_NORMALS[label]`, 30
+    neighbours), the ones handed to both libraries."""
+    cloud = open3d_cloud(target)
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(SCAN_NORMALS[label], 30))
+    return np.asarray(cloud.normals).copy()
+
+
 def scans(data_dir, rounds, criteria, searches):
     """One registration per scan (`neighbors.load_clouds`), Open3D against lieax with each search
     backend (float64, Open3D's target normals given to both), for each `(tolerance, cap)`."""
@@ -334,9 +342,7 @@ def scans(data_dir, rounds, criteria, searches):
 
     rows, notes, profiles = [], [], []
     for label, (source, target, radius, truth) in neighbors.load_clouds(data_dir).items():
-        cloud = open3d_cloud(target)
-        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(SCAN_NORMALS[label], 30))
-        normals = np.asarray(cloud.normals).copy()
+        normals = scan_normals(label, target)
         clouds = (source, target, normals, radius, truth)
         for tolerance, cap in criteria:
             row, row_notes = scan_row(label, clouds, tolerance, cap, rounds, searches)

@@ -50,7 +50,7 @@ from _timing import (
     markdown_table,
     time_interleaved,
 )
-from icp import SCAN_NORMALS, open3d_cloud, rotation_deg, timed
+from icp import open3d_cloud, rotation_deg, scan_normals, timed
 
 TOLERANCE, CAP = 1e-6, 30
 KEEP = 0.9  # share of each cloud kept in a "pairs" element
@@ -166,9 +166,7 @@ def main():
     rows, notes = [], []
     for label in args.clouds.split(","):
         source, target, radius, _ = clouds[label]
-        cloud = open3d_cloud(target)
-        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(SCAN_NORMALS[label], 30))
-        normals = np.asarray(cloud.normals).copy()
+        normals = scan_normals(label, target)
         for kind in args.batches.split(","):
             elements = makers[kind](source, target, normals, radius, args.count)
             row, note = run_batch(f"{label}, {kind}", elements, radius, args.rounds)
