@@ -703,7 +703,7 @@ def _loop(
         )  # fmt: skip
         if search == "kdtree":
             state = state._replace(warm=_host_kdtree.cold_start(n, dtype))
-        if exact:
+        if exact and search == "graph":  # (only the graph's exact check can resume the loop)
             state = jax.lax.while_loop(running, verified, state)
         else:
             state = verified(state)
