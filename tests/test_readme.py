@@ -52,7 +52,7 @@ def test_quick_start_has_the_demo_and_the_test_command():
 
 
 def test_readme_examples_run_as_written():
-    """Every Python block (the groups example, the factor graph) runs in a fresh namespace."""
+    """Every Python block (the first example) runs in a fresh namespace."""
     for number, source in enumerate(python_examples(), 1):
         name = f"{README}:python-example-{number}"
         exec(compile(source, name, "exec"), {"__name__": "readme_example"})
