@@ -309,6 +309,7 @@ def test_solvers_refuse_sightings(tmp_path):
             "refers to pose 2, which the file does not define",
         ),  # fmt: skip
         ("VERTEX3 1 0 0 0 0 0 0\nEDGE3 1 2 0 0 0 0 0 0\n", 2, "EDGE3 needs 29 fields, got 8"),
+        ("VERTEX3 1 0 0 0 0 0 0\nEDGE3 1 1 0 0 0 0 0 0" + " 1" * 21 + "\n", 2, "to itself"),
     ],
 )
 def test_malformed_lines_name_file_and_line(tmp_path, text, line, message):
@@ -326,3 +327,36 @@ def test_unknown_tags_warn_and_empty_files_are_refused(tmp_path):
         read_toro(_write(tmp_path, "# nothing\n", "empty.graph"))
     with pytest.raises(ValueError, match="noise_format must be one of"):
         read_toro(path, noise_format="information")
+
+
+@pytest.mark.slow
+def test_landmark_slam_reaches_gtsams_cost(tmp_path):
+    """The LandmarkGraph docstring's problem, solved by lieax.factorgraph, ends at the cost of
+    GTSAM's Levenberg-Marquardt on load2D's graph of the same file."""
+    gtsam = pytest.importorskip("gtsam")
+    import jax.numpy as jnp
+
+    from lieax.factorgraph import Factor, FactorGraph, Var
+
+    def bearing_range(pose, landmark, measured):
+        local = pose.inverse() @ landmark
+        error = jnp.arctan2(local[1], local[0]) - measured[0]
+        wrapped = jnp.arctan2(jnp.sin(error), jnp.cos(error))
+        return jnp.stack([wrapped, jnp.linalg.norm(local) - measured[1]])
+
+    path = _write(tmp_path, LANDMARK_FILE)
+    graph = read_toro(path)
+    factor_graph, poses = to_factor_graph(graph.pose_graph())
+    landmarks = Var(graph.landmarks, name="landmarks")
+    br = graph.bearing_range
+    sightings = Factor(
+        bearing_range,
+        (poses[br.pose], landmarks[br.landmark]),
+        jnp.stack([br.bearing, br.range], -1),
+        sqrt_information=br.sqrt_information,
+        name="bearing-range",
+    )
+    result = FactorGraph([*factor_graph.factors, sightings]).solve()
+    factors, values = gtsam.load2D(str(path))
+    optimized = gtsam.LevenbergMarquardtOptimizer(factors, values).optimize()
+    np.testing.assert_allclose(float(result.cost), factors.error(optimized), rtol=1e-6)

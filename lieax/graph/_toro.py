@@ -1,5 +1,5 @@
 r"""Reading TORO and GTSAM text datasets (the files GTSAM's `load2D` and `load3D` read): pose
-graphs as `w10000.graph` and `sphere_smallnoise.graph`, and 2D landmark SLAM as
+graphs as `w10000.graph` (2D) and 3D TORO files, and 2D landmark SLAM as
 `victoria_park.txt`.
 
 Lines, as GTSAM 4.3's `gtsam/slam/dataset.cpp` parses them (`parseVertexPose`,
@@ -41,7 +41,9 @@ ids need not be contiguous (in `victoria_park.txt` poses and landmarks share one
 lines give initial values; then, in file order, an edge whose first pose has none starts it at
 the identity, and an edge's second pose without one gets $X_i Z$; a bearing-range line's pose
 without one starts at the identity and its landmark gets $t_i + R_i\,r\,(\cos b, \sin b)$.
-`load3D` makes no values, so a 3D edge to a pose the file does not define is refused.
+`load3D` makes no values, so a 3D edge to a pose the file does not define is refused. (GTSAM's
+own `sphere_smallnoise.graph` has `EDGE3` lines without the 21 information entries: `load3D`
+reads on into the next line and stops after one factor; `read_toro` refuses the line.)
 
 Differences from GTSAM, each refused with `ToroError` naming the file and line where GTSAM reads
 on silently: a line with too few or too many fields, a word or a non-finite number where a number
@@ -138,8 +140,24 @@ class LandmarkGraph(PoseGraph):
 
     `lieax.graph.optimize` and `to_factor_graph` model poses only and refuse a graph with
     sightings; `pose_graph()` is the pose part, to build the whole problem with
-    `lieax.factorgraph` (a landmark `Var` and a bearing-range `Factor` added to
-    `to_factor_graph(graph.pose_graph())`'s graph).
+    `lieax.factorgraph`:
+
+    ```python
+    def bearing_range(pose, landmark, measured):  # GTSAM's BearingRangeFactor<Pose2, Point2>
+        local = pose.inverse() @ landmark
+        error = jnp.arctan2(local[1], local[0]) - measured[0]
+        wrapped = jnp.arctan2(jnp.sin(error), jnp.cos(error))
+        return jnp.stack([wrapped, jnp.linalg.norm(local) - measured[1]])
+
+    graph = lieax.graph.read_toro("victoria_park.txt")
+    factor_graph, poses = lieax.graph.to_factor_graph(graph.pose_graph())  # pose 0 fixed
+    landmarks = Var(graph.landmarks, name="landmarks")
+    br = graph.bearing_range
+    sightings = Factor(bearing_range, (poses[br.pose], landmarks[br.landmark]),
+                       jnp.stack([br.bearing, br.range], -1),
+                       sqrt_information=br.sqrt_information, name="bearing-range")
+    result = FactorGraph([*factor_graph.factors, sightings]).solve()
+    ```
     """
 
     landmarks: jnp.ndarray = None
@@ -489,6 +507,10 @@ def _read_3d(lines, path, to_dtype):
             f"{path}:{edge_lines[k]}: edge refers to pose {edges[k][np.argmax(missing[k])]}, "
             "which the file does not define (GTSAM's load3D makes no initial values)."
         )
+    loops = edges[:, 0] == edges[:, 1]
+    if np.any(loops):
+        k = int(np.argmax(loops))
+        raise ToroError(f"{path}:{edge_lines[k]}: edge joins pose {edges[k, 0]} to itself.")
     rows, cols = np.triu_indices(6)
     gtsam_order = np.zeros((len(edges), 6, 6))
     gtsam_order[:, rows, cols] = edge_values[:, 6:]
