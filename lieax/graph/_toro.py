@@ -24,7 +24,10 @@ Noise, as GTSAM derives it:
   $(a, 0, b, c, 0, 0)$ is TORO order, $(a, 0, 0, b, 0, c)$ g2o order, both read as
   **covariances** (GTSAM's `NoiseFormatGRAPH` and `NoiseFormatCOV`), anything else is refused;
   `"graph"`, `"cov"`, `"toro"` (TORO order, information) and `"g2o"` (g2o order, information)
-  fix the reading. The tangent order $(x, y, \theta)$ is lieax's.
+  fix the reading. The tangent order $(x, y, \theta)$ is lieax's. (`VERTEX_SE2`/`EDGE_SE2` lines
+  are read as `load2D` reads them, so under `"auto"` a g2o edge's information entries become a
+  covariance; read g2o files with `read_g2o`, as GTSAM's `readG2o` does, or pass
+  `noise_format="g2o"`.)
 - `BR`: $\mathrm{diag}(\sigma_b, \sigma_r)$ as given. `LANDMARK`: the bearing and range of
   $(x, y)$, $b = \mathrm{atan2}(y, x)$, $r = \sqrt{x^2 + y^2}$, with
   $\sigma_b = \sqrt{v_1 / 10}$, $\sigma_r = \sqrt{v_1}$ when $|v_1 - v_3| < 10^{-4}$ (GTSAM takes
