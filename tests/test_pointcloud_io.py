@@ -172,3 +172,112 @@ def test_stanford_bunny_ply_matches_the_npz():
     for name in ("source", "target"):
         read = pcio.read_point_cloud(os.path.join(folder, f"{name}.ply"))
         np.testing.assert_allclose(read.points, arrays[name], atol=1e-7)  # float32 in the PLY
+
+
+# ---- LZF: the optional C decoder against the Python reference --------------------------------
+
+
+def _lzf_compress(data):
+    """A greedy LZF compressor (liblzf's format: literal runs of at most 32 bytes, back references
+    of 3-264 bytes at most 8192 back, overlapping their own output where the match runs on) and
+    the number of overlapping back references it wrote."""
+    out, literal, table, overlapping = bytearray(), bytearray(), {}, 0
+    i, n = 0, len(data)
+
+    def flush():
+        for start in range(0, len(literal), 32):
+            run = literal[start : start + 32]
+            out.append(len(run) - 1)
+            out.extend(run)
+        literal.clear()
+
+    while i < n:
+        key = bytes(data[i : i + 3])
+        reference = table.get(key) if n - i >= 3 else None
+        table[key] = i
+        if reference is not None and i - reference <= 8192:
+            length = 0
+            while length < min(264, n - i) and data[reference + length] == data[i + length]:
+                length += 1
+            if length >= 3:
+                flush()
+                distance, code = i - reference - 1, length - 2
+                overlapping += i - reference < length
+                if code < 7:
+                    out += bytes([(code << 5) | (distance >> 8), distance & 255])
+                else:
+                    out += bytes([(7 << 5) | (distance >> 8), code - 7, distance & 255])
+                i += length
+                continue
+        literal.append(data[i])
+        i += 1
+    flush()
+    return bytes(out), overlapping
+
+
+def _lzf_samples():
+    rng = np.random.default_rng(5)
+    pieces = [rng.integers(0, 256, 700, dtype=np.uint8).tobytes(), bytes(3000), b"ab" * 400]
+    pieces += [rng.integers(0, 4, 2000, dtype=np.uint8).tobytes(), b"xyz" * 5 + bytes(1)]
+    cloud = np.repeat(rng.normal(size=(40, 3)).astype("<f4"), 7, axis=0).T.tobytes()
+    return [b"".join(pieces), cloud, rng.integers(0, 256, 100, dtype=np.uint8).tobytes()]
+
+
+def test_lzf_python_decoder_on_generated_streams():
+    from lieax.io._lzf import lzf_decompress, lzf_decompress_python
+
+    total_overlapping = 0
+    for data in _lzf_samples():
+        stream, overlapping = _lzf_compress(data)
+        total_overlapping += overlapping
+        assert len(stream) < len(data) or len(data) == 100
+        assert lzf_decompress_python(stream, len(data), "s", 0) == data
+        assert lzf_decompress(stream, len(data), "s", 0) == data
+    assert total_overlapping > 10
+
+
+def test_lzf_c_decoder_errors_are_located_by_the_python_decoder(monkeypatch):
+    """The dispatch: a C result of the declared size is used; a refusal (or a short result) is
+    re-decoded in Python, whose error names the chunk."""
+    from lieax.io import _lzf
+
+    data = _lzf_samples()[0]
+    stream, _ = _lzf_compress(data)
+    calls = []
+
+    def fake(source, size):
+        calls.append(size)
+        return b"c" * size
+
+    monkeypatch.setattr(_lzf, "_c_decompress", fake)
+    assert _lzf.lzf_decompress(stream, len(data), "s", 0) == b"c" * len(data)
+    for broken in (lambda source, size: None, lambda source, size: b"short"):
+        monkeypatch.setattr(_lzf, "_c_decompress", broken)
+        assert _lzf.lzf_decompress(stream, len(data), "s", 0) == data
+
+    def refuse(source, size):
+        raise ValueError("error in compressed data")
+
+    monkeypatch.setattr(_lzf, "_c_decompress", refuse)
+    with pytest.raises(pcio.PointCloudFileError, match=r"s: byte 7: LZF back reference 1 bytes"):
+        _lzf.lzf_decompress(b"\x20\x00" + stream, len(data), "s", 7)
+    assert calls == [len(data)]
+
+
+def test_lzf_c_decoder_agrees_with_the_python_decoder():
+    lzf = pytest.importorskip("lzf")
+    from lieax.io._lzf import lzf_decompress_python
+
+    streams = [(_lzf_compress(data)[0], len(data)) for data in _lzf_samples()]
+    rng = np.random.default_rng(6)
+    for _ in range(20):
+        data = rng.integers(0, 3, int(rng.integers(1, 5000)), dtype=np.uint8).tobytes()
+        streams += [(_lzf_compress(data)[0], len(data)), (lzf.compress(data), len(data))]
+    if DATA_DIR and os.path.exists(os.path.join(DATA_DIR, "clouds/office_kinect/office1.pcd")):
+        with open(os.path.join(DATA_DIR, "clouds/office_kinect/office1.pcd"), "rb") as handle:
+            raw = handle.read()
+        start = raw.index(b"DATA binary_compressed\n") + len(b"DATA binary_compressed\n")
+        compressed, size = np.frombuffer(raw, "<u4", 2, start).tolist()
+        streams.append((raw[start + 8 : start + 8 + compressed], size))
+    for stream, size in streams:
+        assert lzf.decompress(stream, size) == lzf_decompress_python(stream, size, "s", 0)

@@ -3,7 +3,9 @@ generated problems.
 
 `read_bal` / `write_bal` read and write "Bundle Adjustment in the Large" files (plain or `.bz2`)
 into a `BALProblem` (NumPy arrays as the file holds them; `camera_variables()` gives the cameras as
-a batched `lieax.SE3` $T_{cw}$ and `(f, k_1, k_2)` intrinsics). `reprojection_residual` is the
+a batched `lieax.SE3` $T_{cw}$ and `(f, k_1, k_2)` intrinsics); `read_bundler` / `write_bundler`
+read and write Bundler's `.out` files as the same problem (a `BundlerProblem`, with colours and
+keypoint indices). `reprojection_residual` is the
 residual of one camera, one point and one observation, written with lieax operations (so
 `lieax.jacobian` differentiates it); `reprojection_jacobians` gives its 2×6 pose, 2×3 intrinsics
 and 2×3 point blocks in closed form, the camera's tangent being the SE3 right perturbation
@@ -15,6 +17,7 @@ README's "Conventions" (right perturbations, translation-first tangents, `T_a_b`
 """
 
 from ._bal import BALError, BALProblem, read_bal, write_bal
+from ._bundler import BundlerProblem, read_bundler, write_bundler
 from ._camera import (
     bal_to_camera,
     camera_jacobians,
@@ -29,6 +32,7 @@ from ._synthetic import SYNTHETIC_PRESETS, SyntheticBAL, project_numpy, syntheti
 __all__ = [
     "BALError",
     "BALProblem",
+    "BundlerProblem",
     "SYNTHETIC_PRESETS",
     "SyntheticBAL",
     "bal_to_camera",
@@ -38,8 +42,10 @@ __all__ = [
     "project",
     "project_numpy",
     "read_bal",
+    "read_bundler",
     "reprojection_jacobians",
     "reprojection_residual",
     "synthetic_bal",
     "write_bal",
+    "write_bundler",
 ]

@@ -3,7 +3,9 @@ equations.
 
 `read_g2o` / `write_g2o` read and write 2D and 3D g2o files into a `PoseGraph` (poses as one
 batched `SE2`/`SE3` in file order, the file's ids in `vertex_ids`, edges as index arrays with
-measurements and square-root information). `optimize` runs Levenberg-Marquardt with GTSAM's
+measurements and square-root information); `read_toro` reads the TORO and GTSAM text datasets
+that GTSAM's `load2D`/`load3D` read (`w10000.graph`, `victoria_park.txt`), landmarks and
+bearing-range sightings included (`LandmarkGraph`). `optimize` runs Levenberg-Marquardt with GTSAM's
 semantics (the pose graph as a `lieax.factorgraph.FactorGraph` of between and prior factors,
 solved by its loop) and returns an `OptimizeResult` whose `cost` is GTSAM's error $\tfrac12\sum r^\top\Omega r$.
 
@@ -23,17 +25,22 @@ from ._g2o import G2oError, G2oWarning, read_g2o, write_g2o
 from ._graph import BetweenFactors, PoseGraph, PriorFactors, square_root_information
 from ._init import chordal_initialization, spanning_tree_poses
 from ._optimize import OptimizeResult, Status, optimize
+from ._toro import BearingRangeFactors, LandmarkGraph, ToroError, ToroWarning, read_toro
 
 __all__ = [
+    "BearingRangeFactors",
     "BetweenFactors",
     "BlockPattern",
     "CholeskyPlan",
     "G2oError",
     "G2oWarning",
+    "LandmarkGraph",
     "OptimizeResult",
     "PoseGraph",
     "PriorFactors",
     "Status",
+    "ToroError",
+    "ToroWarning",
     "between_error",
     "between_jacobians",
     "block_matvec",
@@ -44,6 +51,7 @@ __all__ = [
     "prior_error",
     "prior_jacobian",
     "read_g2o",
+    "read_toro",
     "spanning_tree_poses",
     "square_root_information",
     "to_factor_graph",

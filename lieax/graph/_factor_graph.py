@@ -36,6 +36,17 @@ _BLOCKS = {
 }
 
 
+def refuse_sightings(graph, entry):
+    """Refuse a `LandmarkGraph` with bearing-range sightings: `entry` models poses only."""
+    sightings = getattr(graph, "bearing_range", None)
+    if sightings is not None and len(sightings):
+        raise ValueError(
+            f"{entry} models poses only, and this graph has {len(sightings)} bearing-range "
+            "sightings of landmarks: build the problem with lieax.factorgraph from "
+            "to_factor_graph(graph.pose_graph()) and a landmark Var with a bearing-range Factor."
+        )
+
+
 def to_factor_graph(graph, *, closed_form=True, exact=True, fixed="auto", check_gauge=True):
     """`(factor_graph, poses)`: the `lieax.factorgraph.FactorGraph` of a `PoseGraph` and its
     pose `Var`, to add factors of other kinds to, or to solve with other options.
@@ -52,6 +63,7 @@ def to_factor_graph(graph, *, closed_form=True, exact=True, fixed="auto", check_
       `FactorGraph([*factor_graph.factors, gps])` checks the gauge of the whole graph.
     - `check_gauge`: as `FactorGraph`'s.
     """
+    refuse_sightings(graph, "to_factor_graph")
     if not closed_form and not exact:
         raise ValueError("exact=False selects approximate closed-form blocks: needs closed_form.")
     if isinstance(fixed, str) and fixed == "auto":

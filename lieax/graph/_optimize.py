@@ -25,7 +25,7 @@ from .. import retractions
 from ..factorgraph._graph import parameters
 from ..lstsq import Status
 from ..lstsq._solution import SolverResult
-from ._factor_graph import to_factor_graph
+from ._factor_graph import refuse_sightings, to_factor_graph
 
 _SOLVERS = ("cholesky", "cg")
 
@@ -108,6 +108,7 @@ def optimize(
 
     **Returns:** an `OptimizeResult`.
     """
+    refuse_sightings(graph, "optimize")
     if solver not in _SOLVERS:
         raise ValueError(f"solver must be one of {_SOLVERS}, got {solver!r}.")
     if jacobian not in ("exact", "approximate"):

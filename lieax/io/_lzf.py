@@ -1,9 +1,38 @@
-"""LZF decompression (Marc Lehmann's liblzf format), as PCD's `binary_compressed` data uses it."""
+"""LZF decompression (Marc Lehmann's liblzf format), as PCD's `binary_compressed` data uses it.
+
+`lzf_decompress` uses liblzf's own C decoder when the optional package `python-lzf` is installed
+(`pip install python-lzf`: a C extension, built from source, so it needs a C compiler) and the
+pure-Python decoder `lzf_decompress_python` otherwise. On PCL's `office1.pcd` (4.9 MB from
+1.9 MB) the C decoder takes 5 ms and the Python one 380-600 ms (Open3D reads the whole file in
+106 ms); a NumPy decoder (chunk starts found by walking 512-byte segments in lockstep, literals
+scattered, back references resolved by pointer jumping) was 2x slower than the Python loop, so
+there is none. The Python decoder also reports where a corrupt stream fails: the C decoder's
+errors are re-run through it.
+"""
 
 from ._common import byte_error
 
+try:  # the optional accelerator; see the module docstring
+    from lzf import decompress as _c_decompress
+except ImportError:
+    _c_decompress = None
+
 
 def lzf_decompress(data, size, path, offset) -> bytes:
+    """Decompress LZF `data` to exactly `size` bytes: liblzf's C decoder from `python-lzf` when
+    installed, else (and to locate the error in a corrupt stream) `lzf_decompress_python`,
+    whose arguments and errors these are."""
+    if _c_decompress is not None and size:
+        try:
+            out = _c_decompress(bytes(data), size)
+        except ValueError:  # corrupt data: the Python decoder names the chunk
+            out = None
+        if out is not None and len(out) == size:
+            return out
+    return lzf_decompress_python(data, size, path, offset)
+
+
+def lzf_decompress_python(data, size, path, offset) -> bytes:
     r"""Decompress LZF `data` to exactly `size` bytes, refusing a corrupt stream as liblzf's
     `lzf_decompress` does.
 
