@@ -29,14 +29,18 @@ def relative(a, b):
     return np.max(np.abs(np.asarray(a) - b)) / np.max(np.abs(b))
 
 
-def gtsam_params(gtsam, cls, omega=None, with_arm=False):
+def gtsam_params(gtsam, cls, omega=None, with_arm=False, error_mode="logmap"):
     """`cls.MakeSharedU(9.81)` (`PreintegrationParams` or `PreintegrationCombinedParams`) with
-    `NOISE`, the ComponentWise error, and optionally `omegaCoriolis` and the lever arm `ARM`."""
+    `NOISE`, the factors' error mode (lieax's `error_mode`: `"logmap"` is GTSAM's default, left as
+    it is; `"component_wise"` is set), and optionally `omegaCoriolis` and the lever arm `ARM`."""
     p = cls.MakeSharedU(9.81)
     p.setAccelerometerCovariance(NOISE["accel_noise_density"] ** 2 * np.eye(3))
     p.setGyroscopeCovariance(NOISE["gyro_noise_density"] ** 2 * np.eye(3))
     p.setIntegrationCovariance(NOISE["integration_sigma"] ** 2 * np.eye(3))
-    p.setImuFactorErrorMode(gtsam.ImuFactorErrorMode.ComponentWise)
+    if error_mode == "component_wise":
+        p.setImuFactorErrorMode(gtsam.ImuFactorErrorMode.ComponentWise)
+    else:  # lieax's default is GTSAM's default
+        assert p.getImuFactorErrorMode() == gtsam.ImuFactorErrorMode.Logmap
     if omega is not None:
         p.setOmegaCoriolis(omega)
     if with_arm:
@@ -59,7 +63,7 @@ def gtsam_bias(bias):
 
 
 def integrate(pim, gyro, accel, dt):
-    """GTSAM's loop over `integrateMeasurement`; returns `pim`."""
+    """GTSAM's loop over `integrateMeasurement` (accelerometer first); returns `pim`."""
     for k in range(len(dt)):
         pim.integrateMeasurement(accel[k], gyro[k], dt[k])
     return pim
