@@ -2,10 +2,13 @@
 `tests/test_imu_preintegration.py`): random gyroscope and accelerometer samples, the noise, bias
 and lever arm they are integrated with, and the same in GTSAM's parameters and poses."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
+import lieax.imu as imu
 from lieax import SE3, SO3
+from lieax.imu import _preintegration
 
 SAMPLES = 60
 NOISE = dict(accel_noise_density=0.01, gyro_noise_density=1e-3, integration_sigma=1e-4)
@@ -67,3 +70,13 @@ def integrate(pim, gyro, accel, dt):
     for k in range(len(dt)):
         pim.integrateMeasurement(accel[k], gyro[k], dt[k])
     return pim
+
+
+def entrywise_over_intervals(monkeypatch, *args, **kwargs):
+    """`vmap(preintegrate)` with the entrywise scan for any batch (`_dispatch_batched` chooses
+    it for $2^{17}$ samples or more): a fresh `jit`, traced with the threshold at zero."""
+    monkeypatch.setattr(_preintegration, "_ENTRYWISE_MIN_SAMPLES", 0)
+    try:
+        return jax.jit(jax.vmap(imu.preintegrate, in_axes=(None, None)))(*args, **kwargs)
+    finally:
+        monkeypatch.undo()

@@ -14,6 +14,7 @@ from _imu_streams import (
     BIAS,
     NOISE,
     SAMPLES,
+    entrywise_over_intervals,
     gtsam_bias,
     gtsam_params,
     gtsam_pose,
@@ -272,19 +273,55 @@ def test_associative_is_exact_for_constant_rotation_rate():
         assert float(b.delta_t) == pytest.approx(0.01 * samples)
 
 
+def scan_carries(batch, samples):
+    """The number of carried arrays of each `lax.scan` in `vmap(preintegrate)`'s program over
+    `batch` intervals of `samples` (traced abstractly: nothing computed)."""
+    shape = jax.ShapeDtypeStruct
+
+    def scans(jaxpr):
+        for eqn in jaxpr.eqns:
+            if eqn.primitive.name == "scan":
+                yield eqn.params["num_carry"]
+            for value in eqn.params.values():
+                for sub in value if isinstance(value, tuple | list) else (value,):
+                    if isinstance(sub, jax.extend.core.ClosedJaxpr):
+                        yield from scans(sub.jaxpr)
+
+    closed = jax.make_jaxpr(jax.vmap(imu.preintegrate, in_axes=(None, None)))(
+        PARAMS, BIAS, accel=shape((batch, samples, 3), np.float64),
+        gyro=shape((batch, samples, 3), np.float64), dt=shape((batch, samples), np.float64),
+    )  # fmt: skip
+    return list(scans(closed.jaxpr))
+
+
+def test_batched_scan_dispatch():
+    """Under `vmap`, batches of fewer than $2^{17}$ samples run the 3×3-block scan (10 carried
+    arrays; it compiles in a third of the time), larger ones the entrywise scan (99 scalars)."""
+    assert scan_carries(3, 60) == [10]
+    assert scan_carries(512, 255) == [10]
+    assert scan_carries(512, 256) == [99]
+    assert scan_carries(1000, 200) == [99]
+
+
 @pytest.mark.parametrize("with_arm", [False, True])
-def test_vmap_over_intervals_equals_loop(with_arm):
-    """`vmap` (the entrywise scan) equals one interval at a time (the 3×3-block scan)."""
+def test_vmap_over_intervals_equals_loop(with_arm, monkeypatch):
+    """`vmap`, by the batched 3×3-block scan and by the entrywise scan, equals one interval at
+    a time (the 3×3-block scan)."""
     params = PARAMS_ARM if with_arm else PARAMS
     streams = [stream(10 + k) for k in range(3)]
     gyro, accel, dt = (np.stack(x) for x in zip(*streams))
-    batched = over_intervals(params, BIAS, accel=accel, gyro=gyro, dt=dt)
+    samples = dict(accel=accel, gyro=gyro, dt=dt)
+    blocks = over_intervals(params, BIAS, **samples)
+    entrywise = entrywise_over_intervals(monkeypatch, params, BIAS, **samples)
     for k, (g, a, d) in enumerate(streams):
         one = sequential(params, BIAS, accel=a, gyro=g, dt=d)
         for field in ("theta", "delta_p", "delta_v", "covariance", "jacobian_bias"):
             expected = getattr(one, field)  # entries that cancel to 1e-6 of the largest: atol
             scale = 1e-12 * np.max(np.abs(expected))
-            np.testing.assert_allclose(getattr(batched, field)[k], expected, rtol=1e-12, atol=scale)
+            for batched in (blocks, entrywise):
+                np.testing.assert_allclose(
+                    getattr(batched, field)[k], expected, rtol=1e-12, atol=scale
+                )
 
 
 @pytest.mark.parametrize("with_arm", [False, True])

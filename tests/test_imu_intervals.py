@@ -5,7 +5,7 @@ different lengths padded with a per-sample mask (`preintegrate(mask=)`) to bucke
 import jax
 import numpy as np
 import pytest
-from _imu_streams import ARM, BIAS, NOISE, stream
+from _imu_streams import ARM, BIAS, NOISE, entrywise_over_intervals, stream
 
 import lieax.imu as imu
 from lieax import SE3
@@ -42,9 +42,10 @@ def assert_same(ours, expected, rtol=1e-12):
     assert bool(ours.valid)
 
 
-def test_masked_padding_equals_unpadded():
+def test_masked_padding_equals_unpadded(monkeypatch):
     """Nine samples spread over twelve rows (padding first, inside and last, NaN in the padded
-    rows): the sequential scan, the batched (entrywise) scan under `vmap`, the combined 15×15
+    rows): the sequential scan, the batched scans under `vmap` (3×3 blocks, entrywise), the
+    combined 15×15
     covariance and the associative tree each equal their unpadded results to 1e-12 in the
     increments, $\\Delta t$, covariances and bias Jacobians; the derivative with respect to the
     bias through the masked scan (its JVP rule) equals the unpadded one."""
@@ -54,10 +55,10 @@ def test_masked_padding_equals_unpadded():
     masked = dict(accel=a, gyro=g, dt=d, mask=keep)
     expected = sequential(PARAMS, BIAS, **plain)
     assert_same(sequential(PARAMS, BIAS, **masked), expected)
-    batch = over_intervals(
-        PARAMS, BIAS, **{k: np.stack([v, v]) for k, v in masked.items()}
-    )  # the entrywise scan; its own rounding against the 3×3-block scan
-    assert_same(jax.tree.map(lambda x: x[1], batch), expected)
+    batch = {k: np.stack([v, v]) for k, v in masked.items()}
+    assert_same(jax.tree.map(lambda x: x[1], over_intervals(PARAMS, BIAS, **batch)), expected)
+    entrywise = entrywise_over_intervals(monkeypatch, PARAMS, BIAS, **batch)
+    assert_same(jax.tree.map(lambda x: x[1], entrywise), expected)  # to its own rounding
     expected_pim, expected_cov = combined(PARAMS, WALK, BIAS, **plain)
     pim, covariance = combined(PARAMS, WALK, BIAS, **masked)
     assert_same(pim, expected_pim)

@@ -43,43 +43,48 @@ def _batched_combined(params, walk, bias, accel, gyro, dt, mask):
     return jax.vmap(one)(bias, accel, gyro, dt, mask)
 
 
-def _interval_samples(accel, gyro, dt):
-    """Per interval `(accel, gyro, dt)` NumPy arrays, checked: `ImuError` naming the interval and
-    the sample."""
+def _stream(accel, gyro, dt):
+    """The intervals' samples concatenated, `(accel, gyro, dt, lengths)` NumPy, checked in one
+    pass: `ImuError` naming the interval and the sample of a bad value or shape."""
     if isinstance(accel, np.ndarray | jax.Array) and np.ndim(accel) != 3:
         raise ImuError(
             f"accel must be a sequence of (N_k, 3) arrays or an (m, N, 3) array, got shape "
             f"{np.shape(accel)}."
         )
-    accel, gyro = list(accel), list(gyro)
+    accel, gyro = [np.asarray(a) for a in accel], [np.asarray(g) for g in gyro]
     if len(accel) != len(gyro):
         raise ImuError(f"accel has {len(accel)} intervals, gyro {len(gyro)}.")
     if not accel:
         raise ImuError("no intervals.")
-    scalar = isinstance(dt, int | float) or (hasattr(dt, "ndim") and dt.ndim == 0)
-    dts = [dt] * len(accel) if scalar else list(dt)
-    if len(dts) != len(accel):
-        raise ImuError(f"dt has {len(dts)} intervals, accel {len(accel)}.")
-    out = []
-    for k, (a, g, d) in enumerate(zip(accel, gyro, dts)):
-        a, g = np.asarray(a), np.asarray(g)
-        for name, x in (("accel", a), ("gyro", g)):
-            if x.ndim != 2 or x.shape[1] != 3 or x.shape[0] == 0:
-                raise ImuError(f"interval {k}: {name} must be (samples >= 1, 3), got {x.shape}.")
+    for k, (a, g) in enumerate(zip(accel, gyro)):
+        if a.ndim != 2 or a.shape[1:] != (3,) or a.shape[0] == 0:
+            raise ImuError(f"interval {k}: accel must be (samples >= 1, 3), got {a.shape}.")
         if a.shape != g.shape:
             raise ImuError(f"interval {k}: accel {a.shape} and gyro {g.shape} differ.")
-        d = np.broadcast_to(np.asarray(d), a.shape[:1]) if np.ndim(d) == 0 else np.asarray(d)
-        if d.shape != a.shape[:1]:
-            raise ImuError(f"interval {k}: dt must be a scalar or ({a.shape[0]},), got {d.shape}.")
-        bad = ~(np.isfinite(a).all(1) & np.isfinite(g).all(1) & np.isfinite(d) & (d > 0))
-        if bad.any():
-            j = int(np.flatnonzero(bad)[0])
-            raise ImuError(
-                f"interval {k}, sample {j}: non-finite accel, gyro or dt, or dt <= 0 "
-                f"(dt = {float(d[j])})."
-            )
-        out.append((a, g, d))
-    return out
+    lengths = np.array([len(a) for a in accel])
+    if not isinstance(dt, list | tuple) and np.ndim(dt) == 0:
+        dt = np.full(lengths.sum(), float(dt))
+    else:
+        dts = list(dt)
+        if len(dts) != len(accel):
+            raise ImuError(f"dt has {len(dts)} intervals, accel {len(accel)}.")
+        for k, (d, n) in enumerate(zip(dts, lengths)):
+            if np.ndim(d) not in (0, 1) or np.ndim(d) == 1 and len(d) != n:
+                raise ImuError(f"interval {k}: dt must be a scalar or ({n},), got {np.shape(d)}.")
+        dt = np.concatenate(
+            [np.broadcast_to(np.asarray(d, float), (n,)) for d, n in zip(dts, lengths)]
+        )
+    accel, gyro = np.concatenate(accel), np.concatenate(gyro)
+    bad = ~(np.isfinite(accel).all(1) & np.isfinite(gyro).all(1) & np.isfinite(dt) & (dt > 0))
+    if bad.any():
+        first = int(np.flatnonzero(bad)[0])
+        k = int(np.searchsorted(np.cumsum(lengths), first, side="right"))
+        j = first - int(lengths[:k].sum())
+        raise ImuError(
+            f"interval {k}, sample {j}: non-finite accel, gyro or dt, or dt <= 0 "
+            f"(dt = {float(dt[first])})."
+        )
+    return accel, gyro, dt, lengths
 
 
 def preintegrate_intervals(
@@ -118,23 +123,25 @@ def preintegrate_intervals(
     """
     if not isinstance(params, ImuParams):
         raise TypeError(f"params must be an ImuParams, got {type(params).__name__}.")
-    intervals = _interval_samples(accel, gyro, dt)
-    m = len(intervals)
-    longest = max(len(d) for _, _, d in intervals)
+    accel, gyro, dt, lengths = _stream(accel, gyro, dt)
+    m, longest = len(lengths), int(lengths.max())
     rows = bucket_size(longest) if buckets else longest
     count = bucket_size(m) if buckets else m
-    dtype = np.result_type(*(x for interval in intervals for x in interval))
+    dtype = np.result_type(accel, gyro, dt)
     dtype = dtype if np.issubdtype(dtype, np.floating) else np.dtype(np.float64)
-    padded_accel = np.zeros((count, rows, 3), dtype)
-    padded_gyro = np.zeros((count, rows, 3), dtype)
-    padded_dt = np.zeros((count, rows), dtype)
-    mask = np.zeros((count, rows), bool)
-    mask[m:, 0] = True  # the empty intervals: one zero sample held 1 s (cut from the result)
-    padded_dt[m:, 0] = 1.0
-    for k, (a, g, d) in enumerate(intervals):
-        n = len(d)
-        padded_accel[k, :n], padded_gyro[k, :n], padded_dt[k, :n] = a, g, d
-        mask[k, :n] = True
+    starts = np.cumsum(lengths) - lengths
+    # sample n of interval k goes to row k * rows + (n - starts[k])
+    flat = np.arange(len(dt)) + np.repeat(np.arange(m) * rows - starts, lengths)
+    padded_accel = np.zeros((count * rows, 3), dtype)
+    padded_gyro = np.zeros((count * rows, 3), dtype)
+    padded_dt = np.zeros(count * rows, dtype)
+    mask = np.zeros(count * rows, bool)
+    padded_accel[flat], padded_gyro[flat], padded_dt[flat], mask[flat] = accel, gyro, dt, True
+    empty = np.arange(m, count) * rows  # the empty intervals: one zero sample held 1 s (cut)
+    padded_dt[empty], mask[empty] = 1.0, True
+    padded_accel = padded_accel.reshape(count, rows, 3)
+    padded_gyro = padded_gyro.reshape(count, rows, 3)
+    padded_dt, mask = padded_dt.reshape(count, rows), mask.reshape(count, rows)
     bias = np.zeros(6, dtype) if bias is None else np.asarray(bias, dtype)
     if bias.shape not in ((6,), (m, 6)):
         raise ImuError(f"bias must be (6,) or (m, 6) = ({m}, 6), got {bias.shape}.")

@@ -684,15 +684,27 @@ def _dispatch(gyro, accel, dt, bias, params, keep):
     return _block_scan(gyro, accel, dt, bias, params, keep)
 
 
+# Batches of fewer samples (intervals × samples per interval) than this run `_block_scan`.
+_ENTRYWISE_MIN_SAMPLES = 1 << 17
+
+
 @_dispatch.def_vmap
 def _dispatch_batched(axis_size, in_batched, gyro, accel, dt, bias, params, keep):
     """Over a batch of intervals the 3×3 products of `_tangent_step` run as batched tiny dots,
     which XLA's CPU backend vectorizes poorly; `_entry_scan` writes them out so that every
     operation is elementwise over the intervals (measured, one core: 1.6–1.7× faster than
-    `_block_scan` for 1000 intervals of 200 samples; on a single interval it is 4.5× slower,
-    hence the dispatch)."""
+    `_block_scan` for 1000 intervals of 200 samples; on a single interval it is 4.5× slower).
+    Its program is 4× longer (~3000 StableHLO lines against ~700: every 3×3 product written
+    out), and XLA compiles it in 3.6–4.0 s of CPU against 1.2–1.4 s, which only batches of many
+    samples repay (the warm gain is ~0.1–0.2 µs a sample: 2.5 s is ten million samples), so
+    batches under `_ENTRYWISE_MIN_SAMPLES` samples (2^17: 1000 intervals of 200 samples still
+    run entrywise) run `_block_scan` (measured 2026-12-04, 2-core machine under load: 512
+    intervals of 12 samples 3.9 ms warm against the entrywise 2.7 ms, 64 of 200 6.2 against
+    9.3 ms)."""
     in_axes = jax.tree.map(lambda batched: 0 if batched else None, tuple(in_batched))
-    outputs = jax.vmap(_entry_scan, in_axes=in_axes)(gyro, accel, dt, bias, params, keep)
+    small = axis_size * gyro.shape[-2] < _ENTRYWISE_MIN_SAMPLES
+    scan = _block_scan if small else _entry_scan
+    outputs = jax.vmap(scan, in_axes=in_axes)(gyro, accel, dt, bias, params, keep)
     return outputs, (True, True, True)
 
 
@@ -740,10 +752,12 @@ def preintegrate(params: ImuParams, bias=None, *, accel, gyro, dt, mask=None) ->
     `PreintegratedImuMeasurements(params, bias).integrateMeasurement(accel[k], gyro[k], dt[k])`
     for $k = 0 \dots N-1$ (see `_tangent_step`). `vmap` it over intervals (e.g.
     `jax.vmap(lambda a, g, d: preintegrate(params, bias, accel=a, gyro=g, dt=d))`, or
-    `preintegrate_intervals` for intervals of different lengths): the batched scan is then
-    elementwise over them (`_entry_step`; measured, `benchmarks/imu.py`: 1000 intervals of 200
-    samples in float64 on one core, 1.7× faster than the batched 3×3 blocks and 7–8× faster
-    than GTSAM's C++ loop called from Python, 5× once under heavy contention).
+    `preintegrate_intervals` for intervals of different lengths): a batch of $2^{17}$ samples or
+    more then runs a scan elementwise over the intervals (`_entry_step`; measured,
+    `benchmarks/imu.py`: 1000 intervals of 200 samples in float64 on one core, 1.7× faster than
+    the batched 3×3 blocks and 7–8× faster than GTSAM's C++ loop called from Python, 5× once
+    under heavy contention), a smaller one the batched 3×3 blocks, which compile in a third of
+    the time (`_dispatch_batched`).
 
     **Arguments:**
     - `params`: an `ImuParams`.
