@@ -133,6 +133,20 @@ def test_predict_and_factor_match_gtsam(error_mode):
             theirs = np.asarray(cv.se3_jacobian_from_gtsam(theirs, rows=False))
         assert relative(ours, theirs) < 1e-9, k
         assert relative(mine, theirs) < 1e-9, k
+    for seed in range(3, 9):  # more random states: the closed form against GTSAM's
+        r = np.random.default_rng(seed)
+        states = SE3.exp(jnp.asarray(r.normal(size=(2, 6)) * [5, 5, 5, 1.5, 1.5, 1.5]))
+        state = (states[0], *5 * r.normal(size=(1, 3)), states[1], *5 * r.normal(size=(1, 3)))
+        bias = BIAS + 0.02 * r.normal(size=6)
+        h = [np.zeros((9, n), order="F") for n in shapes]
+        theirs_state = (gtsam_pose(state[0]), state[1], gtsam_pose(state[2]), state[3])
+        error = factor.evaluateError(*theirs_state, gtsam_bias(bias), *h)
+        value, blocks = closed_form(*state, bias, pim, PARAMS, **mode)
+        assert relative(value, error) < 1e-10, seed
+        for k, (mine, theirs) in enumerate(zip(blocks, h)):
+            if k in (0, 2):
+                theirs = np.asarray(cv.se3_jacobian_from_gtsam(theirs, rows=False))
+            assert relative(mine, theirs) < 1e-10, (seed, k)
 
     # imu_factor whitens as ImuFactor's noise model: 0.5 |L⁻¹ r|² = error.
     from lieax.factorgraph import Var
