@@ -9,10 +9,15 @@ sequential vs GTSAM, associative vs sequential. Table 2: the smoother, solved fr
 start by lieax (warm: structure cached, compiled) and GTSAM (default parameters), iterations and
 final costs ($\tfrac12\sum\|r\|^2_\Sigma$, GTSAM's `graph.error`). Table 3: lieax's first call,
 graph construction and the first solve less a warm one, in wall and CPU seconds, split into XLA
-compilation (JAX's `backend_compile_duration` events) and the rest. One pinned core, one thread
-each (as `benchmarks/pgo.py`); medians over interleaved rounds in one process.
+compilation (JAX's `backend_compile_duration` events) and the rest. Table 4: a stream of
+intervals of 8–12 samples (`--stream 500` of them, counts drawn at random), preintegrated by
+`preintegrate_intervals` (padded with masks to one bucket: one compilation) and as before it,
+one `jit(vmap(preintegrate))` call per distinct count (one compilation per count): compilations,
+their XLA seconds, the first call and the warm call. One pinned core, one thread each (as
+`benchmarks/pgo.py`); medians over interleaved rounds in one process. Both lieax and GTSAM use
+GTSAM 4.3's default IMU factor error (`Logmap`).
 
-    python benchmarks/imu.py [--keyframes 1001] [--rounds 3]
+    python benchmarks/imu.py [--keyframes 1001] [--rounds 3] [--stream 500] [--stream-only]
 """
 
 import argparse
@@ -65,8 +70,7 @@ def gtsam_params(example):
     params.setAccelerometerCovariance(example.ACCEL_DENSITY**2 * np.eye(3))
     params.setGyroscopeCovariance(example.GYRO_DENSITY**2 * np.eye(3))
     params.setIntegrationCovariance(1e-8 * np.eye(3))
-    params.setImuFactorErrorMode(gtsam.ImuFactorErrorMode.ComponentWise)
-    return params
+    return params  # GTSAM's default ImuFactorErrorMode, Logmap: lieax's default
 
 
 def gtsam_preintegrate(params, data):
@@ -123,22 +127,30 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--keyframes", type=int, default=1001)
     parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--stream", type=int, default=500, help="intervals of Table 4")
+    parser.add_argument("--stream-only", action="store_true", help="Table 4 alone")
     args = parser.parse_args(argv)
     example = load_example()
+    if args.stream_only:
+        print(machine_description())
+        return stream_table(example, args.stream, args.rounds)
     data = example.simulate(args.keyframes, np.random.default_rng(0))
     params = example.params()
     gyro, accel = jnp.asarray(data["gyro"]), jnp.asarray(data["accel"])
     intervals, samples = data["gyro"].shape[:2]
 
-    batched = {
-        name: jax.jit(jax.vmap(fn, in_axes=(0, 0, None, None, None)))
+    dt = jnp.full((intervals, samples), data["dt"])
+    batched = {  # params, bias shared; the keyword samples mapped over the intervals
+        name: jax.jit(jax.vmap(fn, in_axes=(None, None)))
         for name, fn in (
             ("sequential", imu.preintegrate),
             ("associative", imu.preintegrate_associative),
         )
     }
     zero = jnp.zeros(6)
-    results = {name: fn(gyro, accel, data["dt"], zero, params) for name, fn in batched.items()}
+    results = {
+        name: fn(params, zero, accel=accel, gyro=gyro, dt=dt) for name, fn in batched.items()
+    }
     g_params = gtsam_params(example)
     pims = gtsam_preintegrate(g_params, data)
 
@@ -152,7 +164,7 @@ def main(argv=None):
     sequential, associative = results["sequential"], results["associative"]
     cov_reference = np.array([p.preintMeasCov() for p in pims])
     variants = {
-        name: (lambda fn=fn: fn(gyro, accel, data["dt"], zero, params).theta)
+        name: (lambda fn=fn: fn(params, zero, accel=accel, gyro=gyro, dt=dt).theta)
         for name, fn in batched.items()
     }
     variants["gtsam"] = lambda: jnp.asarray(gtsam_preintegrate(g_params, data)[-1].deltaTij())
@@ -221,6 +233,64 @@ def main(argv=None):
             ("graph construction (`build_graph`)", construction, None),
             ("first `solve` (analysis, trace, compile)", first_solve, warm_solve),
         )],
+    ))  # fmt: skip
+    stream_table(example, args.stream, args.rounds)
+
+
+def stream_intervals(example, count, seed=1):
+    """`count` intervals of the example's drive with 8–12 samples each (drawn at random): the
+    first samples of each of its intervals, `(accel, gyro)` lists and `dt`."""
+    data = example.simulate(count + 1, np.random.default_rng(seed))
+    counts = np.random.default_rng(seed).integers(8, 13, size=count)
+    accel = [a[:n] for a, n in zip(data["accel"], counts)]
+    gyro = [g[:n] for g, n in zip(data["gyro"], counts)]
+    return accel, gyro, data["dt"], counts
+
+
+def stream_table(example, count, rounds):
+    """Table 4: `preintegrate_intervals` (masked, bucketed: one program) against one
+    `jit(vmap(preintegrate))` call per distinct sample count (one program per count, as before
+    masks), each with a fresh compilation cache (`jax.clear_caches`)."""
+    params = example.params()
+    accel, gyro, dt, counts = stream_intervals(example, count)
+    groups = {n: np.flatnonzero(counts == n) for n in np.unique(counts)}
+
+    def per_count(batched):
+        out = []
+        for n, index in groups.items():
+            samples = dict(
+                accel=np.stack([accel[k] for k in index]),
+                gyro=np.stack([gyro[k] for k in index]),
+                dt=np.full((len(index), n), dt),
+            )
+            out.append(batched(params, None, **samples).theta)
+        return out
+
+    def bucketed():
+        return imu.preintegrate_intervals(params, accel=accel, gyro=gyro, dt=dt).theta
+
+    per_count_batched = jax.jit(jax.vmap(imu.preintegrate, in_axes=(None, None)))
+    variants = {
+        "`preintegrate_intervals` (masks, one bucket)": bucketed,
+        "one `jit(vmap(preintegrate))` per count": lambda: per_count(per_count_batched),
+    }
+    rows = []
+    for name, call in variants.items():
+        jax.clear_caches()
+        with FirstCall() as first:
+            jax.block_until_ready(call())
+        rows.append([name, first])
+    timings = time_interleaved(variants, rounds, warmup=1, min_sample_s=0.05)
+    print(
+        f"\n{count} intervals of {counts.min()}–{counts.max()} samples "
+        f"({len(groups)} distinct counts), float64\n"
+    )
+    print(markdown_table(
+        ["preintegration of the stream", "XLA compilations", "XLA compile", "first call (wall)",
+         "first call (CPU)", "warm call"],
+        [[name, len(first.compiles), format_seconds(first.compile), format_seconds(first.wall),
+          format_seconds(first.cpu), format_seconds(timings[name].median)]
+         for name, first in rows],
     ))  # fmt: skip
 
 

@@ -4,7 +4,7 @@ fixes with `lieax.imu` factors solved by `lieax.factorgraph` (a GNSS/INS smoothe
 The vehicle drives with turns and accelerations; its IMU (noise densities and bias random walks
 of a MEMS unit like EuRoC's ADIS16448) carries constant-plus-random-walk biases; the position
 fixes have 0.5 m noise. Keyframes are the fixes; the samples between two are preintegrated
-(`vmap(preintegrate)`), giving one IMU factor and one bias random-walk factor per interval. The
+(`preintegrate_intervals`), giving one IMU factor and one bias random-walk factor per interval. The
 start is what a filter would have: positions from the fixes, headings and velocities from their
 differences, zero biases.
 
@@ -170,18 +170,19 @@ def build_graph(data, pim, imu_params, covariance=None):
 
 
 def preintegrate_all(data, imu_params, combined=False):
-    """`vmap(preintegrate)` over the intervals, at zero bias (the initial guess); `combined`:
-    `vmap(preintegrate_combined)` with the bias random walk, `(pim, covariance)`."""
+    """`preintegrate_intervals` over the intervals (one compiled call; intervals of different
+    sample counts would be padded with masks), at zero bias (the initial guess); `combined`:
+    with the bias random walk, as `preintegrate_combined`, `(pim, covariance)`."""
     import lieax.imu
 
-    samples = (jnp.asarray(data["gyro"]), jnp.asarray(data["accel"]), data["dt"], jnp.zeros(6))
-    if combined:
-        walk = lieax.imu.BiasRandomWalk.isotropic(ACCEL_BIAS_WALK, GYRO_BIAS_WALK)
-        axes = (0, 0, None, None, None, None)
-        run = jax.jit(jax.vmap(lieax.imu.preintegrate_combined, in_axes=axes))
-        return run(*samples, imu_params, walk)
-    run = jax.jit(jax.vmap(lieax.imu.preintegrate, in_axes=(0, 0, None, None, None)))
-    return run(*samples, imu_params)
+    walk = lieax.imu.BiasRandomWalk.isotropic(ACCEL_BIAS_WALK, GYRO_BIAS_WALK)
+    return lieax.imu.preintegrate_intervals(
+        imu_params,
+        accel=data["accel"],
+        gyro=data["gyro"],
+        dt=data["dt"],
+        walk=walk if combined else None,
+    )
 
 
 def errors(data, values):

@@ -2,10 +2,13 @@
 `tests/test_imu_preintegration.py`): random gyroscope and accelerometer samples, the noise, bias
 and lever arm they are integrated with, and the same in GTSAM's parameters and poses."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
+import lieax.imu as imu
 from lieax import SE3, SO3
+from lieax.imu import _preintegration
 
 SAMPLES = 60
 NOISE = dict(accel_noise_density=0.01, gyro_noise_density=1e-3, integration_sigma=1e-4)
@@ -29,14 +32,18 @@ def relative(a, b):
     return np.max(np.abs(np.asarray(a) - b)) / np.max(np.abs(b))
 
 
-def gtsam_params(gtsam, cls, omega=None, with_arm=False):
+def gtsam_params(gtsam, cls, omega=None, with_arm=False, error_mode="logmap"):
     """`cls.MakeSharedU(9.81)` (`PreintegrationParams` or `PreintegrationCombinedParams`) with
-    `NOISE`, the ComponentWise error, and optionally `omegaCoriolis` and the lever arm `ARM`."""
+    `NOISE`, the factors' error mode (lieax's `error_mode`: `"logmap"` is GTSAM's default, left as
+    it is; `"component_wise"` is set), and optionally `omegaCoriolis` and the lever arm `ARM`."""
     p = cls.MakeSharedU(9.81)
     p.setAccelerometerCovariance(NOISE["accel_noise_density"] ** 2 * np.eye(3))
     p.setGyroscopeCovariance(NOISE["gyro_noise_density"] ** 2 * np.eye(3))
     p.setIntegrationCovariance(NOISE["integration_sigma"] ** 2 * np.eye(3))
-    p.setImuFactorErrorMode(gtsam.ImuFactorErrorMode.ComponentWise)
+    if error_mode == "component_wise":
+        p.setImuFactorErrorMode(gtsam.ImuFactorErrorMode.ComponentWise)
+    else:  # lieax's default is GTSAM's default
+        assert p.getImuFactorErrorMode() == gtsam.ImuFactorErrorMode.Logmap
     if omega is not None:
         p.setOmegaCoriolis(omega)
     if with_arm:
@@ -59,7 +66,17 @@ def gtsam_bias(bias):
 
 
 def integrate(pim, gyro, accel, dt):
-    """GTSAM's loop over `integrateMeasurement`; returns `pim`."""
+    """GTSAM's loop over `integrateMeasurement` (accelerometer first); returns `pim`."""
     for k in range(len(dt)):
         pim.integrateMeasurement(accel[k], gyro[k], dt[k])
     return pim
+
+
+def entrywise_over_intervals(monkeypatch, *args, **kwargs):
+    """`vmap(preintegrate)` with the entrywise scan for any batch (`_dispatch_batched` chooses
+    it for $2^{17}$ samples or more): a fresh `jit`, traced with the threshold at zero."""
+    monkeypatch.setattr(_preintegration, "_ENTRYWISE_MIN_SAMPLES", 0)
+    try:
+        return jax.jit(jax.vmap(imu.preintegrate, in_axes=(None, None)))(*args, **kwargs)
+    finally:
+        monkeypatch.undo()

@@ -4,6 +4,13 @@ factors for `lieax.factorgraph`. `combined_imu_factor` joins the IMU factor and 
 walk of one interval in one factor whitened by `preintegrate_combined`'s 15×15 covariance
 (GTSAM's `CombinedImuFactor`). Conventions: the README's "Conventions"; the mapping to GTSAM's
 is in `lieax.conventions`.
+
+The samples are keyword arguments in GTSAM's `integrateMeasurement(measuredAcc, measuredOmega,
+dt)` order: `preintegrate(params, bias, accel=..., gyro=..., dt=...)`, and for a stream whose
+intervals hold different numbers of samples, `preintegrate_intervals(params, bias, accel=[...],
+gyro=[...], dt=...)` (padded with masks to bucketed lengths: one compilation per bucket).
+`imu_factor`'s residual is GTSAM 4.3's default `ImuFactorErrorMode.Logmap`
+(`error_mode="component_wise"` for `ComponentWise`).
 """
 
 from ._factors import (
@@ -15,6 +22,7 @@ from ._factors import (
     imu_jacobians,
     imu_residual,
 )
+from ._intervals import bucket_size, preintegrate_intervals
 from ._preintegration import (
     BiasRandomWalk,
     ImuError,
@@ -32,6 +40,7 @@ __all__ = [
     "ImuParams",
     "Preintegrated",
     "bias_random_walk_factor",
+    "bucket_size",
     "combined_imu_factor",
     "combined_imu_jacobians",
     "combined_imu_residual",
@@ -42,4 +51,5 @@ __all__ = [
     "preintegrate",
     "preintegrate_associative",
     "preintegrate_combined",
+    "preintegrate_intervals",
 ]

@@ -5,14 +5,27 @@ factor over $(T_i, v_i, T_j, v_j, b_i, b_j)$ that stacks the two and whitens the
 
 The states are an `SE3` pose $T_{nb}$ and a navigation-frame velocity in $\mathbb{R}^3$ (GTSAM's
 `ImuFactor` / `CombinedImuFactor` variables, so graphs and Jacobians map one to one), biases
-$(b_a, b_g) \in \mathbb{R}^6$. The residual is GTSAM's `ImuFactorErrorMode.ComponentWise`
-error, the prediction in the local coordinates of $x_j$ (`PreintegrationBase::computeError`):
-$r = (\mathrm{Log}(R_j^\top \hat R_j),\ R_j^\top(\hat p_j - p_j),\ R_j^\top(\hat v_j - v_j))$
-with $(\hat T_j, \hat v_j)$ = `predict`, whitened by `Preintegrated.residual_covariance` (the
-preintegrated covariance mapped into the residual's coordinates, as GTSAM 4.3's `ImuFactor`).
-The factor's Jacobian blocks are closed forms (`imu_jacobians`); `imu_residual` itself
-differentiates through the groups' rules (`lieax.value_and_jacobian`), which the tests compare.
-Conventions: the README's "Conventions"; GTSAM's mapping in `lieax.conventions`.
+$(b_a, b_g) \in \mathbb{R}^6$. With $(\hat T_j, \hat v_j)$ = `predict` and
+$x = (R, p, v) \in SE_2(3)$ (GTSAM's `NavState`), the prediction error is
+$E = x_j^{-1}\hat x_j = (R_j^\top\hat R_j,\ c_p,\ c_v)$, $c_p = R_j^\top(\hat p_j - p_j)$,
+$c_v = R_j^\top(\hat v_j - v_j)$, $c_\theta = \mathrm{Log}(R_j^\top\hat R_j)$, and the residual
+is one of GTSAM 4.3's two `ImuFactorErrorMode`s (`error_mode=`):
+
+- `"logmap"` (the default, as GTSAM 4.3's default for fresh `PreintegrationParams` and
+  `PreintegrationCombinedParams`): $r = \mathrm{Log}_{SE_2(3)}(E) = (c_\theta,\ J_l^{-1}(c_\theta)
+  c_p,\ J_l^{-1}(c_\theta) c_v)$ (`NavState::Logmap`, rotation first);
+- `"component_wise"` (GTSAM's `ImuFactorErrorMode.ComponentWise`, lieax's only residual before
+  2026-12): $r = (c_\theta,\ c_p,\ c_v)$.
+
+The two agree in $r_\theta$ and to first order at $r = 0$ ($J_l^{-1}(c_\theta) = I +
+O(c_\theta)$), so both are whitened by the same covariance, `Preintegrated.residual_covariance`
+(GTSAM 4.3's `residualCovariance()`, which its factors install in either mode); away from zero
+the position and velocity rows differ by $(J_l^{-1}(c_\theta) - I)(c_p, c_v)$, second order in
+the residual (on GTSAM's KITTI example, issue 32 found 5.8e-6 relative in the final cost and
+0.12 mm in position between the two). The factor's Jacobian blocks are closed forms (`imu_jacobians`); `imu_residual` itself
+differentiates through the groups' rules (`lieax.value_and_jacobian`; the logmap residual through
+`SE23`), which the tests compare. Conventions: the README's "Conventions"; GTSAM's mapping in
+`lieax.conventions`.
 """
 
 from typing import NamedTuple
@@ -21,21 +34,51 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._linalg import skew
+from .._linalg import cross, dot, skew
 from ..factorgraph._factors import Factor, square_root_information
 from ..groups import _so3 as so3
+from ..groups._se23 import SE23
 from ..groups._so3 import SO3
 from ._preintegration import ImuError, ImuParams, Preintegrated, predict
 
+ERROR_MODES = ("logmap", "component_wise")
 
-def imu_residual(pose_i, velocity_i, pose_j, velocity_j, bias_i, pim: Preintegrated, params):
+
+def _check_error_mode(error_mode):
+    if error_mode not in ERROR_MODES:
+        raise ImuError(
+            f"error_mode must be 'logmap' (GTSAM's ImuFactorErrorMode.Logmap, the default) or "
+            f"'component_wise' (ImuFactorErrorMode.ComponentWise), got {error_mode!r}."
+        )
+
+
+def imu_residual(
+    pose_i,
+    velocity_i,
+    pose_j,
+    velocity_j,
+    bias_i,
+    pim: Preintegrated,
+    params,
+    *,
+    error_mode="logmap",
+):
     r"""The unwhitened 9-vector $(r_\theta, r_p, r_v)$ of one IMU factor (module docstring):
-    `pose_i`, `pose_j` `SE3` ($T_{nb}$), velocities `(3,)`, `bias_i` `(6,)`, `pim` one interval.
-    In an inertial frame it is `_prediction_error`'s (the fused SO3 kernels `imu_jacobians` uses);
-    with `params.omega_coriolis`, `predict`'s rotating-frame prediction."""
-    if getattr(params, "omega_coriolis", None) is None:
+    `pose_i`, `pose_j` `SE3` ($T_{nb}$), velocities `(3,)`, `bias_i` `(6,)`, `pim` one interval,
+    `error_mode` `"logmap"` (GTSAM 4.3's default) or `"component_wise"`.
+    `"logmap"` is $\mathrm{Log}$ of `SE23`'s $x_j^{-1}\hat x_j$ with $\hat x_j$ = `predict`'s,
+    reordered to rotation first; `"component_wise"` in an inertial frame is `_prediction_error`'s
+    (the fused SO3 kernels `imu_jacobians` uses), with `params.omega_coriolis` `predict`'s
+    rotating-frame prediction."""
+    _check_error_mode(error_mode)
+    coriolis = getattr(params, "omega_coriolis", None) is not None
+    if error_mode == "component_wise" and not coriolis:
         return _prediction_error(pose_i, velocity_i, pose_j, velocity_j, bias_i, pim, params)[0]
     pose_hat, velocity_hat = predict(pim, pose_i, velocity_i, bias_i, params)
+    if error_mode == "logmap":
+        state_j = SE23.from_pose_and_velocity(pose_j, velocity_j)
+        xi = state_j.between(SE23.from_pose_and_velocity(pose_hat, velocity_hat)).log()
+        return jnp.concatenate([xi[..., 3:6], xi[..., 0:3], xi[..., 6:9]], axis=-1)
     rotation_j = pose_j.rotation()
     r_theta = rotation_j.between(pose_hat.rotation()).log()
     r_p = rotation_j.inverse() @ (pose_hat.translation() - pose_j.translation())
@@ -82,12 +125,23 @@ def _prediction_error(pose_i, velocity_i, pose_j, velocity_j, bias_i, pim, param
     return residual, _Error(dp_c, dv_c, ri, rj, rc, jr_c, jr_inv, r_p, r_v)
 
 
-def imu_jacobians(pose_i, velocity_i, pose_j, velocity_j, bias_i, pim: Preintegrated, params):
+def imu_jacobians(
+    pose_i,
+    velocity_i,
+    pose_j,
+    velocity_j,
+    bias_i,
+    pim: Preintegrated,
+    params,
+    *,
+    error_mode="logmap",
+):
     r"""`(r, (J_pose_i, J_velocity_i, J_pose_j, J_velocity_j, J_bias_i))`: `imu_residual` and its
     blocks `(9, 6)`, `(9, 3)`, `(9, 6)`, `(9, 3)`, `(9, 6)` in right-local tangents (poses
-    $(\rho, \phi)$ with $T \oplus \delta = T\,\mathrm{Exp}(\delta)$, vectors additive).
+    $(\rho, \phi)$ with $T \oplus \delta = T\,\mathrm{Exp}(\delta)$, vectors additive), for
+    `error_mode` `"logmap"` (the default) or `"component_wise"` (module docstring).
 
-    With $(\theta_c, \Delta p_c, \Delta v_c) = (\theta, \Delta p, \Delta v) + J_b(b_i - \hat b)$
+    The component-wise blocks: with $(\theta_c, \Delta p_c, \Delta v_c) = (\theta, \Delta p, \Delta v) + J_b(b_i - \hat b)$
     (`bias_corrected`), $R_c = \mathrm{Exp}(\theta_c)$, $E = R_j^\top R_i R_c$,
     $r_\theta = \mathrm{Log}(E)$, $Q = R_j^\top R_i$ and $J_b = [J_\theta; J_p; J_v]$ by rows:
     $$\frac{\partial r}{\partial T_i} = \begin{bmatrix} 0 & J_r^{-1}(r_\theta) R_c^\top \\
@@ -111,7 +165,11 @@ def imu_jacobians(pose_i, velocity_i, pose_j, velocity_j, bias_i, pim: Preintegr
     `lieax.conventions`' column permutation of the poses; `tests/test_imu.py`). In an inertial
     navigation frame only: `ImuError` when `params.omega_coriolis` is set (`imu_factor` then
     differentiates `imu_residual`).
+
+    The logmap blocks are these premultiplied by the derivative of $(c_\theta, c_p, c_v) \mapsto
+    (c_\theta, J_l^{-1}(c_\theta)c_p, J_l^{-1}(c_\theta)c_v)$ (`_logmap_from_component_wise`).
     """
+    _check_error_mode(error_mode)
     if getattr(params, "omega_coriolis", None) is not None:
         raise ImuError("imu_jacobians: the closed form is for params.omega_coriolis None.")
     residual, e = _prediction_error(pose_i, velocity_i, pose_j, velocity_j, bias_i, pim, params)
@@ -132,7 +190,48 @@ def imu_jacobians(pose_i, velocity_i, pose_j, velocity_j, bias_i, pim: Preintegr
         jnp.concatenate([zero, zero, -rj_t]),
         jnp.concatenate([jr_inv_jr_c @ jac_b[0:3], q_jp, q_jv]),
     )
+    if error_mode == "logmap":
+        return _logmap_from_component_wise(residual, e.jr_inv, blocks)
     return residual, blocks
+
+
+def _logmap_from_component_wise(residual, jr_inv, blocks):
+    r"""The logmap residual and blocks from the component-wise ones $c = (c_\theta, c_p, c_v)$,
+    $B$: $r = (c_\theta, J_l^{-1}c_p, J_l^{-1}c_v)$ with $J_l^{-1} = J_l^{-1}(c_\theta) =
+    J_r^{-1}(c_\theta)^\top$ (`jr_inv` is $J_r^{-1}(c_\theta)$; $J_l(\omega) = J_r(-\omega) =
+    J_r(\omega)^\top$), $\mathrm{Log}_{SE_2(3)}$ of $(\mathrm{Exp}(c_\theta), c_p, c_v)$ (Barrau and
+    Bonnabel 2017; GTSAM's `NavState::Logmap`), and each block $D B$ with
+    $D = [[I, 0, 0], [H(c_p), J_l^{-1}, 0], [H(c_v), 0, J_l^{-1}]]$,
+    $H(u) = \partial(J_l^{-1}(\theta)u)/\partial\theta = \tfrac12[u]_\times + D_\theta((\theta\cdot u)I
+    + \theta u^\top - 2u\theta^\top) + 2D_\theta'\,\theta\times(\theta\times u)\,\theta^\top$ from
+    $J_l^{-1}(\theta) = I - \tfrac12[\theta]_\times + D_\theta[\theta]_\times^2$ (Solà eq. 146;
+    $D_\theta$, $D_\theta' = dD/ds$ at $s = \theta\cdot\theta$ of
+    `lieax.groups._so3.jr_inverse_coefficients`; `_so3_at` of `lieax.imu._preintegration` has
+    the $J_r^{-1}$ twin)."""
+    theta, c_p, c_v = residual[0:3], residual[3:6], residual[6:9]
+    s = dot(theta, theta)
+    half_cos, half_sinc, *_ = so3.exp_coefficients(s)
+    d, d_prime = so3.jr_inverse_coefficients(s, half_cos, half_sinc)
+    eye = jnp.eye(3, dtype=theta.dtype)
+    jl_inv = jr_inv.T
+
+    def h(u):
+        return (
+            0.5 * skew(u)
+            + d * (dot(theta, u) * eye + jnp.outer(theta, u) - 2.0 * jnp.outer(u, theta))
+            + 2.0 * d_prime * jnp.outer(cross(theta, cross(theta, u)), theta)
+        )
+
+    h_pv = jnp.concatenate([h(c_p), h(c_v)])  # (6, 3)
+    value = jnp.concatenate([theta, jl_inv @ c_p, jl_inv @ c_v])
+
+    def convert(block):
+        moved = h_pv @ block[0:3]
+        return jnp.concatenate(
+            [block[0:3], moved[0:3] + jl_inv @ block[3:6], moved[3:6] + jl_inv @ block[6:9]]
+        )
+
+    return value, tuple(convert(b) for b in blocks)
 
 
 def _split(matrix, *columns):
@@ -170,7 +269,15 @@ def _residual_covariance(pim: Preintegrated):
 
 
 def imu_factor(
-    pim: Preintegrated, params: ImuParams, pose_i, velocity_i, pose_j, velocity_j, bias_i
+    pim: Preintegrated,
+    params: ImuParams,
+    pose_i,
+    velocity_i,
+    pose_j,
+    velocity_j,
+    bias_i,
+    *,
+    error_mode="logmap",
 ):
     r"""A `Factor` kind of IMU factors, one per interval of the batched `pim` (`(m,)`).
 
@@ -179,25 +286,33 @@ def imu_factor(
     - `params`: the `ImuParams` they were integrated with (for gravity).
     - `pose_i`, `velocity_i`, `pose_j`, `velocity_j`, `bias_i`: `var[index]` references, index
       arrays `(m,)` (poses an `SE3` `Var`, velocities `(n, 3)`, biases `(n, 6)`).
+    - `error_mode`: `"logmap"` (default: GTSAM 4.3's default `ImuFactor`, whose residual is
+      `NavState::Logmap` of $x_j^{-1}\hat x_j$) or `"component_wise"` (GTSAM's
+      `ImuFactorErrorMode.ComponentWise`: rotation log, position and velocity differences in
+      frame $j$); the module docstring gives both and their difference.
 
     **Returns:** a `Factor` with square-root information $L^{-1}$, $L L^\top = \Sigma_r$ the
-    Cholesky factorization of each interval's `residual_covariance()` (`_sqrt_information`),
-    and the closed-form blocks of `imu_jacobians` (autodiff of `imu_residual` with
-    `params.omega_coriolis`).
+    Cholesky factorization of each interval's `residual_covariance()` (`_sqrt_information`; the
+    same in both modes, as GTSAM's), and the closed-form blocks of `imu_jacobians` (autodiff of
+    `imu_residual` with `params.omega_coriolis`).
     Raises `ImuError` when a `pim` is invalid or its covariance is not positive definite.
     """
+    _check_error_mode(error_mode)
     _check_intervals(pim)
     sqrt_information = _sqrt_information(
         np.asarray(_residual_covariance(pim)), "IMU factor: the 9x9"
     )
+    mode = dict(error_mode=error_mode)
     return Factor(
-        lambda xi, vi, xj, vj, bi, data: imu_residual(xi, vi, xj, vj, bi, data, params),
+        lambda xi, vi, xj, vj, bi, data: imu_residual(xi, vi, xj, vj, bi, data, params, **mode),
         (pose_i, velocity_i, pose_j, velocity_j, bias_i),
         pim,
         sqrt_information=sqrt_information,
         jacobian_fn=None
         if getattr(params, "omega_coriolis", None) is not None
-        else lambda xi, vi, xj, vj, bi, data: imu_jacobians(xi, vi, xj, vj, bi, data, params),
+        else lambda xi, vi, xj, vj, bi, data: imu_jacobians(
+            xi, vi, xj, vj, bi, data, params, **mode
+        ),
         name="imu",
     )
 
@@ -227,17 +342,38 @@ def _check_intervals(pim):
 
 
 def combined_imu_residual(
-    pose_i, velocity_i, pose_j, velocity_j, bias_i, bias_j, pim: Preintegrated, params
+    pose_i,
+    velocity_i,
+    pose_j,
+    velocity_j,
+    bias_i,
+    bias_j,
+    pim: Preintegrated,
+    params,
+    *,
+    error_mode="logmap",
 ):
     r"""The unwhitened 15-vector $(r_\theta, r_p, r_v, b_j - b_i)$ of one combined IMU factor:
-    `imu_residual` stacked with the bias random walk's $b_j - b_i$ (GTSAM's `CombinedImuFactor`
-    has $b_i - b_j$; `lieax.conventions`)."""
-    residual = imu_residual(pose_i, velocity_i, pose_j, velocity_j, bias_i, pim, params)
+    `imu_residual` (in `error_mode`, as GTSAM's `CombinedImuFactor` follows its parameters'
+    `ImuFactorErrorMode`) stacked with the bias random walk's $b_j - b_i$ (GTSAM's
+    `CombinedImuFactor` has $b_i - b_j$; `lieax.conventions`)."""
+    residual = imu_residual(
+        pose_i, velocity_i, pose_j, velocity_j, bias_i, pim, params, error_mode=error_mode
+    )
     return jnp.concatenate([residual, bias_j - bias_i])
 
 
 def combined_imu_jacobians(
-    pose_i, velocity_i, pose_j, velocity_j, bias_i, bias_j, pim: Preintegrated, params
+    pose_i,
+    velocity_i,
+    pose_j,
+    velocity_j,
+    bias_i,
+    bias_j,
+    pim: Preintegrated,
+    params,
+    *,
+    error_mode="logmap",
 ):
     r"""`(r, (J_pose_i, J_velocity_i, J_pose_j, J_velocity_j, J_bias_i, J_bias_j))`:
     `combined_imu_residual` and its blocks `(15, 6)`, `(15, 3)`, `(15, 6)`, `(15, 3)`, `(15, 6)`,
@@ -248,7 +384,9 @@ def combined_imu_jacobians(
     zero bias rows for the poses and velocities (GTSAM 4.3 `CombinedImuFactor::evaluateError`,
     its bias rows negated). `ImuError` when `params.omega_coriolis` is set, as `imu_jacobians`.
     """
-    residual, blocks = imu_jacobians(pose_i, velocity_i, pose_j, velocity_j, bias_i, pim, params)
+    residual, blocks = imu_jacobians(
+        pose_i, velocity_i, pose_j, velocity_j, bias_i, pim, params, error_mode=error_mode
+    )
     dtype = residual.dtype
     eye = jnp.eye(6, dtype=dtype)
 
@@ -284,6 +422,8 @@ def combined_imu_factor(
     velocity_j,
     bias_i,
     bias_j,
+    *,
+    error_mode="logmap",
 ):
     r"""A `Factor` kind of combined IMU factors (GTSAM 4.3's `CombinedImuFactor`), one per
     interval: `combined_imu_residual` over $(T_i, v_i, T_j, v_j, b_i, b_j)$, the IMU residual
@@ -298,6 +438,8 @@ def combined_imu_factor(
     - `pose_i`, `velocity_i`, `pose_j`, `velocity_j`, `bias_i`, `bias_j`: `var[index]`
       references, index arrays `(m,)` (poses an `SE3` `Var`, velocities `(n, 3)`, biases
       `(n, 6)`).
+    - `error_mode`: the navigation rows' residual, `"logmap"` (default, GTSAM 4.3's) or
+      `"component_wise"`, as `imu_factor`'s.
 
     **Returns:** a `Factor` with square-root information $L^{-1}$, $L L^\top = \Sigma_r$ the
     Cholesky factorization of the residual's covariance $\Sigma_r = M \Sigma M^\top$
@@ -306,6 +448,7 @@ def combined_imu_factor(
     Raises `ImuError` when a `pim` is invalid, `covariance` is not `(m, 15, 15)`, or it is not
     positive definite (a zero bias random walk, for one).
     """
+    _check_error_mode(error_mode)
     count = _check_intervals(pim)
     if np.shape(covariance) != (count, 15, 15):
         raise ImuError(
@@ -317,9 +460,10 @@ def combined_imu_factor(
         "combined IMU factor: the 15x15",
     )
     coriolis = getattr(params, "omega_coriolis", None) is not None
+    mode = dict(error_mode=error_mode)
     return Factor(
         lambda xi, vi, xj, vj, bi, bj, data: combined_imu_residual(
-            xi, vi, xj, vj, bi, bj, data, params
+            xi, vi, xj, vj, bi, bj, data, params, **mode
         ),
         (pose_i, velocity_i, pose_j, velocity_j, bias_i, bias_j),
         pim,
@@ -327,7 +471,7 @@ def combined_imu_factor(
         jacobian_fn=None
         if coriolis
         else lambda xi, vi, xj, vj, bi, bj, data: combined_imu_jacobians(
-            xi, vi, xj, vj, bi, bj, data, params
+            xi, vi, xj, vj, bi, bj, data, params, **mode
         ),
         name="combined_imu",
     )

@@ -15,6 +15,8 @@ inertial or, with `ImuParams.omega_coriolis`, a rotating navigation frame (GTSAM
 `NavState::predictPIM`). Conventions: the README's "Conventions".
 """
 
+import functools
+import inspect
 from typing import NamedTuple
 
 import jax
@@ -186,8 +188,12 @@ def _check_params(params):
         )
 
 
-def _check_samples(gyro, accel, dt, bias, params):
-    """Shapes at trace time; returns the arrays and a `valid` flag (raises outside tracing)."""
+def _check_samples(gyro, accel, dt, bias, params, mask=None):
+    """Shapes at trace time; returns `(gyro, accel, dt, bias, keep, ok)`: the arrays (`bias`
+    zeros for `None`), `keep` the boolean `mask` (`None` without one) and a `valid` flag
+    (raises outside tracing). Masked-out samples do not count: their values are replaced by
+    `(0, 0, dt = 1)` so that the step computed for them, and its derivatives, are finite before
+    the scan discards it."""
     _check_params(params)
     gyro = as_float_array(gyro, "gyro")
     accel = as_float_array(accel, "accel")
@@ -203,11 +209,20 @@ def _check_samples(gyro, accel, dt, bias, params):
         dt = jnp.broadcast_to(dt, gyro.shape[:1])
     if dt.shape != gyro.shape[:1]:
         raise ImuError(f"dt must be a scalar or have shape ({gyro.shape[0]},), got {dt.shape}.")
-    bias = as_float_array(bias, "bias")
+    bias = jnp.zeros(6, gyro.dtype) if bias is None else as_float_array(bias, "bias")
     if bias.shape != (6,):
         raise ImuError(f"bias must be (b_acc, b_gyro) of shape (6,), got {bias.shape}.")
+    if mask is not None:
+        mask = jnp.asarray(mask)
+        if mask.dtype != jnp.bool_ or mask.shape != gyro.shape[:1]:
+            raise ImuError(
+                f"mask must be boolean of shape ({gyro.shape[0]},) (True for the samples to "
+                f"integrate), got {mask.dtype} {mask.shape}."
+            )
     finite = jnp.isfinite(gyro).all(-1) & jnp.isfinite(accel).all(-1) & jnp.isfinite(dt)
     ok = finite & (dt > 0)
+    if mask is not None:
+        ok = ok | ~mask
     if not isinstance(ok, jax.core.Tracer):
         ok_np = np.asarray(ok)
         if not ok_np.all():
@@ -216,8 +231,35 @@ def _check_samples(gyro, accel, dt, bias, params):
             raise ImuError(f"sample {k}: {what} (dt = {float(dt[k])}).")
         if not bool(jnp.isfinite(bias).all()):
             raise ImuError("bias has non-finite values.")
+        if mask is not None and not bool(np.asarray(mask).any()):
+            raise ImuError("an interval needs at least one sample (mask is all False).")
     ok = ok.all() & jnp.isfinite(bias).all()
-    return gyro, accel, dt, bias, ok
+    if mask is not None:
+        ok = ok & mask.any()
+        gyro = jnp.where(mask[:, None], gyro, 0.0)
+        accel = jnp.where(mask[:, None], accel, 0.0)
+        dt = jnp.where(mask, dt, 1.0)
+    return gyro, accel, dt, bias, mask, ok
+
+
+def _masked(step):
+    r"""`step(carry, sample)` of a scan, made a no-op where the sample's last entry `keep` is
+    False (the carry passes through unchanged, bit for bit: a padded interval integrates as the
+    unpadded one), or `step` itself when the samples carry no mask (`keep` `None`)."""
+
+    def masked_step(carry, sample):
+        *sample, keep = sample
+        next_carry, _ = step(carry, tuple(sample))
+        return jax.tree.map(lambda new, old: jnp.where(keep, new, old), next_carry, carry), None
+
+    return masked_step
+
+
+def _scanned(step, init, keep, *arrays):
+    """`lax.scan(step, init, arrays)`'s final carry, `_masked` when `keep` is not `None`."""
+    if keep is None:
+        return jax.lax.scan(step, init, arrays)[0]
+    return jax.lax.scan(_masked(step), init, (*arrays, keep))[0]
 
 
 def _corrected(accel, gyro, bias, params):
@@ -577,8 +619,9 @@ def _entry_step(carry, sample, noise, d_aa):
     return (x_next, s_next, j_next), None
 
 
-def _entry_scan(gyro, accel, dt, bias, params):
-    """`_entry_step` over the samples of one interval: `(x, covariance, jacobian_bias)`."""
+def _entry_scan(gyro, accel, dt, bias, params, keep):
+    """`_entry_step` over the samples of one interval (those `keep` holds, `_masked`):
+    `(x, covariance, jacobian_bias)`."""
     dtype = gyro.dtype
     acc, omega, d = jax.vmap(_corrected, in_axes=(0, 0, None, None))(accel, gyro, bias, params)
     d_aa, d_aw = (None, None) if d is None else (_entries(d[0][0]), _entries(d[1]))
@@ -594,10 +637,14 @@ def _entry_scan(gyro, accel, dt, bias, params):
     zero33 = ((zero,) * 3,) * 3
     init = ((zero,) * 9, ((zero,) * 6, zero33, zero33, (zero,) * 6, zero33, (zero,) * 6),
             (zero33, (zero33, zero33), (zero33, zero33)))  # fmt: skip
-    (x, s, j), _ = jax.lax.scan(
+    x, s, j = _scanned(
         lambda carry, sample: _entry_step(carry, sample, noise, d_aa),
         init,
-        (tuple(omega.T), tuple(acc.T), d_aw, dt),
+        keep,
+        tuple(omega.T),
+        tuple(acc.T),
+        d_aw,
+        dt,
     )
     tt, tp, tv, pp, pv, vv = (_stacked(_full(b) if len(b) == 6 else b) for b in s)
     cov = jnp.block([[tt, tp, tv], [tp.T, pp, pv], [tv.T, pv.T, vv]])
@@ -612,14 +659,19 @@ def _entry_scan(gyro, accel, dt, bias, params):
     return jnp.stack(x), cov, jac
 
 
-def _block_scan(gyro, accel, dt, bias, params):
-    """`_tangent_step` (3×3 blocks) over the samples of one interval: `(x, covariance,
-    jacobian_bias)`."""
+def _block_scan(gyro, accel, dt, bias, params, keep):
+    """`_tangent_step` (3×3 blocks) over the samples of one interval (those `keep` holds,
+    `_masked`): `(x, covariance, jacobian_bias)`."""
     dtype = gyro.dtype
     zero = jnp.zeros((3, 3), dtype)
     init = (jnp.zeros(9, dtype), (zero,) * 6, (jnp.zeros((3, 6), dtype),) * 3)
-    (x, s, j), _ = jax.lax.scan(
-        lambda carry, sample: _tangent_step(carry, sample, bias, params), init, (gyro, accel, dt)
+    x, s, j = _scanned(
+        lambda carry, sample: _tangent_step(carry, sample, bias, params),
+        init,
+        keep,
+        gyro,
+        accel,
+        dt,
     )
     tt, tp, tv, pp, pv, vv = s
     cov = jnp.block([[tt, tp, tv], [tp.T, pp, pv], [tv.T, pv.T, vv]])
@@ -627,27 +679,39 @@ def _block_scan(gyro, accel, dt, bias, params):
 
 
 @jax.custom_batching.custom_vmap
-def _dispatch(gyro, accel, dt, bias, params):
+def _dispatch(gyro, accel, dt, bias, params, keep):
     """`_block_scan`, and `_entry_scan` under `vmap` (`_dispatch_batched`)."""
-    return _block_scan(gyro, accel, dt, bias, params)
+    return _block_scan(gyro, accel, dt, bias, params, keep)
+
+
+# Batches of fewer samples (intervals × samples per interval) than this run `_block_scan`.
+_ENTRYWISE_MIN_SAMPLES = 1 << 17
 
 
 @_dispatch.def_vmap
-def _dispatch_batched(axis_size, in_batched, gyro, accel, dt, bias, params):
+def _dispatch_batched(axis_size, in_batched, gyro, accel, dt, bias, params, keep):
     """Over a batch of intervals the 3×3 products of `_tangent_step` run as batched tiny dots,
     which XLA's CPU backend vectorizes poorly; `_entry_scan` writes them out so that every
     operation is elementwise over the intervals (measured, one core: 1.6–1.7× faster than
-    `_block_scan` for 1000 intervals of 200 samples; on a single interval it is 4.5× slower,
-    hence the dispatch)."""
+    `_block_scan` for 1000 intervals of 200 samples; on a single interval it is 4.5× slower).
+    Its program is 4× longer (~3000 StableHLO lines against ~700: every 3×3 product written
+    out), and XLA compiles it in 3.6–4.0 s of CPU against 1.2–1.4 s, which only batches of many
+    samples repay (the warm gain is ~0.1–0.2 µs a sample: 2.5 s is ten million samples), so
+    batches under `_ENTRYWISE_MIN_SAMPLES` samples (2^17: 1000 intervals of 200 samples still
+    run entrywise) run `_block_scan` (measured 2026-12-04, 2-core machine under load: 512
+    intervals of 12 samples 3.9 ms warm against the entrywise 2.7 ms, 64 of 200 6.2 against
+    9.3 ms)."""
     in_axes = jax.tree.map(lambda batched: 0 if batched else None, tuple(in_batched))
-    outputs = jax.vmap(_entry_scan, in_axes=in_axes)(gyro, accel, dt, bias, params)
+    small = axis_size * gyro.shape[-2] < _ENTRYWISE_MIN_SAMPLES
+    scan = _block_scan if small else _entry_scan
+    outputs = jax.vmap(scan, in_axes=in_axes)(gyro, accel, dt, bias, params, keep)
     return outputs, (True, True, True)
 
 
 @jax.custom_jvp
-def _scan(gyro, accel, dt, bias, params):
+def _scan(gyro, accel, dt, bias, params, keep):
     """`_dispatch`, differentiated through `_block_scan` (`custom_vmap` has no reverse mode)."""
-    return _dispatch(gyro, accel, dt, bias, params)
+    return _dispatch(gyro, accel, dt, bias, params, keep)
 
 
 @_scan.defjvp
@@ -655,32 +719,69 @@ def _scan_jvp(primals, tangents):
     return jax.jvp(_block_scan, primals, tangents)
 
 
-def preintegrate(gyro, accel, dt, bias, params: ImuParams) -> Preintegrated:
+def _samples_by_keyword(function):
+    r"""`function` with a clear `TypeError` when its call does not bind: the samples are
+    keyword-only (`accel=`, `gyro=`, `dt=`), since a swapped positional accelerometer and
+    gyroscope would integrate silently to a wrong, valid-looking result."""
+    signature = inspect.signature(function)
+    name = function.__name__
+
+    @functools.wraps(function)
+    def checked(*args, **kwargs):
+        try:
+            signature.bind(*args, **kwargs)
+        except TypeError as error:
+            raise TypeError(
+                f"{name}{signature}: the samples are keyword-only, accel= (m/s²), gyro= (rad/s) "
+                f"and dt= (s), as GTSAM's integrateMeasurement(measuredAcc, measuredOmega, dt); "
+                f"e.g. {name}(params, bias, accel=accel, gyro=gyro, dt=dt) ({error})."
+            ) from None
+        return function(*args, **kwargs)
+
+    return checked
+
+
+def _delta_t(dt, keep):
+    r"""$\Delta t_{ij}$: the sum of the kept samples' `dt`."""
+    return dt.sum() if keep is None else jnp.where(keep, dt, 0.0).sum()
+
+
+@_samples_by_keyword
+def preintegrate(params: ImuParams, bias=None, *, accel, gyro, dt, mask=None) -> Preintegrated:
     r"""Preintegrate the samples of one interval by a sequential `lax.scan`, exactly as GTSAM's
     `PreintegratedImuMeasurements(params, bias).integrateMeasurement(accel[k], gyro[k], dt[k])`
-    for $k = 0 \dots N-1$ (see `_tangent_step`). `vmap` it over intervals: the batched scan is
-    then elementwise over them (`_entry_step`; measured, `benchmarks/imu.py`: 1000 intervals
-    of 200 samples in float64 on one core, 1.7× faster than the batched 3×3 blocks and 7–8×
-    faster than GTSAM's C++ loop called from Python, 5× once under heavy contention).
+    for $k = 0 \dots N-1$ (see `_tangent_step`). `vmap` it over intervals (e.g.
+    `jax.vmap(lambda a, g, d: preintegrate(params, bias, accel=a, gyro=g, dt=d))`, or
+    `preintegrate_intervals` for intervals of different lengths): a batch of $2^{17}$ samples or
+    more then runs a scan elementwise over the intervals (`_entry_step`; measured,
+    `benchmarks/imu.py`: 1000 intervals of 200 samples in float64 on one core, 1.7× faster than
+    the batched 3×3 blocks and 7–8× faster than GTSAM's C++ loop called from Python, 5× once
+    under heavy contention), a smaller one the batched 3×3 blocks, which compile in a third of
+    the time (`_dispatch_batched`).
 
     **Arguments:**
-    - `gyro`, `accel`: samples in the sensor frame, `(N, 3)` each (rad/s, m/s²).
-    - `dt`: the time each sample is held, a scalar or `(N,)`; from timestamps
-      `t` (`N + 1` of them), `dt = jnp.diff(t)`.
-    - `bias`: $\hat b = (b_a, b_g)$, `(6,)`.
     - `params`: an `ImuParams`.
+    - `bias`: $\hat b = (b_a, b_g)$, `(6,)`, the bias the samples are corrected with
+      (`None`: zero; GTSAM's `biasHat`).
+    - `accel`, `gyro` (keyword-only): samples in the sensor frame, `(N, 3)` each (m/s², rad/s).
+    - `dt` (keyword-only): the time each sample is held, a scalar or `(N,)`; from timestamps
+      `t` (`N + 1` of them), `dt = jnp.diff(t)`.
+    - `mask`: `None`, or boolean `(N,)`, `True` for the samples to integrate: the others are
+      skipped (their values are not read, `dt` may be 0), so that intervals of different lengths
+      padded to one `N` batch under `vmap` and give the unpadded results (bit for bit here).
 
     **Returns:** a `Preintegrated`, in the dtype of the samples, `dt` and `bias` (float32 or
     float64; `params` is cast to it). Raises `ImuError` on bad shapes, and, outside tracing, on
-    non-finite samples or `dt <= 0` (naming the sample); under `jit`/`vmap` those give
-    `valid=False` and NaN fields instead.
+    non-finite samples or `dt <= 0` (naming the sample) or an all-False `mask`; under
+    `jit`/`vmap` those give `valid=False` and NaN fields instead. A positional `accel`, `gyro`
+    or `dt` is a `TypeError` that names the keywords.
     """
-    gyro, accel, dt, bias, ok = _check_samples(gyro, accel, dt, bias, params)
+    gyro, accel, dt, bias, keep, ok = _check_samples(gyro, accel, dt, bias, params, mask)
     dtype = jnp.result_type(gyro, accel, dt, bias)
     gyro, accel, dt, bias = (a.astype(dtype) for a in (gyro, accel, dt, bias))
     params = jax.tree.map(lambda a: jnp.asarray(a, dtype), params)
-    x, cov, jac = _scan(gyro, accel, dt, bias, params)
-    return _result(x, dt.sum(), cov, jac, bias, ok)
+    x, cov, jac = _scan(gyro, accel, dt, bias, params, keep)
+    return _result(x, _delta_t(dt, keep), cov, jac, bias, ok)
 
 
 class BiasRandomWalk(NamedTuple):
@@ -748,19 +849,23 @@ def _combined_step(carry, sample, bias, params, walk):
     return (x_next, s_next, j_next, cross_next, s_bb + walk_q * dt), None
 
 
-def preintegrate_combined(gyro, accel, dt, bias, params: ImuParams, walk: BiasRandomWalk):
+@_samples_by_keyword
+def preintegrate_combined(
+    params: ImuParams, walk: BiasRandomWalk, bias=None, *, accel, gyro, dt, mask=None
+):
     r"""`preintegrate` with GTSAM 4.3's `PreintegratedCombinedMeasurements` covariance: the
     15×15 covariance of $(\theta, \Delta p, \Delta v, b_a, b_g)$ propagated with the biases'
     random walk `walk` and their coupling into the increments (`_combined_step`; its
     `preintMeasCov()`, which GTSAM's `CombinedImuFactor` whitens its 15-vector residual with).
-    Same arguments as `preintegrate`, plus `walk` (a `BiasRandomWalk`).
+    Same arguments as `preintegrate`, plus `walk` (a `BiasRandomWalk`, GTSAM's
+    `PreintegrationCombinedParams`' bias covariances).
 
     **Returns:** `(pim, covariance)`: a `Preintegrated` whose increments and bias Jacobians are
     `preintegrate`'s and whose `covariance` is the 9×9 navigation block of `covariance`
     `(15, 15)` (`preintegrate`'s plus the random walk's share; equal to it for a zero walk).
     `vmap` it over intervals.
     """
-    gyro, accel, dt, bias, ok = _check_samples(gyro, accel, dt, bias, params)
+    gyro, accel, dt, bias, keep, ok = _check_samples(gyro, accel, dt, bias, params, mask)
     if not isinstance(walk, BiasRandomWalk):
         raise TypeError(f"walk must be a BiasRandomWalk, got {type(walk).__name__}.")
     for name, value in zip(walk._fields, walk):
@@ -775,16 +880,19 @@ def preintegrate_combined(gyro, accel, dt, bias, params: ImuParams, walk: BiasRa
         (zero36,) * 3,
         jnp.zeros((6, 6), dtype),
     )
-    (x, s, j, cross_nb, s_bb), _ = jax.lax.scan(
+    x, s, j, cross_nb, s_bb = _scanned(
         lambda carry, sample: _combined_step(carry, sample, bias, params, walk),
         init,
-        (gyro, accel, dt),
+        keep,
+        gyro,
+        accel,
+        dt,
     )
     tt, tp, tv, pp, pv, vv = s
     nav = jnp.block([[tt, tp, tv], [tp.T, pp, pv], [tv.T, pv.T, vv]])
     x_nb = jnp.concatenate(cross_nb)
     covariance = jnp.block([[nav, x_nb], [x_nb.T, s_bb]])
-    pim = _result(x, dt.sum(), nav, jnp.concatenate(j), bias, ok)
+    pim = _result(x, _delta_t(dt, keep), nav, jnp.concatenate(j), bias, ok)
     return pim, jnp.where(ok, covariance, jnp.nan)
 
 
@@ -864,7 +972,10 @@ def _sample_increment(gyro, accel, dt, bias, params):
     return _Increment(rotation, u_v, u_p, dt, a, g, q)
 
 
-def preintegrate_associative(gyro, accel, dt, bias, params: ImuParams) -> Preintegrated:
+@_samples_by_keyword
+def preintegrate_associative(
+    params: ImuParams, bias=None, *, accel, gyro, dt, mask=None
+) -> Preintegrated:
     r"""Preintegrate one interval by a pairwise tree reduction of the per-sample increments
     (`_compose`), of depth $\lceil\log_2 N\rceil$, instead of `preintegrate`'s $N$ sequential
     steps; same arguments and result.
@@ -881,11 +992,18 @@ def preintegrate_associative(gyro, accel, dt, bias, params: ImuParams) -> Preint
     driving vehicle): largest relative difference to the sequential scan 9e-8 in
     $(\theta, \Delta p, \Delta v)$, 2e-6 in the covariance; it halves when $\delta t$ halves
     (`tests/test_imu.py`). On a CPU it is slower than the scan (dense 9×9 products at each
-    level); it is meant for accelerators and long intervals.
+    level); it is meant for accelerators and long intervals. Masked-out samples are identity
+    increments.
     """
-    gyro, accel, dt, bias, ok = _check_samples(gyro, accel, dt, bias, params)
+    gyro, accel, dt, bias, keep, ok = _check_samples(gyro, accel, dt, bias, params, mask)
     make = jax.vmap(_sample_increment, in_axes=(0, 0, 0, None, None))
     level = make(gyro, accel, dt, bias, params)
+    if keep is not None:
+        level = jax.tree.map(
+            lambda x, e: jnp.where(keep.reshape(-1, *(1,) * (x.ndim - 1)), x, e),
+            level,
+            _identity(dt),
+        )
     while level.t.shape[0] > 1:
         if level.t.shape[0] % 2:
             level = jax.tree.map(lambda x, e: jnp.concatenate([x, e[None]]), level, _identity(dt))
