@@ -1,0 +1,375 @@
+"""Camera models (`lieax.cameras`): the closed-form Jacobians of the pinhole (`Cal3_S2`,
+`Cal3DS2`), stereo and bearing models against `lieax.jacobian` of the value functions (forward
+and reverse) and central differences in local coordinates, float64, at the pose regimes
+(identity, 1e-9 from it, 1e-4 rad, π - 1e-4, π - 1e-6, random, a pure translation), batched,
+vmapped, broadcast and unbatched; Hessians of the value path against differences of its
+gradient; values and Jacobians against GTSAM's `PinholeCameraCal3_S2`, `Cal3DS2`,
+`StereoCamera` and `BearingFactor3D` when gtsam is installed; the factors and the cheirality
+policy on a small bundle adjustment, against GTSAM's default factors."""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+import lieax
+from lieax import SE3, SO3, cameras
+from lieax import conventions as cv
+from lieax import factorgraph as fg
+
+_AXIS = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+REGIMES = {
+    "identity": np.zeros(3),
+    "near-identity-1e-9": 1e-9 * _AXIS,
+    "small-1e-4": 1e-4 * _AXIS,
+    "near-pi-1e-4": (np.pi - 1e-4) * _AXIS,
+    "near-pi-1e-6": (np.pi - 1e-6) * _AXIS,
+    "random": np.array([0.7, -1.9, 0.4]),
+    "pure-translation": np.zeros(3),
+}
+CAL3_S2 = np.array([500.0, 510.0, 7.0, 320.0, 240.0])
+CAL3DS2 = np.array([500.0, 510.0, 7.0, 320.0, 240.0, 0.11, -0.05, 0.012, -0.021])
+STEREO = np.array([500.0, 510.0, 7.0, 320.0, 240.0, 0.54])
+
+
+def _case(rotvec, seed, pure_translation):
+    r"""`(T_world_camera, point, P)` with the point at $P = (a, b, 4)$, $|a|, |b| \le 1$, in the
+    camera (in front)."""
+    rng = np.random.default_rng(seed)
+    P = np.array([*rng.uniform(-1, 1, 2), 4.0])
+    point = np.zeros(3) if pure_translation else rng.uniform(-2, 2, 3)
+    R = Rotation.from_rotvec(rotvec).as_matrix()
+    t = point - R @ P
+    return np.concatenate([rotvec, t]), point, P
+
+
+_CASES = [_case(r, k, name == "pure-translation") for k, (name, r) in enumerate(REGIMES.items())]
+ROTVECS = jnp.asarray(np.stack([c[0][:3] for c in _CASES]))
+TRANSLATIONS = jnp.asarray(np.stack([c[0][3:] for c in _CASES]))
+POINTS = jnp.asarray(np.stack([c[1] for c in _CASES]))
+# measured bearings ~0.2 rad from the true ones
+BEARINGS = jnp.asarray(
+    np.stack([(c[2] / np.linalg.norm(c[2])) + [0.1, -0.15, 0.05] for c in _CASES])
+)
+BEARINGS = BEARINGS / jnp.linalg.norm(BEARINGS, axis=-1, keepdims=True)
+
+
+def _pose(rotvec, translation):
+    return SE3.from_rotation_and_translation(SO3.exp(rotvec), translation)
+
+
+# model: (value function, closed form (value, blocks), extra argument, is it differentiated)
+MODELS = {
+    "Cal3_S2": (
+        lambda T, X, K: cameras.project(T, K, X),
+        lambda T, X, K: cameras.project_jacobians(T, K, X),
+        CAL3_S2,
+        True,
+    ),
+    "Cal3DS2": (
+        lambda T, X, K: cameras.project(T, K, X),
+        lambda T, X, K: cameras.project_jacobians(T, K, X),
+        CAL3DS2,
+        True,
+    ),
+    "stereo": (
+        lambda T, X, K: cameras.stereo_project(T, K, X),
+        lambda T, X, K: cameras.stereo_project_jacobians(T, K, X),
+        STEREO,
+        True,
+    ),
+    "bearing": (cameras.bearing_error, cameras.bearing_error_jacobians, None, False),
+}
+STEP = 1e-6
+HESSIAN_STEP = 1e-5
+
+
+def _extra(name):
+    extra = MODELS[name][2]
+    return (
+        BEARINGS
+        if extra is None
+        else jnp.broadcast_to(jnp.asarray(extra), (len(_CASES), len(extra)))
+    )
+
+
+@functools.cache
+def checks(name):
+    """One jitted program per model, vmapped over the regimes: the closed form, `lieax.jacobian`
+    in both modes, central differences in local coordinates, and the Hessian of
+    $\\tfrac12|f|^2$ with central differences of its gradient."""
+    value, closed, _, differentiated = MODELS[name]
+    argnums = (0, 1, 2) if differentiated else (0, 1)
+
+    def one(rotvec, translation, point, extra):
+        pose = _pose(rotvec, translation)
+        val, *blocks = closed(pose, point, extra)
+        closed_J = jnp.concatenate(blocks, -1)
+        autodiff = [
+            jnp.concatenate(lieax.jacobian(value, argnums, mode=mode)(pose, point, extra), -1)
+            for mode in ("fwd", "rev")
+        ]
+        sizes = (6, 3, extra.shape[-1] if differentiated else 0)
+
+        def moved(delta):
+            extra_ = extra + delta[9:] if differentiated else extra
+            return value(pose.rplus(delta[:6]), point + delta[6:9], extra_)
+
+        n = sum(sizes)
+        columns = jax.vmap(lambda d: (moved(d) - moved(-d)) / (2 * STEP))(STEP * jnp.eye(n))
+
+        def cost(delta):
+            r = moved(delta)
+            return 0.5 * jnp.sum(r * r)
+
+        zero = jnp.zeros(n)
+        hessian = jax.hessian(cost)(zero)
+        gradient = jax.grad(cost)
+        shifts = HESSIAN_STEP * jnp.eye(n)
+        hessian_fd = (jax.vmap(gradient)(shifts) - jax.vmap(gradient)(-shifts)) / (2 * HESSIAN_STEP)
+        return dict(
+            value=val,
+            value_path=value(pose, point, extra),
+            closed=closed_J,
+            fwd=autodiff[0],
+            rev=autodiff[1],
+            fd=columns.T,
+            hessian=hessian,
+            hessian_fd=hessian_fd,
+            gradient=gradient(zero),
+        )
+
+    out = jax.jit(jax.vmap(one))(ROTVECS, TRANSLATIONS, POINTS, _extra(name))
+    return jax.device_get(out)
+
+
+def _relative(a, b):
+    return np.max(np.abs(a - b)) / max(1.0, np.max(np.abs(b)))
+
+
+@pytest.mark.parametrize("name", list(MODELS))
+@pytest.mark.parametrize("regime", list(REGIMES))
+def test_closed_form_matches_autodiff_and_differences(name, regime):
+    out = {k: v[list(REGIMES).index(regime)] for k, v in checks(name).items()}
+    assert np.all(np.isfinite(out["closed"])) and np.all(np.isfinite(out["gradient"]))
+    np.testing.assert_allclose(out["value"], out["value_path"], rtol=1e-12, atol=1e-12)
+    for mode in ("fwd", "rev"):
+        assert _relative(out[mode], out["closed"]) < 1e-10, mode
+    assert _relative(out["closed"], out["fd"]) < 1e-7
+    hessian, hessian_fd = out["hessian"], out["hessian_fd"]
+    assert np.all(np.isfinite(hessian))
+    np.testing.assert_allclose(hessian, hessian.T, atol=1e-8 * np.abs(hessian).max())
+    assert _relative(hessian, hessian_fd) < 1e-6
+
+
+@pytest.mark.parametrize("name", list(MODELS))
+def test_batched_broadcast_and_unbatched_agree(name):
+    _, closed, _, _ = MODELS[name]
+    poses = _pose(ROTVECS, TRANSLATIONS)
+    extra = _extra(name)
+    batched = jax.jit(closed)(poses, POINTS, extra)
+    single_pose = _pose(ROTVECS[-2], TRANSLATIONS[-2])
+    broadcast = jax.jit(closed)(single_pose, POINTS, extra[-2])  # one camera, many points
+    for k in range(len(_CASES)):
+        unbatched = closed(_pose(ROTVECS[k], TRANSLATIONS[k]), POINTS[k], extra[k])
+        for b, u in zip(batched, unbatched):
+            np.testing.assert_allclose(b[k], u, rtol=1e-12, atol=1e-9)
+    unbatched = closed(single_pose, POINTS[0], extra[-2])
+    for b, u in zip(broadcast, unbatched):
+        assert b.shape[0] == len(_CASES)
+        np.testing.assert_allclose(b[0], u, rtol=1e-12, atol=1e-9)
+
+
+def test_bearing_error_is_the_angle_and_finite_at_the_antipode():
+    pose = _pose(ROTVECS[-2], TRANSLATIONS[-2])
+    point = POINTS[-2]
+    q = cameras.bearing(pose, point).unit_vector()
+    measured = cameras.bearing(pose, point).rplus(jnp.array([0.3, -0.4]))
+    error = cameras.bearing_error(pose, point, measured)
+    angle = measured.distance(lieax.S2(q))
+    np.testing.assert_allclose(jnp.linalg.norm(error), angle, rtol=1e-12)
+    np.testing.assert_allclose(cameras.bearing_error(pose, point, q), [0.0, 0.0], atol=1e-15)
+    # at (and next to) the antipode the error is still the angle, and everything is finite
+    near = cameras.bearing_error(pose, point, -q)
+    np.testing.assert_allclose(jnp.linalg.norm(near), np.pi, rtol=1e-12)
+    identity, ahead, back = SE3.identity(), jnp.array([0.0, 0.0, 2.0]), jnp.array([0, 0, -1.0])
+    error, J_pose, J_point = cameras.bearing_error_jacobians(identity, ahead, back)
+    np.testing.assert_allclose(jnp.linalg.norm(error), np.pi, rtol=1e-15)
+    assert np.all(np.isfinite(J_pose)) and np.all(np.isfinite(J_point))
+    grad = jax.grad(lambda X: jnp.sum(cameras.bearing_error(identity, X, back) ** 2))(ahead)
+    assert np.all(np.isfinite(grad))
+
+
+def test_cal3ds2_uncalibrate_matches_autodiff_and_reduces_to_cal3_s2():
+    p = jnp.array([[0.21, -0.13], [0.0, 0.0], [-0.4, 0.35]])
+    pixel, J_cal, J_p = cameras.uncalibrate_jacobians(CAL3DS2, p)
+    auto_p = jax.vmap(jax.jacfwd(cameras.uncalibrate, 1), (None, 0))(CAL3DS2, p)
+    auto_cal = jax.vmap(jax.jacfwd(cameras.uncalibrate), (None, 0))(jnp.asarray(CAL3DS2), p)
+    np.testing.assert_allclose(J_p, auto_p, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(J_cal, auto_cal, rtol=1e-12, atol=1e-12)
+    no_distortion = np.concatenate([CAL3_S2, np.zeros(4)])
+    np.testing.assert_allclose(
+        cameras.uncalibrate(no_distortion, p), cameras.uncalibrate(CAL3_S2, p), rtol=1e-14
+    )
+
+
+def test_bad_inputs_are_named():
+    pose = _pose(ROTVECS[0], TRANSLATIONS[0])
+    with pytest.raises(ValueError, match=r"Cal3_S2.*Cal3DS2.*got shape \(4,\)"):
+        cameras.project(pose, np.ones(4), POINTS[0])
+    with pytest.raises(TypeError, match="project: T_world_camera must be a lieax.SE3"):
+        cameras.project(pose.rotation(), CAL3_S2, POINTS[0])
+    with pytest.raises(ValueError, match="stereo_project: calibration"):
+        cameras.stereo_project(pose, CAL3_S2, POINTS[0])
+    with pytest.raises(ValueError, match="stereo_project_jacobians: point"):
+        cameras.stereo_project_jacobians(pose, STEREO, POINTS[0, :2])
+    poses = fg.Var(_pose(ROTVECS[:2], TRANSLATIONS[:2]))
+    points = fg.Var(POINTS[:2])
+    with pytest.raises(ValueError, match="behind must be one of"):
+        cameras.projection_factor(poses[[0]], points[[0]], [[1.0, 2.0]], CAL3_S2, behind="no")
+    with pytest.raises(ValueError, match=r"stereo_factor: measured must have shape \(m, 3\)"):
+        cameras.stereo_factor(poses[[0]], points[[0]], [[1.0, 2.0]], STEREO)
+    with pytest.raises(ValueError, match=r"stereo_factor: calibration must have shape \(6,\)"):
+        cameras.stereo_factor(poses[[0]], points[[0]], [[1.0, 2.0, 3.0]], CAL3_S2)
+
+
+# ---- GTSAM as the oracle -------------------------------------------------------------------------
+
+
+def _gtsam_pose(gtsam, rotvec, translation):
+    R = Rotation.from_rotvec(np.array(rotvec)).as_matrix()
+    return gtsam.Pose3(gtsam.Rot3(R), np.array(translation))
+
+
+def _out(rows, cols):
+    return np.zeros((rows, cols), order="F")
+
+
+@pytest.mark.parametrize("calibration", ["Cal3_S2", "Cal3DS2"])
+def test_pinhole_matches_gtsam(calibration):
+    gtsam = pytest.importorskip("gtsam")
+    K = CAL3_S2 if calibration == "Cal3_S2" else CAL3DS2
+    Camera = gtsam.PinholeCameraCal3_S2 if calibration == "Cal3_S2" else gtsam.PinholeCameraCal3DS2
+    Cal = gtsam.Cal3_S2 if calibration == "Cal3_S2" else gtsam.Cal3DS2
+    poses = _pose(ROTVECS, TRANSLATIONS)
+    pixel, J_pose, J_point, J_cal = jax.jit(cameras.project_jacobians)(poses, K, POINTS)
+    for k in range(len(_CASES)):
+        camera = Camera(_gtsam_pose(gtsam, ROTVECS[k], TRANSLATIONS[k]), Cal(*K))
+        H_pose, H_point, H_cal = _out(2, 6), _out(2, 3), _out(2, len(K))
+        expected = camera.project(np.array(POINTS[k]), H_pose, H_point, H_cal)
+        np.testing.assert_allclose(pixel[k], expected, rtol=1e-12)
+        np.testing.assert_allclose(
+            J_pose[k], cv.se3_jacobian_from_gtsam(H_pose, rows=False), rtol=1e-9, atol=1e-9
+        )
+        np.testing.assert_allclose(J_point[k], H_point, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(J_cal[k], H_cal, rtol=1e-9, atol=1e-9)
+
+
+def test_cal3ds2_uncalibrate_matches_gtsam():
+    gtsam = pytest.importorskip("gtsam")
+    p = np.array([[0.21, -0.13], [0.0, 0.0], [-0.4, 0.35]])
+    pixel, J_cal, J_p = cameras.uncalibrate_jacobians(CAL3DS2, p)
+    K = gtsam.Cal3DS2(*CAL3DS2)
+    for k in range(len(p)):
+        H_cal, H_p = _out(2, 9), _out(2, 2)
+        np.testing.assert_allclose(pixel[k], K.uncalibrate(p[k], H_cal, H_p), rtol=1e-14)
+        np.testing.assert_allclose(J_cal[k], H_cal, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(J_p[k], H_p, rtol=1e-12, atol=1e-12)
+
+
+def _linearized(gtsam, factor, pose, point):
+    """GTSAM's unwhitened error and Jacobians (unit noise) of a pose-point factor, the pose's
+    columns in lieax's order."""
+    values = gtsam.Values()
+    values.insert(0, pose)
+    values.insert(1, np.array(point))
+    A, b = factor.linearize(values).jacobian()
+    return -b, cv.se3_jacobian_from_gtsam(A[:, :6], rows=False), A[:, 6:]
+
+
+def test_stereo_matches_gtsam():
+    gtsam = pytest.importorskip("gtsam")
+    poses = _pose(ROTVECS, TRANSLATIONS)
+    measured = jnp.array([300.0, 250.0, 200.0])
+    residual, (J_pose, J_point) = jax.jit(cameras.stereo_residual_jacobians)(
+        poses, POINTS, measured, STEREO
+    )
+    K = gtsam.Cal3_S2Stereo(*STEREO)
+    noise = gtsam.noiseModel.Unit.Create(3)
+    factor = gtsam.GenericStereoFactor3D(gtsam.StereoPoint2(*np.asarray(measured)), noise, 0, 1, K)
+    for k in range(len(_CASES)):
+        pose = _gtsam_pose(gtsam, ROTVECS[k], TRANSLATIONS[k])
+        projected = gtsam.StereoCamera(pose, K).project(np.array(POINTS[k])).vector()
+        np.testing.assert_allclose(residual[k] + measured, projected, rtol=1e-12)
+        error, H_pose, H_point = _linearized(gtsam, factor, pose, POINTS[k])
+        np.testing.assert_allclose(residual[k], error, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(J_pose[k], H_pose, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(J_point[k], H_point, rtol=1e-9, atol=1e-9)
+
+
+def test_bearing_cost_matches_gtsam():
+    gtsam = pytest.importorskip("gtsam")
+    poses = _pose(ROTVECS, TRANSLATIONS)
+    error = jax.jit(cameras.bearing_error)(poses, POINTS, BEARINGS)
+    noise = gtsam.noiseModel.Unit.Create(2)
+    for k in range(len(_CASES)):
+        values = gtsam.Values()
+        values.insert(0, _gtsam_pose(gtsam, ROTVECS[k], TRANSLATIONS[k]))
+        values.insert(1, np.array(POINTS[k]))
+        factor = gtsam.BearingFactor3D(0, 1, gtsam.Unit3(np.array(BEARINGS[k])), noise)
+        np.testing.assert_allclose(0.5 * np.sum(error[k] ** 2), factor.error(values), rtol=1e-10)
+
+
+# ---- factors and the cheirality policy -----------------------------------------------------------
+
+
+def _scene(seed=3, cameras_count=4, points_count=12):
+    r"""Cameras on a line looking down $+z$ at points 4-8 m ahead, pixel observations with
+    noise, and initial points with some pushed behind the first camera."""
+    rng = np.random.default_rng(seed)
+    truth_points = np.column_stack(
+        [
+            rng.uniform(-2, 2, points_count),
+            rng.uniform(-1, 1, points_count),
+            rng.uniform(4, 8, points_count),
+        ]
+    )
+    rotvecs = rng.normal(0, 0.05, (cameras_count, 3))
+    translations = np.column_stack(
+        [np.linspace(0, 1.5, cameras_count), np.zeros((cameras_count, 2))]
+    )
+    truth = _pose(jnp.asarray(rotvecs), jnp.asarray(translations))
+    cam, pt = np.meshgrid(np.arange(cameras_count), np.arange(points_count), indexing="ij")
+    cam, pt = cam.ravel(), pt.ravel()
+    uv = np.asarray(cameras.project(truth[cam], CAL3_S2, jnp.asarray(truth_points[pt])))
+    uv = uv + rng.normal(0, 0.5, uv.shape)
+    initial = truth_points + rng.normal(0, 0.1, truth_points.shape)
+    initial[:2, 2] = -1.0  # behind every camera: these points are pulled only... by none
+    initial[2:4, 2] = 0.8 * initial[2:4, 2] - 0.0  # in front
+    return truth, rotvecs, translations, truth_points, initial, cam, pt, uv
+
+
+def test_count_behind_and_check_in_front():
+    truth, _, _, _, initial, cam, pt, uv = _scene()
+    poses = fg.Var(truth, fixed=np.arange(4), name="poses")
+    points = fg.Var(jnp.asarray(initial), name="points")
+    factor = cameras.projection_factor(poses[cam], points[pt], uv, CAL3_S2)
+    graph = fg.FactorGraph([factor], check_gauge=False)
+    masks = cameras.behind_camera(graph)
+    expected = np.isin(pt, [0, 1])
+    np.testing.assert_array_equal(masks["projection_factor"], expected)
+    assert cameras.count_behind(graph) == expected.sum() == 8
+    with pytest.raises(
+        cameras.CheiralityError, match=r"'projection_factor': 8 \(instances \[0, 1, 12"
+    ):
+        cameras.check_in_front(graph)
+    # the "zero" policy: GTSAM's residual 2 fx and zero blocks for those observations
+    residual, (J_pose, J_point) = cameras.projection_residual_jacobians(
+        truth[cam], jnp.asarray(initial[pt]), uv, CAL3_S2
+    )
+    np.testing.assert_array_equal(residual[expected], 2 * CAL3_S2[0])
+    assert np.all(J_pose[expected] == 0) and np.all(J_point[expected] == 0)
+    assert np.all(J_point[~expected] != 0)
