@@ -326,38 +326,41 @@ def test_bearing_cost_matches_gtsam():
 # ---- factors and the cheirality policy -----------------------------------------------------------
 
 
-def _scene(seed=3, cameras_count=4, points_count=12):
-    r"""Cameras on a line looking down $+z$ at points 4-8 m ahead, pixel observations with
-    noise, and initial points with some pushed behind the first camera."""
+def _scene(seed=3, count=4, landmarks=12, mirrored=2):
+    r"""Cameras on a line looking down $+z$ at landmarks 4-8 m ahead, pixel observations with
+    0.5 px noise, initial landmarks with noise and the first `mirrored` ones mirrored through
+    the first camera's centre (behind every camera)."""
     rng = np.random.default_rng(seed)
-    truth_points = np.column_stack(
-        [
-            rng.uniform(-2, 2, points_count),
-            rng.uniform(-1, 1, points_count),
-            rng.uniform(4, 8, points_count),
-        ]
+    landmarks_truth = np.column_stack(
+        [rng.uniform(-2, 2, landmarks), rng.uniform(-1, 1, landmarks), rng.uniform(4, 8, landmarks)]
     )
-    rotvecs = rng.normal(0, 0.05, (cameras_count, 3))
-    translations = np.column_stack(
-        [np.linspace(0, 1.5, cameras_count), np.zeros((cameras_count, 2))]
+    translations = np.column_stack([np.linspace(0, 1.5, count), np.zeros((count, 2))])
+    poses = _pose(jnp.asarray(rng.normal(0, 0.05, (count, 3))), jnp.asarray(translations))
+    cam, pt = (
+        a.ravel() for a in np.meshgrid(np.arange(count), np.arange(landmarks), indexing="ij")
     )
-    truth = _pose(jnp.asarray(rotvecs), jnp.asarray(translations))
-    cam, pt = np.meshgrid(np.arange(cameras_count), np.arange(points_count), indexing="ij")
-    cam, pt = cam.ravel(), pt.ravel()
-    uv = np.asarray(cameras.project(truth[cam], CAL3_S2, jnp.asarray(truth_points[pt])))
+    uv = np.asarray(cameras.project(poses[cam], CAL3_S2, jnp.asarray(landmarks_truth[pt])))
     uv = uv + rng.normal(0, 0.5, uv.shape)
-    initial = truth_points + rng.normal(0, 0.1, truth_points.shape)
-    initial[:2, 2] = -1.0  # behind every camera: these points are pulled only... by none
-    initial[2:4, 2] = 0.8 * initial[2:4, 2] - 0.0  # in front
-    return truth, rotvecs, translations, truth_points, initial, cam, pt, uv
+    initial = landmarks_truth + rng.normal(0, 0.1, landmarks_truth.shape)
+    initial[:mirrored] = 2 * translations[0] - initial[:mirrored]
+    return poses, initial, cam, pt, uv
+
+
+def _graph(behind="zero"):
+    poses, initial, cam, pt, uv = _scene()
+    pose_var = fg.Var(poses, fixed=np.arange(poses.batch_shape[0]), name="poses")
+    points = fg.Var(jnp.asarray(initial), name="points")
+    factor = cameras.projection_factor(
+        pose_var[cam], points[pt], uv, CAL3_S2, behind=behind, sqrt_information=2 * np.eye(2)
+    )
+    return fg.FactorGraph([factor]), (poses, initial, cam, pt, uv)
+
+
+BEHIND_COST = 0.5 * 2 * (2 * CAL3_S2[0] * 2) ** 2  # GTSAM's residual 2 fx, whitened (σ = 0.5)
 
 
 def test_count_behind_and_check_in_front():
-    truth, _, _, _, initial, cam, pt, uv = _scene()
-    poses = fg.Var(truth, fixed=np.arange(4), name="poses")
-    points = fg.Var(jnp.asarray(initial), name="points")
-    factor = cameras.projection_factor(poses[cam], points[pt], uv, CAL3_S2)
-    graph = fg.FactorGraph([factor], check_gauge=False)
+    graph, (poses, initial, cam, pt, uv) = _graph()
     masks = cameras.behind_camera(graph)
     expected = np.isin(pt, [0, 1])
     np.testing.assert_array_equal(masks["projection_factor"], expected)
@@ -368,8 +371,59 @@ def test_count_behind_and_check_in_front():
         cameras.check_in_front(graph)
     # the "zero" policy: GTSAM's residual 2 fx and zero blocks for those observations
     residual, (J_pose, J_point) = cameras.projection_residual_jacobians(
-        truth[cam], jnp.asarray(initial[pt]), uv, CAL3_S2
+        poses[cam], jnp.asarray(initial[pt]), uv, CAL3_S2
     )
     np.testing.assert_array_equal(residual[expected], 2 * CAL3_S2[0])
     assert np.all(J_pose[expected] == 0) and np.all(J_point[expected] == 0)
     assert np.all(J_point[~expected] != 0)
+    value_path = cameras.projection_residual(poses[cam], jnp.asarray(initial[pt]), uv, CAL3_S2)
+    np.testing.assert_allclose(value_path, residual, rtol=1e-12, atol=1e-9)
+    grad = jax.grad(lambda X: jnp.sum(cameras.projection_residual(poses[cam], X, uv, CAL3_S2)))
+    assert np.all(np.isfinite(grad(jnp.asarray(initial[pt]))))
+
+
+def test_default_policy_matches_gtsam_and_does_not_fit_the_mirror():
+    """Landmarks initialized behind every camera: with the default policy they stay where they
+    are (zero Jacobian), `count_behind` reports their 8 observations after the solve, and the
+    cost is GTSAM's (`GenericProjectionFactorCal3_S2`, default `throwCheirality=false`) on the
+    same problem to 1e-6; with `"mirror"` the solve moves them to a mirrored minimum (still behind,
+    a much larger cost, reported as converged: the silent failure the default avoids)."""
+    graph, (poses, initial, cam, pt, uv) = _graph()
+    result = graph.solve(relative_tolerance=1e-12, absolute_tolerance=1e-12)
+    solved = np.asarray(result.values[1])
+    np.testing.assert_array_equal(solved[:2], initial[:2])
+    assert cameras.count_behind(graph, result.values) == 8
+    in_front_cost = float(result.cost) - 8 * BEHIND_COST
+    assert 0 < in_front_cost < 2 * 40  # 40 observations in front at the noise level
+
+    mirror_graph, _ = _graph("mirror")
+    mirror = mirror_graph.solve(relative_tolerance=1e-12, absolute_tolerance=1e-12)
+    assert cameras.count_behind(mirror_graph, mirror.values) == 8
+    assert np.abs(np.asarray(mirror.values[1])[:2] - initial[:2]).max() > 0.05
+    # a worse minimum, reported as converged: the issue's silent failure
+    assert mirror.status_name == "CONVERGED" and float(mirror.cost) > 10 * in_front_cost
+
+    gtsam = pytest.importorskip("gtsam")
+    noise = gtsam.noiseModel.Isotropic.Sigma(2, 0.5)
+    K = gtsam.Cal3_S2(*CAL3_S2)
+    factors, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    matrices = np.asarray(poses.as_matrix())
+    for i, matrix in enumerate(matrices):
+        values.insert(gtsam.symbol("x", i), gtsam.Pose3(matrix))
+        factors.add(gtsam.NonlinearEqualityPose3(gtsam.symbol("x", i), gtsam.Pose3(matrix)))
+    for j, point in enumerate(initial):
+        values.insert(gtsam.symbol("l", j), np.array(point))
+    for i, j, z in zip(cam, pt, uv):
+        keys = gtsam.symbol("x", i), gtsam.symbol("l", j)
+        factors.add(gtsam.GenericProjectionFactorCal3_S2(np.array(z), noise, *keys, K))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setRelativeErrorTol(1e-12)
+    params.setAbsoluteErrorTol(1e-12)
+    gtsam_result = gtsam.LevenbergMarquardtOptimizer(factors, values, params).optimize()
+    gtsam_cost = factors.error(gtsam_result)
+    assert abs(float(result.cost) - gtsam_cost) < 1e-6 * gtsam_cost
+    assert abs(in_front_cost - (gtsam_cost - 8 * BEHIND_COST)) < 1e-6 * in_front_cost
+    for j in range(len(initial)):
+        np.testing.assert_allclose(
+            gtsam_result.atPoint3(gtsam.symbol("l", j)), solved[j], rtol=1e-6, atol=1e-7
+        )
