@@ -85,6 +85,8 @@ MODELS = {
 }
 STEP = 1e-6
 HESSIAN_STEP = 1e-5
+# the Hessian is checked along these directions (H v by forward over reverse mode)
+DIRECTIONS = jnp.asarray(np.random.default_rng(7).normal(size=(3, 18)))
 
 
 def _extra(name):
@@ -100,7 +102,7 @@ def _extra(name):
 def checks(name):
     """One jitted program per model, vmapped over the regimes: the closed form, `lieax.jacobian`
     in both modes, central differences in local coordinates, and the Hessian of
-    $\\tfrac12|f|^2$ with central differences of its gradient."""
+    $\\tfrac12|f|^2$ along three directions with central differences of its gradient."""
     value, closed, _, differentiated = MODELS[name]
     argnums = (0, 1, 2) if differentiated else (0, 1)
 
@@ -126,10 +128,12 @@ def checks(name):
             return 0.5 * jnp.sum(r * r)
 
         zero = jnp.zeros(n)
-        hessian = jax.hessian(cost)(zero)
         gradient = jax.grad(cost)
-        shifts = HESSIAN_STEP * jnp.eye(n)
-        hessian_fd = (jax.vmap(gradient)(shifts) - jax.vmap(gradient)(-shifts)) / (2 * HESSIAN_STEP)
+        directions = DIRECTIONS[:, :n] / jnp.linalg.norm(DIRECTIONS[:, :n], axis=1, keepdims=True)
+        hessian = jax.vmap(lambda v: jax.jvp(gradient, (zero,), (v,))[1])(directions)
+        plus = jax.vmap(gradient)(HESSIAN_STEP * directions)
+        minus = jax.vmap(gradient)(-HESSIAN_STEP * directions)
+        hessian_fd = (plus - minus) / (2 * HESSIAN_STEP)
         return dict(
             value=val,
             value_path=value(pose, point, extra),
@@ -159,10 +163,8 @@ def test_closed_form_matches_autodiff_and_differences(name, regime):
     for mode in ("fwd", "rev"):
         assert _relative(out[mode], out["closed"]) < 1e-10, mode
     assert _relative(out["closed"], out["fd"]) < 1e-7
-    hessian, hessian_fd = out["hessian"], out["hessian_fd"]
-    assert np.all(np.isfinite(hessian))
-    np.testing.assert_allclose(hessian, hessian.T, atol=1e-8 * np.abs(hessian).max())
-    assert _relative(hessian, hessian_fd) < 1e-6
+    assert np.all(np.isfinite(out["hessian"]))
+    assert _relative(out["hessian"], out["hessian_fd"]) < 1e-6
 
 
 @pytest.mark.parametrize("name", list(MODELS))
