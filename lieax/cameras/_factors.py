@@ -36,6 +36,9 @@ from ._stereo import stereo_project_jacobians, stereo_values
 
 BEHIND = ("zero", "mirror")
 
+# the depths P_z of a batch of observations (compiled once per shape, not op by op)
+_depths = jax.jit(lambda pose, point: in_camera(pose, point)[..., 2])
+
 
 class CheiralityError(ValueError):
     """Observations whose point is behind its camera (`check_in_front`)."""
@@ -228,8 +231,8 @@ def behind_camera(graph, values=None):
             poses = values[graph.index(factor.vars[0])]
             points = jnp.asarray(values[graph.index(factor.vars[1])])
             pose = poses[jnp.asarray(factor.indices[0])]
-            depth = in_camera(pose, points[jnp.asarray(factor.indices[1])])[..., 2]
-            masks[factor.name] = np.asarray(jax.device_get(depth <= 0))
+            depth = _depths(pose, points[jnp.asarray(factor.indices[1])])
+            masks[factor.name] = np.asarray(depth) <= 0
     return masks
 
 
