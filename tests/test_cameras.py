@@ -223,7 +223,9 @@ def test_cal3ds2_uncalibrate_matches_autodiff_and_reduces_to_cal3_s2():
 
 def test_bad_inputs_are_named():
     pose = _pose(ROTVECS[0], TRANSLATIONS[0])
-    with pytest.raises(ValueError, match=r"Cal3_S2.*Cal3DS2.*got shape \(4,\)"):
+    with pytest.raises(
+        ValueError, match=r"project: calibration must.*Cal3_S2.*Cal3DS2.*got shape \(4,\)"
+    ):
         cameras.project(pose, np.ones(4), POINTS[0])
     with pytest.raises(TypeError, match="project: T_world_camera must be a lieax.SE3"):
         cameras.project(pose.rotation(), CAL3_S2, POINTS[0])
@@ -231,6 +233,10 @@ def test_bad_inputs_are_named():
         cameras.stereo_project(pose, CAL3_S2, POINTS[0])
     with pytest.raises(ValueError, match="stereo_project_jacobians: point"):
         cameras.stereo_project_jacobians(pose, STEREO, POINTS[0, :2])
+    with pytest.raises(
+        ValueError, match=r"stereo_residual: measured must have shape \(\*batch, 3\)"
+    ):
+        cameras.stereo_residual(pose, POINTS[0], jnp.ones(2), STEREO)
     poses = fg.Var(_pose(ROTVECS[:2], TRANSLATIONS[:2]))
     points = fg.Var(POINTS[:2])
     with pytest.raises(ValueError, match="behind must be one of"):

@@ -22,11 +22,12 @@ $2 f_x$, zero Jacobian for points behind the camera) or `"mirror"` (Ceres'); `co
 `behind_camera` and `check_in_front` report points behind the camera after a solve.
 
 ```python
-poses = fg.Var(SE3(...), fixed=[0], name="poses")            # T_world_camera
-points = fg.Var(initial_points, name="points")               # (n, 3)
+poses = fg.Var(SE3(...), name="poses")                        # T_world_camera
+points = fg.Var(initial_points, name="points")                # (n, 3)
 stereo = cameras.stereo_factor(poses[i], points[j], uLuRv, K, sqrt_information=np.eye(3))
-result = fg.FactorGraph([stereo]).solve()
-cameras.count_behind(graph, result.values)                   # 0 when every point is in front
+graph = fg.FactorGraph([stereo, prior])
+result = graph.solve()
+cameras.count_behind(graph, result.values)                    # observations behind their camera
 ```
 """
 

@@ -28,7 +28,7 @@ from ._frame import check_camera_inputs, in_camera, in_camera_jacobians
 
 # below this angle θ/sin θ and its derivative use their series (the closed form loses
 # ~eps/θ² relative to cancellation; the series' first dropped term is ~θ⁶/100)
-_SERIES_ANGLE = {jnp.dtype("float64"): 1e-2, jnp.dtype("float32"): 0.2}
+_SERIES_ANGLE = {jnp.dtype("float64"): 1e-2}  # float32 and narrower: 0.2
 
 
 def _checked(entry, pose, point, measured=None):
@@ -62,7 +62,7 @@ def _angle_factor(m, q, projected):
     sine = jnp.sqrt(jnp.where(sine_squared > 0, sine_squared, 1.0))
     sine = jnp.where(sine_squared > 0, sine, 0.0)
     theta = jnp.arctan2(sine, c)
-    small = theta < _SERIES_ANGLE[jnp.dtype(q.dtype)]
+    small = theta < _SERIES_ANGLE.get(jnp.dtype(q.dtype), 0.2)
     safe_sine = jnp.where(small | antipodal, 1.0, sine)
     safe_theta = jnp.where(small | antipodal, 1.0, theta)
     t2 = theta * theta

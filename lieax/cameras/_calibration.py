@@ -32,15 +32,15 @@ LAYOUTS = {5: "Cal3_S2: fx, fy, s, u0, v0", 9: "Cal3DS2: fx, fy, s, u0, v0, k1, 
 def check_calibration(calibration, what):
     """`calibration` as a float array with 5 (`Cal3_S2`) or 9 (`Cal3DS2`) entries on its last
     axis; `ValueError` naming `what` otherwise."""
-    calibration = check_last_axis(calibration, calibration_size(calibration), what)
-    return calibration
+    return check_last_axis(calibration, calibration_size(calibration, what), what)
 
 
-def calibration_size(calibration):
+def calibration_size(calibration, what):
+    """5 or 9, the last axis of a pinhole calibration; `ValueError` naming `what` otherwise."""
     size = jnp.shape(calibration)[-1] if jnp.ndim(calibration) else None
     if size not in LAYOUTS:
         raise ValueError(
-            "a pinhole calibration must have shape (*batch, 5) (Cal3_S2: fx, fy, s, u0, v0) or "
+            f"{what} must have shape (*batch, 5) (Cal3_S2: fx, fy, s, u0, v0) or "
             "(*batch, 9) (Cal3DS2: fx, fy, s, u0, v0, k1, k2, p1, p2), got shape "
             f"{tuple(jnp.shape(calibration))}."
         )

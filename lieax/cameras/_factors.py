@@ -30,8 +30,9 @@ import numpy as np
 from ..factorgraph import Factor
 from ._bearing import bearing_error, bearing_error_jacobians
 from ._calibration import calibration_size, pixel
-from ._frame import in_camera
+from ._frame import check_camera_inputs, in_camera
 from ._pinhole import project_jacobians
+from ._stereo import LAYOUT as STEREO_LAYOUT
 from ._stereo import stereo_project_jacobians, stereo_values
 
 BEHIND = ("zero", "mirror")
@@ -74,7 +75,11 @@ def projection_residual(T_world_camera, point, measured, calibration, *, behind=
     operations (differentiable by `lieax.jacobian`); `measured` `(*batch, 2)`, `calibration`
     `(*batch, 5)` or `(*batch, 9)`."""
     _check_behind(behind, "projection_residual")
-    calibration = jnp.asarray(calibration)
+    point, measured, calibration = check_camera_inputs(
+        "projection_residual", T_world_camera, point, (measured, 2, "measured", "u, v"),
+        (calibration, calibration_size(calibration, "projection_residual: calibration"),
+         "calibration", "Cal3_S2 or Cal3DS2"),
+    )  # fmt: skip
     front, P = _front(in_camera(T_world_camera, point), behind)
     residual = pixel(calibration, P[..., :2] / P[..., 2:]) - measured
     return _fixed(front, residual, calibration[..., 0], ())[0]
@@ -96,7 +101,10 @@ def stereo_residual(T_world_camera, point, measured, calibration, *, behind="zer
     cheirality policy `behind` (module docstring), shape `(*batch, 3)`; `calibration`
     `(*batch, 6)` $(f_x, f_y, s, u_0, v_0, b)$."""
     _check_behind(behind, "stereo_residual")
-    calibration = jnp.asarray(calibration)
+    point, measured, calibration = check_camera_inputs(
+        "stereo_residual", T_world_camera, point, (measured, 3, "measured", "uL, uR, v"),
+        (calibration, 6, "calibration", STEREO_LAYOUT),
+    )  # fmt: skip
     front, P = _front(in_camera(T_world_camera, point), behind)
     return _fixed(front, stereo_values(calibration, P) - measured, calibration[..., 0], ())[0]
 
@@ -169,7 +177,7 @@ def projection_factor(pose, point, measured, calibration, *, behind="zero", **op
     factor = cameras.projection_factor(poses[i], points[j], uv, K, sqrt_information=I2 / sigma)
     ```
     """
-    calibration_size(calibration)
+    calibration_size(calibration, "projection_factor: calibration")
     residual = (projection_residual, projection_residual_jacobians)
     return _camera_factor(
         "projection_factor", residual, pose, point, measured, calibration, 2, behind, options

@@ -26,7 +26,7 @@ from ._frame import check_camera_inputs, in_camera, in_camera_jacobians
 
 
 def _checked(entry, pose, calibration, point, measured=None):
-    size = calibration_size(calibration)
+    size = calibration_size(calibration, f"{entry}: calibration")
     extra = [(calibration, size, "calibration", LAYOUTS[size])]
     if measured is not None:
         extra.append((measured, 2, "measured", "u, v"))
