@@ -461,3 +461,32 @@ def test_bearing_factor_triangulates():
     for closed, auto in zip(graph.linearize(), autodiff.linearize()):
         for a, b in zip(jax.tree_util.tree_leaves(closed), jax.tree_util.tree_leaves(auto)):
             np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9)
+
+
+def test_bearing_series_branch():
+    """Below 1e-2 rad (the series of θ / sin θ) and at θ = 0 the closed-form blocks equal
+    `lieax.jacobian` of the error and central differences along the point."""
+    pose, point = _pose(ROTVECS[-2], TRANSLATIONS[-2]), POINTS[-2]
+    q = cameras.bearing(pose, point)
+    measured = jnp.stack([q.rplus(jnp.array([3e-4, -4e-4])).unit_vector(), q.unit_vector()])
+
+    @jax.jit
+    def blocks(m):
+        _, J_pose, J_point = cameras.bearing_error_jacobians(pose, point, m)
+        auto = lieax.jacobian(cameras.bearing_error, (0, 1))(pose, point, m)
+        columns = jax.vmap(
+            lambda d: (
+                cameras.bearing_error(pose, point + d, m)
+                - cameras.bearing_error(pose, point - d, m)
+            )
+        )(STEP * jnp.eye(3))
+        return (
+            jnp.concatenate([J_pose, J_point], -1),
+            jnp.concatenate(auto, -1),
+            columns.T / (2 * STEP),
+        )
+
+    for m in measured:
+        closed, auto, differences = blocks(m)
+        assert _relative(auto, closed) < 1e-12
+        assert _relative(closed[:, 6:], differences) < 1e-8
