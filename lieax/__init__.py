@@ -5,7 +5,8 @@ README's "Conventions" section.
 
 Layers, bottom up: `groups` (the Lie groups and their kernels), `autodiff` (tangents of pytrees,
 manifold-local Jacobians, implicit derivatives) and `retractions`, the solvers (`lstsq`, `optax`,
-`factorgraph`, `graph`), and the applications (`icp`, `ba`, `imu`, `align`, `io`, `conventions`).
+`factorgraph`, `graph`), and the applications (`icp`, `cameras`, `ba`, `imu`, `align`, `io`,
+`conventions`).
 The solvers share one `Status` enum, one `SolverResult` base of their results and one `SolveError`
 base of their errors.
 """
@@ -14,6 +15,7 @@ from importlib.metadata import version as _version
 
 from . import (
     ba,
+    cameras,
     conventions,
     factorgraph,
     graph,
@@ -63,6 +65,7 @@ __all__ = [
     "Status",
     "align",
     "ba",
+    "cameras",
     "conventions",
     "factorgraph",
     "flatten_tangents",

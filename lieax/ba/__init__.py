@@ -11,22 +11,22 @@ residual of one camera, one point and one observation, written with lieax operat
 and 2×3 point blocks in closed form, the camera's tangent being the SE3 right perturbation
 $(v, \omega)$ then additive $(f, k_1, k_2)$; `camera_residual` / `camera_jacobians` take the
 camera as one `(pose, intrinsics)` variable with a 2×9 block, the form a factor graph's factor
-takes. `synthetic_bal` generates problems with a ground
+takes (the camera lives in `lieax.cameras` as `snavely_*`; these are its old names, kept).
+`synthetic_bal` generates problems with a ground
 truth at any size (`SYNTHETIC_PRESETS`: Ladybug-49 and Trafalgar-138). Conventions: see the
 README's "Conventions" (right perturbations, translation-first tangents, `T_a_b` maps b into a).
 """
 
-from ._bal import BALError, BALProblem, read_bal, write_bal
-from ._bundler import BundlerProblem, read_bundler, write_bundler
-from ._camera import (
-    bal_to_camera,
+from ..cameras._snavely import (
     camera_jacobians,
     camera_residual,
-    camera_to_bal,
     project,
     reprojection_jacobians,
     reprojection_residual,
 )
+from ._bal import BALError, BALProblem, read_bal, write_bal
+from ._bundler import BundlerProblem, read_bundler, write_bundler
+from ._camera import bal_to_camera, camera_to_bal
 from ._synthetic import SYNTHETIC_PRESETS, SyntheticBAL, project_numpy, synthetic_bal
 
 __all__ = [
