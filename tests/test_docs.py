@@ -22,6 +22,7 @@ API_PAGES = {  # module -> the API page that documents it
     "lstsq": "lstsq",
     "factorgraph": "factorgraph",
     "graph": "graph",
+    "cameras": "cameras",
     "ba": "ba",
     "imu": "imu",
     "icp": "icp",
