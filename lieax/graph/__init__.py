@@ -17,6 +17,12 @@ rotation, is used as read). Plot a graph with `lieax.viz.plot_pose_graph(graph, 
 """
 
 from ..factorgraph._sparse import BlockPattern, CholeskyPlan, block_matvec, pcg
+from ._bearing_range import (
+    bearing_range_error,
+    bearing_range_factor,
+    bearing_range_jacobians_2d,
+    direction_error,
+)
 from ._factor_graph import to_factor_graph
 from ._factors import between_error, between_jacobians, cost, prior_error, prior_jacobian
 from ._g2o import G2oError, G2oWarning, read_g2o, write_g2o
@@ -34,11 +40,15 @@ __all__ = [
     "PoseGraph",
     "PriorFactors",
     "Status",
+    "bearing_range_error",
+    "bearing_range_factor",
+    "bearing_range_jacobians_2d",
     "between_error",
     "between_jacobians",
     "block_matvec",
     "chordal_initialization",
     "cost",
+    "direction_error",
     "optimize",
     "pcg",
     "prior_error",
