@@ -6,6 +6,7 @@ number), so the checks below read results rather than parse printed text. Plots 
 matplotlib is installed (the `test` extra installs it).
 """
 
+import functools
 import importlib.util
 import pathlib
 
@@ -16,7 +17,7 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent
 EXAMPLES = ROOT / "examples"
 TESTED = {
     "attitude_estimation", "batch_icp", "bundle_adjustment", "chain_jacobians", "icp_demo",
-    "inertial_navigation", "pose_graph",
+    "inertial_navigation", "landmark_slam", "pose_graph",
 }  # fmt: skip
 
 try:
@@ -161,3 +162,28 @@ def test_inertial_navigation():
     assert summary["cost"] < 1e-3 * summary["initial_cost"]
     assert summary["position_rms"] < summary["fix_rms"]
     assert summary["attitude_rms_deg"] < 2.0
+
+
+@functools.cache
+def landmark_slam_summary():
+    """`examples/landmark_slam.py` at a small size, run once for the two tests below."""
+    return load("landmark_slam").main(["--poses", "80", "--landmarks", "15"])
+
+
+def test_landmark_slam():
+    """The 2D landmark SLAM example: the solve converges, far below the start's cost, and its
+    poses are closer to the truth than dead reckoning."""
+    summary = landmark_slam_summary()
+    assert summary["status"] == "CONVERGED"
+    assert summary["cost"] < 0.1 * summary["initial_cost"]
+    assert summary["position_rms"] < 0.5 * summary["start_position_rms"]
+    assert summary["landmark_rms"] < 0.5
+
+
+def test_landmark_slam_matches_gtsam():
+    """GTSAM's solve of the same graph (`PriorFactorPose2`, `BetweenFactorPose2`,
+    `BearingRangeFactor2D`, Levenberg-Marquardt) ends at lieax's final cost to 1e-6 relative."""
+    pytest.importorskip("gtsam")
+    summary = landmark_slam_summary()
+    assert summary["gtsam_initial_cost"] == pytest.approx(summary["initial_cost"], rel=1e-12)
+    assert summary["cost"] == pytest.approx(summary["gtsam_cost"], rel=1e-6)

@@ -54,22 +54,28 @@ _THETA_OVER_SINE = tuple(
 def direction_error(measured, predicted):
     r"""$(\theta / \sin\theta)\,B_m^\top b$ for unit vectors $m$ = `measured`, $b$ = `predicted`
     (`(*batch, 3)`): the sphere's logarithm of $b$ at $m$ in `S2.basis(m)`, of norm $\theta$, the
-    angle between them (module docstring). $\theta / \sin\theta$ is summed as a series in
-    $\sin^2\theta = |B_m^\top b|^2$ near $b = m$ (no square root, so derivatives of any order are
-    finite there); at $b = -m$ exactly, where the logarithm has no direction, it is
-    $(\pi, 0)$ (GTSAM's `Unit3::localCoordinates` returns the same there) with derivative 0."""
+    angle between them (module docstring); it depends on the direction of $b$ only (the derivative
+    along $b$ is 0). $\theta / \sin\theta$ is summed as a series in
+    $\sin^2\theta = |B_m^\top b|^2 / |b|^2$ near $b = m$ (no square root of it, so derivatives of
+    any order are finite there), $\mathrm{atan2}(|B_m^\top b|, m^\top b) / |B_m^\top b|$ above
+    $\sin^2\theta = 10^{-2}$. At $b = -m$ (to rounding: $\sin\theta \le \epsilon$), where the
+    logarithm has no direction, it is $(\pi, 0)$ (GTSAM's `Unit3::localCoordinates` returns the
+    same there) with derivative 0; near it the derivative grows like $1 / \sin\theta$."""
     projected = s2.error(measured, predicted)  # B_m^T b
-    sine_squared = dot(projected, projected)[..., None]
-    cosine = dot(measured, predicted)[..., None]
-    series = (sine_squared < _SERIES_LIMIT) & (cosine > 0)
-    antipode = (sine_squared == 0) & (cosine <= 0)
+    sine_squared = dot(projected, projected)[..., None]  # |b|² sin² θ
+    cosine = dot(measured, predicted)[..., None]  # |b| cos θ
+    series = (sine_squared < _SERIES_LIMIT * (sine_squared + cosine**2)) & (cosine > 0)
+    eps = jnp.finfo(projected.dtype).eps
+    antipode = (cosine < 0) & (sine_squared <= (eps * cosine) ** 2)  # θ within rounding of π
     sine = jnp.sqrt(jnp.where(series | antipode, 1.0, sine_squared))
     closed = jnp.arctan2(sine, cosine) / sine
-    s = jnp.where(series, sine_squared, 0.0)
+    # the series in sin² θ, over |b| = sqrt(|b|² sin² θ + |b|² cos² θ): a function of b's direction
+    length_squared = jnp.where(series, sine_squared + cosine**2, 1.0)
+    s = jnp.where(series, sine_squared / length_squared, 0.0)
     summed = jnp.full_like(s, _THETA_OVER_SINE[-1])
     for coefficient in reversed(_THETA_OVER_SINE[:-1]):
         summed = summed * s + coefficient
-    error = jnp.where(series, summed, closed) * projected
+    error = jnp.where(series, summed / jnp.sqrt(length_squared), closed) * projected
     pi_along_first = jnp.zeros_like(projected).at[..., 0].set(jnp.pi)
     return jnp.where(antipode, pi_along_first, error)
 

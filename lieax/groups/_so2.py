@@ -216,8 +216,9 @@ def _relative_bearing_jvp(primals, tangents):
     r"""$\dot\theta = (J u)^\top \dot d / |d| = (d_x \dot d_y - d_y \dot d_x) / |d|^2$ (GTSAM's
     Rot2.cpp: $H = (-d_y, d_x) / |d|^2$), written as the carrier $(0, \dot\theta)$; 0 at $d = 0$."""
     (d,), (d_dot,) = primals, tangents
-    cs, length, nonzero = unit_and_length(d)
-    theta_dot = jnp.where(nonzero, dot(perp(cs), d_dot)[..., None] / length, 0)
+    u, length, nonzero = unit_and_length(d)
+    cs = relative_bearing(d)  # through the kernel: its own derivative is a carrier
+    theta_dot = jnp.where(nonzero, dot(perp(u), d_dot)[..., None] / length, 0)
     return cs, from_local(cs, theta_dot)
 
 
