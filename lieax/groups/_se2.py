@@ -7,8 +7,9 @@ Tangent carrier (the local carrier of `lieax.groups._base`): the 4-vector tangen
 parameter leaf holds $(\rho, \omega, v)$, aligned with the parameter slots (SO2's carrier in the
 $(c, s)$ slot, the local translation $v$ in the translation slot), so kernels read and write local
 tangents without conversion; `SE2(params)`, `parameters()`, `translation()` and the constructors
-convert where raw arrays cross the API. Every rule but `act`'s and `from_matrix`'s is the generic
-one of `lieax.groups._generic`.
+convert where raw arrays cross the API. Every rule but `act`'s, `from_matrix`'s and
+`transform_to`'s (behind `bearing`, with `lieax.groups._so2.relative_bearing`) is the generic one
+of `lieax.groups._generic`.
 
 Notation: $J = [[0, -1], [1, 0]]$ (the rotation by $+\pi/2$, `perp`), and the coefficients are the
 $g_n(s)$ of `lieax.groups._series` at $s = \omega^2$ ($g_1 = \sin\omega/\omega$,

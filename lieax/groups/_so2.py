@@ -7,7 +7,8 @@ the parameter leaf holds $(\rho, \theta)$ with $\dot z = z\,(\rho + i\theta)$ ($
 part, zero on the circle), so kernels read and write $\theta$ directly; `SO2(cs)` and
 `parameters()` convert to and from the raw derivative, $(\rho, \theta) = \bar z \dot z / |z|^2$.
 SO(2) is commutative: its adjoint and Jacobians of Exp are $[1]$, $\mathrm{ad} = [0]$, so every
-rule but `act`'s and `from_matrix`'s is the generic one of `lieax.groups._generic`.
+rule but `act`'s, `from_matrix`'s and `relative_bearing`'s is the generic one of
+`lieax.groups._generic`.
 
 Formulas: Solà, Deray, Atchuthan, "A micro Lie theory for state estimation in robotics" (2018),
 App. A; the coefficients are the $g_n$ of `lieax.groups._series`.
