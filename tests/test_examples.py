@@ -17,7 +17,7 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent
 EXAMPLES = ROOT / "examples"
 TESTED = {
     "attitude_estimation", "batch_icp", "bundle_adjustment", "chain_jacobians", "icp_demo",
-    "inertial_navigation", "pose_graph", "stereo_vo",
+    "inertial_navigation", "landmark_slam", "pose_graph", "stereo_vo",
 }  # fmt: skip
 
 try:
@@ -190,3 +190,28 @@ def test_stereo_vo_matches_gtsam():
     assert summary["gtsam_behind"] == summary["behind_final"]
     assert summary["relative_difference"] < 1e-6
     assert summary["relative_difference_in_front"] < 1e-6
+
+
+@functools.cache
+def landmark_slam_summary():
+    """`examples/landmark_slam.py` at a small size, run once for the two tests below."""
+    return load("landmark_slam").main(["--poses", "80", "--landmarks", "15"])
+
+
+def test_landmark_slam():
+    """The 2D landmark SLAM example: the solve converges, far below the start's cost, and its
+    poses are closer to the truth than dead reckoning."""
+    summary = landmark_slam_summary()
+    assert summary["status"] == "CONVERGED"
+    assert summary["cost"] < 0.1 * summary["initial_cost"]
+    assert summary["position_rms"] < 0.5 * summary["start_position_rms"]
+    assert summary["landmark_rms"] < 0.5
+
+
+def test_landmark_slam_matches_gtsam():
+    """GTSAM's solve of the same graph (`PriorFactorPose2`, `BetweenFactorPose2`,
+    `BearingRangeFactor2D`, Levenberg-Marquardt) ends at lieax's final cost to 1e-6 relative."""
+    pytest.importorskip("gtsam")
+    summary = landmark_slam_summary()
+    assert summary["gtsam_initial_cost"] == pytest.approx(summary["initial_cost"], rel=1e-12)
+    assert summary["cost"] == pytest.approx(summary["gtsam_cost"], rel=1e-6)

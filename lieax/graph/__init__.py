@@ -16,9 +16,21 @@ the jitted loop on the host; `solver="cg"` keeps everything in JAX (block-Jacobi
 conjugate gradients) for accelerators. Conventions: see the README's "Conventions" (right
 perturbations, translation-first tangents; g2o's SE3 information, ordered translation then
 rotation, is used as read). Plot a graph with `lieax.viz.plot_pose_graph(graph, poses)`.
+
+Landmarks: `bearing_range_factor(poses[i], landmarks[j], bearings, ranges, sigmas=...)` is a
+`lieax.factorgraph.Factor` kind of bearing-range sightings (GTSAM's `BearingRangeFactor2D` /
+`3D`), from `SE2.bearing` / `range` (the bearing residual wrapped, $\mathrm{Log}(Z^{-1}\hat Z)$)
+or `SE3.bearing` / `range`; add it to the factors of `to_factor_graph` or of a graph of your own
+(`examples/landmark_slam.py`).
 """
 
 from ..factorgraph._sparse import BlockPattern, CholeskyPlan, block_matvec, pcg
+from ._bearing_range import (
+    bearing_range_error,
+    bearing_range_factor,
+    bearing_range_jacobians_2d,
+    direction_error,
+)
 from ._factor_graph import to_factor_graph
 from ._factors import between_error, between_jacobians, cost, prior_error, prior_jacobian
 from ._g2o import G2oError, G2oWarning, read_g2o, write_g2o
@@ -41,11 +53,15 @@ __all__ = [
     "Status",
     "ToroError",
     "ToroWarning",
+    "bearing_range_error",
+    "bearing_range_factor",
+    "bearing_range_jacobians_2d",
     "between_error",
     "between_jacobians",
     "block_matvec",
     "chordal_initialization",
     "cost",
+    "direction_error",
     "optimize",
     "pcg",
     "prior_error",

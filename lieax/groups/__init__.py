@@ -5,7 +5,7 @@ its operations, `ad`, `Jr`, `Jr⁻¹`, `hat`, `vee`, the carrier maps, its actio
 class; `_base` holds what every group shares (the kernel protocol and the one tangent-carrier
 convention), `_generic` the closed-form `custom_jvp` rules written once for every group, `_rules`
 the rule shapes that recur, `_series` the series coefficients of Exp, Log and their Jacobians near
-zero.
+zero, `_bearing_range` the range and 3D bearing of a point in a frame (safe at the origin).
 """
 
 from ._base import AbstractGroup, AbstractManifold

@@ -7,8 +7,9 @@ Tangent carrier (the local carrier of `lieax.groups._base`): the 4-vector tangen
 parameter leaf holds $(\rho, \omega, v)$, aligned with the parameter slots (SO2's carrier in the
 $(c, s)$ slot, the local translation $v$ in the translation slot), so kernels read and write local
 tangents without conversion; `SE2(params)`, `parameters()`, `translation()` and the constructors
-convert where raw arrays cross the API. Every rule but `act`'s and `from_matrix`'s is the generic
-one of `lieax.groups._generic`.
+convert where raw arrays cross the API. Every rule but `act`'s, `from_matrix`'s and
+`transform_to`'s (behind `bearing`, with `lieax.groups._so2.relative_bearing`) is the generic one
+of `lieax.groups._generic`.
 
 Notation: $J = [[0, -1], [1, 0]]$ (the rotation by $+\pi/2$, `perp`), and the coefficients are the
 $g_n(s)$ of `lieax.groups._series` at $s = \omega^2$ ($g_1 = \sin\omega/\omega$,
@@ -27,6 +28,7 @@ from .._checks import broadcast_batch, check_last_axis, common_float_arrays, mat
 from . import _generic, _rules
 from . import _so2 as so2
 from ._base import AbstractGroup
+from ._bearing_range import norm
 from ._series import g
 from ._so2 import SO2, perp, rotate, unrotate
 from ._so3 import jr_inverse_coefficient
@@ -229,6 +231,27 @@ def _act_jvp(primals, tangents):
     return _rules.finish(moved, rotate(so2.to_parameters(params[..., :2]), direction))
 
 
+@jax.custom_jvp
+def transform_to(params, points):
+    r"""$X^{-1} p = R^\top (p - t)$, the points in the pose's frame (GTSAM's `Pose2::transformTo`)."""
+    return unrotate(params[..., :2], points - params[..., 2:])
+
+
+@_rules.defjvp(transform_to)
+def _transform_to_jvp(primals, tangents):
+    r"""$\dot d = -(v + \omega J d) + R^\top \dot p$: blocks $[-I,\ -J d]$ and $R^\top$ (GTSAM's
+    Pose2.cpp, `transformTo`: $[[-1, 0, d_y], [0, -1, -d_x]]$ and $R^\top$)."""
+    (params, points), (carrier, points_dot) = primals, tangents
+    local = transform_to(params, points)
+    moved = _rules.add(
+        None if _rules.is_zero(carrier) else -(carrier[..., 2:] + carrier[..., 1:2] * perp(local)),
+        None
+        if _rules.is_zero(points_dot)
+        else unrotate(so2.to_parameters(params[..., :2]), points_dot),
+    )
+    return _rules.finish(local, moved)
+
+
 def join(cs, translation):
     """SE2 parameters from SO2 parameters and a raw translation, broadcasting batch shapes (through
     the carrier maps, so the rotation's carrier and the translation's derivative both convert)."""
@@ -285,6 +308,43 @@ class SE2(AbstractGroup):
     def as_xy_theta(self) -> jax.Array:
         r"""`(x, y, theta)` on the last axis, theta in $(-\pi, \pi]$; inverse of `from_xy_theta`."""
         return jnp.concatenate([self.translation(), so2.log(self._params[..., :2])], axis=-1)
+
+    def bearing(self, target) -> SO2:
+        r"""The direction of `target` seen from this pose, as an `SO2` (GTSAM's `Pose2::bearing`,
+        which returns a `Rot2`): $\mathrm{atan2}(d_y, d_x)$ of $d = X^{-1} p$, for points $p$ of
+        shape `(*batch, 2)` or the positions $p = t_Y$ of another `SE2` $Y$, broadcasting batch
+        shapes. An `SO2` rather than an angle so that the residual against a measured bearing $Z$
+        is `X.bearing(p).rminus(Z)` $= \mathrm{Log}(Z^{-1}\hat Z)$, wrapped into $(-\pi, \pi]$
+        (an angle difference is $2\pi$ off across $\pm\pi$); `.as_angle()` gives the angle.
+
+        Jacobians (right-local, rule of `transform_to` then `SO2.relative_bearing`; GTSAM's
+        Pose2.cpp): $\partial\theta / \partial X = (d_y, -d_x, -|d|^2) / |d|^2$,
+        $\partial\theta / \partial p = (J d)^\top R^\top / |d|^2$, and for a pose target
+        $(\partial\theta / \partial p)\,[R_Y, 0]$. At $d = 0$ (the point at the pose's origin):
+        the identity (heading along the pose's x axis), derivatives 0."""
+        points = self._target_points(target, "bearing")
+        return SO2._wrap(so2.relative_bearing(transform_to(self._params, points)))
+
+    def range(self, target) -> jax.Array:
+        r"""The distance $|p - t|$ from this pose to `target`, points of shape `(*batch, 2)` or
+        another `SE2`'s position, shape `(*batch,)` (GTSAM's `Pose2::range`). Jacobians
+        (right-local): $\partial r / \partial X = (-u^\top R, 0)$, $\partial r / \partial p = u^\top$
+        with $u = (p - t) / r$ (and $u^\top R_Y$ on a pose target's translation); at $r = 0$ the
+        range is 0 with derivatives 0 (`lieax.groups._bearing_range`)."""
+        points = self._target_points(target, "range")
+        return norm(points - self.translation())
+
+    def _target_points(self, target, operation):
+        """The positions a bearing or range is taken to: an `SE2`'s translation or 2D points."""
+        if isinstance(target, AbstractGroup):
+            self._check_same_group(target, operation)
+            points = target.translation()
+        else:
+            name = f"SE2.{operation} target"
+            points = match_dtype(target, self.dtype, name, "the SE2")
+            points = check_last_axis(points, 2, name, "2D points or an SE2")
+        broadcast_batch(f"SE2.{operation}", self.batch_shape, points.shape[:-1])
+        return points
 
     def rotation(self) -> SO2:
         """$R$, an `SO2` of the same batch shape."""

@@ -33,9 +33,11 @@ from .._linalg import (
     skew,
     unskew,
 )
+from . import _bearing_range as bearing_range
 from . import _generic, _procrustes, _rules
 from . import _so3 as so3
 from ._base import AbstractGroup
+from ._s2 import S2
 from ._series import g
 from ._sim3 import Sim3
 from ._so3 import SO3
@@ -236,6 +238,30 @@ def _act_jvp(primals, tangents):
     return _rules.finish(moved, matvec(so3.as_matrix(params[..., :4]), direction))
 
 
+@jax.custom_jvp
+def transform_to(params, points):
+    r"""$T^{-1} p = R^\top (p - t)$, the points in the pose's frame (GTSAM's `Pose3::transformTo`)."""
+    q, t = _split(params)
+    return rotate_back(quat_to_matrix(q), points - t)
+
+
+@_rules.defjvp(transform_to)
+def _transform_to_jvp(primals, tangents):
+    r"""$\dot d = -(v + \omega \times d) + R^\top \dot p$: blocks $[-I,\ [d]_\times]$ and $R^\top$
+    (GTSAM's Pose3.cpp, `transformTo`, in the order $(\omega, v)$: $[[d]_\times, -I]$)."""
+    (params, points), (params_dot, points_dot) = primals, tangents
+    local = transform_to(params, points)
+    moved = _rules.add(
+        None
+        if _rules.is_zero(params_dot)
+        else -(params_dot[..., 4:] + cross(params_dot[..., 1:4], local)),
+        None
+        if _rules.is_zero(points_dot)
+        else rotate_back(so3.as_matrix(params[..., :4]), points_dot),
+    )
+    return _rules.finish(local, moved)
+
+
 def _adjoint(params):
     r"""$\mathrm{Ad}_T = [R, [t]_\times R; 0, R]$ (translation-first tangents; Solà eq. 178)."""
     q, t = _split(params)
@@ -348,6 +374,41 @@ class SE3(AbstractGroup):
             return Sim3.align(points_a, points_b, weights)
         q, t, _ = _procrustes.solve(points_a, points_b, weights, with_scale=False, what="SE3.align")
         return cls._wrap(join(q, t))
+
+    def bearing(self, target) -> S2:
+        r"""The direction of `target` seen from this pose, in the pose's frame, as an `S2`
+        (GTSAM's `Pose3::bearing`, which returns a `Unit3`): $d / |d|$ of $d = T^{-1} p$, for
+        points $p$ of shape `(*batch, 3)` or the positions $p = t_Y$ of another `SE3` $Y$,
+        broadcasting batch shapes.
+
+        Derivatives (rules of `transform_to` and `lieax.groups._bearing_range.direction`; GTSAM's
+        Pose3.cpp and Unit3.cpp): with $b = d / |d|$ and $P = (I - b b^\top) / |d|$,
+        $\dot b = P\,(-v - \omega \times d + R^\top \dot p)$, so in S2's tangent $B_b$ the blocks are
+        $B_b^\top P\,[-I,\ [d]_\times]$ and $B_b^\top P R^\top$ (and $\cdot\,[R_Y, 0]$ for a pose
+        target). At $d = 0$: the x axis $(1, 0, 0)$, derivatives 0."""
+        points = self._target_points(target, "bearing")
+        return S2._wrap(bearing_range.direction(transform_to(self._params, points)))
+
+    def range(self, target) -> jax.Array:
+        r"""The distance $|p - t|$ from this pose to `target`, points of shape `(*batch, 3)` or
+        another `SE3`'s position, shape `(*batch,)` (GTSAM's `Pose3::range`). Jacobians
+        (right-local): $\partial r / \partial T = (-u^\top R, 0)$, $\partial r / \partial p = u^\top$
+        with $u = (p - t) / r$ (and $u^\top R_Y$ on a pose target's translation); at $r = 0$ the
+        range is 0 with derivatives 0 (`lieax.groups._bearing_range`)."""
+        points = self._target_points(target, "range")
+        return bearing_range.norm(points - self.translation())
+
+    def _target_points(self, target, operation):
+        """The positions a bearing or range is taken to: an `SE3`'s translation or 3D points."""
+        if isinstance(target, AbstractGroup):
+            self._check_same_group(target, operation)
+            points = target.translation()
+        else:
+            name = f"SE3.{operation} target"
+            points = match_dtype(target, self.dtype, name, "the SE3")
+            points = check_last_axis(points, 3, name, "3D points or an SE3")
+        broadcast_batch(f"SE3.{operation}", self.batch_shape, points.shape[:-1])
+        return points
 
     def rotation(self) -> SO3:
         return SO3._wrap(self._params[..., :4])

@@ -7,7 +7,8 @@ the parameter leaf holds $(\rho, \theta)$ with $\dot z = z\,(\rho + i\theta)$ ($
 part, zero on the circle), so kernels read and write $\theta$ directly; `SO2(cs)` and
 `parameters()` convert to and from the raw derivative, $(\rho, \theta) = \bar z \dot z / |z|^2$.
 SO(2) is commutative: its adjoint and Jacobians of Exp are $[1]$, $\mathrm{ad} = [0]$, so every
-rule but `act`'s and `from_matrix`'s is the generic one of `lieax.groups._generic`.
+rule but `act`'s, `from_matrix`'s and `relative_bearing`'s is the generic one of
+`lieax.groups._generic`.
 
 Formulas: Solà, Deray, Atchuthan, "A micro Lie theory for state estimation in robotics" (2018),
 App. A; the coefficients are the $g_n$ of `lieax.groups._series`.
@@ -18,9 +19,10 @@ import sys
 import jax
 import jax.numpy as jnp
 
-from .._checks import as_float_array
+from .._checks import as_float_array, check_last_axis
 from . import _generic, _rules
 from ._base import AbstractGroup
+from ._bearing_range import unit_and_length
 from ._series import g
 
 # ---- planar algebra on the last axis ------------------------------------------------------------
@@ -202,6 +204,25 @@ def _act_jvp(primals, tangents):
     return _rules.finish(moved, rotate(to_parameters(cs), direction))
 
 
+@jax.custom_jvp
+def relative_bearing(d):
+    r"""The rotation $(c, s) = d / |d|$ by the angle $\mathrm{atan2}(d_y, d_x)$ of the direction
+    of $d$ (GTSAM's `Rot2::relativeBearing`); the identity $(1, 0)$ at $d = 0$ (see
+    `lieax.groups._bearing_range`)."""
+    return unit_and_length(d)[0]
+
+
+@relative_bearing.defjvp
+def _relative_bearing_jvp(primals, tangents):
+    r"""$\dot\theta = (J u)^\top \dot d / |d| = (d_x \dot d_y - d_y \dot d_x) / |d|^2$ (GTSAM's
+    Rot2.cpp: $H = (-d_y, d_x) / |d|^2$), written as the carrier $(0, \dot\theta)$; 0 at $d = 0$."""
+    (d,), (d_dot,) = primals, tangents
+    u, length, nonzero = unit_and_length(d)
+    cs = relative_bearing(d)  # through the kernel: its own derivative is a carrier
+    theta_dot = jnp.where(nonzero, dot(perp(u), d_dot)[..., None] / length, 0)
+    return cs, from_local(cs, theta_dot)
+
+
 def sample_uniform(key, batch_shape, dtype):
     """Uniform rotations: a normalized standard normal 2-vector."""
     return normalize(jax.random.normal(key, (*batch_shape, 2), dtype=dtype))
@@ -222,6 +243,16 @@ class SO2(AbstractGroup):
         """From angles of shape `(*batch,)` (radians, counter-clockwise)."""
         theta = as_float_array(theta, "SO2.from_angle theta")
         return cls._wrap(exp(theta[..., None]))
+
+    @classmethod
+    def relative_bearing(cls, direction):
+        r"""The rotation by the angle $\mathrm{atan2}(d_y, d_x)$ of 2D vectors $d$ of shape
+        `(*batch, 2)`: GTSAM's `Rot2::relativeBearing`, the bearing of a point $d$ seen from the
+        origin (`SE2.bearing` is it of $X^{-1} p$). The identity where $d = 0$, with a zero
+        derivative (never NaN); elsewhere the derivative is $\dot\theta = (d_x \dot d_y -
+        d_y \dot d_x) / |d|^2$, also under `jax.grad` of any order."""
+        direction = check_last_axis(direction, 2, "SO2.relative_bearing direction", "x, y")
+        return cls._wrap(relative_bearing(direction))
 
     def as_angle(self) -> jax.Array:
         r"""The angle in $(-\pi, \pi]$, shape `(*batch,)` (`log()` without its last axis)."""
