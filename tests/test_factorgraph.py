@@ -691,3 +691,34 @@ def test_pose_graph_blocks_match_finite_differences(group):
         if angle < np.pi - 1e-3:  # central differences would cross π
             for block, expected in zip(blocks, fd):
                 np.testing.assert_allclose(block, expected, atol=1e-6)
+
+
+# ---- issue 32 ---------------------------------------------------------------------------------
+
+
+def test_x64_switched_on_after_a_graph_was_built():
+    """A graph built in 32-bit mode refuses to run once `jax_enable_x64` is on (it would run in
+    float32, or fail on int32 and int64 indices), and the same structure built again in 64-bit
+    mode is analysed again and solves in float64 (it took the 32-bit graph's cached structure,
+    and its Schur solve failed on `int32` and `int64` indices)."""
+    ba = pytest.importorskip("lieax.ba")
+
+    def build():
+        problem = ba.synthetic_bal(3, 10, 25, seed=2).problem
+        cameras = Var(problem.camera_variables(), fixed=[0], name="cameras")
+        points = Var(jnp.asarray(problem.points), fixed=[0], name="points")
+        args = (cameras[problem.camera_indices], points[problem.point_indices])
+        observed = jnp.asarray(problem.observations)
+        factor = Factor(ba.camera_residual, args, observed, jacobian_fn=ba.camera_jacobians)
+        return FactorGraph([factor], check_gauge=False), points
+
+    with jax.enable_x64(False):
+        narrow, points = build()
+        result = narrow.solve(eliminate=points, solver="dense")
+        assert result.values[1].dtype == jnp.float32
+    with pytest.raises(ValueError, match=r"built with jax_enable_x64=False and is used with"):
+        narrow.solve(eliminate=points, solver="dense")
+    wide, points = build()
+    assert wide.layout is not narrow.layout
+    result = wide.solve(eliminate=points, solver="dense")
+    assert result.status_name == "CONVERGED" and result.values[1].dtype == jnp.float64

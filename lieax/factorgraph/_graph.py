@@ -81,6 +81,9 @@ class FactorGraph:
         self.variables = variables
         shapes = {}  # kinds with one residual and the same argument shapes are traced once
         self.residual_dims = tuple(_check_factor(f, shapes) for f in factors)
+        # JAX's 64-bit mode when the graph was built: its host index arrays are traced into the
+        # loop as constants, and JAX keeps their 32-bit conversions across a later switch
+        self._x64 = bool(jax.config.jax_enable_x64)
         key = (
             tuple(
                 (jax.tree_util.tree_structure(v.value), v.leaf_dims, v.count, digest(v.fixed))
@@ -94,6 +97,7 @@ class FactorGraph:
                 for f in factors
             ),
             check_gauge,
+            self._x64,
         )
         cached = _CACHE.get(key)
         if cached is None:
@@ -146,6 +150,7 @@ class FactorGraph:
         compiled once per graph)."""
         from ._assembly import cost
 
+        self._check_x64()
         if self._cost is None:  # one compilation, not one per operation on first use
             self._cost = jax.jit(lambda v, d: cost(self.factors, self.plans, v, d))
         values = self.initial_values if values is None else tuple(values)
@@ -156,12 +161,27 @@ class FactorGraph:
         masked), per kind and per pair of kinds of `layout` (jitted, compiled once per graph)."""
         from ._assembly import linearize
 
+        self._check_x64()
         if self._linearize is None:
             self._linearize = jax.jit(
                 lambda v, d: linearize(self.layout, self.factors, self.plans, v, d)
             )
         values = self.initial_values if values is None else tuple(values)
         return self._linearize(values, self._data(data))
+
+    def _check_x64(self):
+        """`ValueError` when JAX's 64-bit mode changed since the graph was built: its arrays
+        (values, data, and the structure's index arrays, whose conversions JAX keeps) have the
+        widths of the mode they were made in, so the solve would run in float32 after
+        `jax_enable_x64` was switched on, or fail on mixed integer widths. A graph built again
+        in the new mode gets a structure of its own (the cache is keyed by the mode)."""
+        x64 = bool(jax.config.jax_enable_x64)
+        if x64 != self._x64:
+            raise ValueError(
+                f"this FactorGraph was built with jax_enable_x64={self._x64} and is used with "
+                f"jax_enable_x64={x64}: build its Vars, Factors and FactorGraph again after "
+                "switching (better: set jax_enable_x64 once, at startup, before making arrays)."
+            )
 
     def _data(self, data):
         if data is None:
@@ -229,6 +249,7 @@ class FactorGraph:
 
         **Returns:** a `SolveResult`.
         """
+        self._check_x64()
         loop = self._loop(
             solver, eliminate, max_iterations, algorithm, damping, lambda_update, retraction,
             verbose, cg_max_iterations,
