@@ -19,6 +19,7 @@ again; an outer iteration ends with a taken step, or without one when the cost c
 import dataclasses
 import hashlib
 
+import jax
 import numpy as np
 
 from .. import retractions
