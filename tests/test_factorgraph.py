@@ -722,3 +722,30 @@ def test_x64_switched_on_after_a_graph_was_built():
     assert wide.layout is not narrow.layout
     result = wide.solve(eliminate=points, solver="dense")
     assert result.status_name == "CONVERGED" and result.values[1].dtype == jnp.float64
+
+
+@pytest.mark.parametrize("algorithm", ["levenberg_marquardt", "gauss_newton"])
+def test_an_exact_fit_converges_with_absolute_tolerance_zero(algorithm):
+    """Noise-free bundle adjustment, gauge fixed at the truth, `absolute_tolerance=0`: the cost
+    falls to the floating-point floor (about 1e-27 from 323) and the solve ends CONVERGED (it
+    ended DIVERGED, damping exhausted on rounding noise, and Gauss-Newton ran to
+    MAX_ITERATIONS)."""
+    import dataclasses
+
+    ba = pytest.importorskip("lieax.ba")
+    generated = ba.synthetic_bal(3, 10, 25, noise=0.0, seed=2)
+    cameras, points = generated.problem.cameras.copy(), generated.problem.points.copy()
+    cameras[0], points[0] = generated.truth.cameras[0], generated.truth.points[0]
+    problem = dataclasses.replace(generated.problem, cameras=cameras, points=points)
+    cameras = Var(problem.camera_variables(), fixed=[0], name="cameras")
+    points = Var(jnp.asarray(problem.points), fixed=[0], name="points")
+    args = (cameras[problem.camera_indices], points[problem.point_indices])
+    observed = jnp.asarray(problem.observations)
+    graph = FactorGraph(
+        [Factor(ba.camera_residual, args, observed, jacobian_fn=ba.camera_jacobians)],
+        check_gauge=False,
+    )
+    result = graph.solve(eliminate=points, algorithm=algorithm, absolute_tolerance=0.0)
+    assert result.status_name == "CONVERGED"
+    assert float(result.cost) < 1e-18 * float(graph.cost())
+    np.testing.assert_allclose(result.values[1], generated.truth.points, atol=1e-9)
