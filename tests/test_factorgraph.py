@@ -447,7 +447,7 @@ def test_bad_input_errors():
         FactorGraph([Factor(between, (poses[np.r_[-1, i[1:]]], poses[j]), measured)])
     with pytest.raises(ValueError, match=r"sqrt_information must have shape \(3, 3\)"):
         FactorGraph([Factor(between, (poses[i], poses[j]), measured, sqrt_information=np.eye(2))])
-    with pytest.raises(ValueError, match="not symmetric positive definite"):
+    with pytest.raises(ValueError, match="not symmetric positive semi-definite"):
         Factor(between, (poses[i], poses[j]), measured, information=-np.eye(3))
     with pytest.raises(ValueError, match=r"sqrt_information 2 is not finite"):
         roots = np.tile(np.eye(3), (len(i), 1, 1))
