@@ -5,9 +5,34 @@ import jax.numpy as jnp
 import numpy as np
 
 
+def foreign_conversion(x):
+    """How to turn `x` into what lieax takes, when it is an object of a library lieax users come
+    from, or `None`: a jaxlie group (its `parameters()` are lieax's parameters in the same
+    order: wxyz / `(w, x, y, z, tx, ty, tz)` for SO3 / SE3, `(cos, sin)` / `(cos, sin, x, y)`
+    for SO2 / SE2) or an Open3D point cloud (`np.asarray(cloud.points)`, an `(n, 3)` array)."""
+    kind = type(x)
+    module = kind.__module__ or ""
+    if module.split(".")[0] == "jaxlie" and kind.__name__ in ("SO2", "SE2", "SO3", "SE3"):
+        return f"a jaxlie.{kind.__name__}: convert it with lieax.{kind.__name__}(x.parameters())"
+    if module.split(".")[0] == "open3d" and hasattr(x, "points"):
+        return f"an Open3D {kind.__name__}: pass np.asarray(cloud.points) (an (n, 3) array)"
+    return None
+
+
+def check_not_foreign(x, what: str) -> None:
+    """`TypeError` naming `what` and the conversion when `x` is a jaxlie group or an Open3D
+    point cloud (`foreign_conversion`); JAX would fail on it with an error about dtype
+    `object`, or take a jaxlie group for a plain array of its parameters."""
+    conversion = foreign_conversion(x)
+    if conversion is not None:
+        raise TypeError(f"{what} is {conversion}.")
+
+
 def as_float_array(x, what: str) -> jnp.ndarray:
-    """`x` as a JAX array with a floating dtype; `TypeError` naming `what` otherwise. A Python
+    """`x` as a JAX array with a floating dtype; `TypeError` naming `what` otherwise (with the
+    conversion, for a jaxlie group or an Open3D point cloud: `check_not_foreign`). A Python
     number (`0`, `1`) states no dtype and becomes the default float (float64 under x64)."""
+    check_not_foreign(x, what)
     if isinstance(x, (int, float)) and not isinstance(x, bool):
         x = jnp.asarray(x, dtype=jnp.result_type(float))
     x = jnp.asarray(x)

@@ -163,7 +163,13 @@ def test_bal_camera_converters_match_scipy():
     )
     np.testing.assert_allclose(pose.translation(), cameras[:, 3:6], rtol=1e-15)
     np.testing.assert_array_equal(intrinsics, cameras[:, 6:])
-    np.testing.assert_allclose(ba.camera_to_bal(pose, intrinsics), cameras, atol=1e-12)
+    back = ba.camera_to_bal(pose, intrinsics)
+    np.testing.assert_allclose(back, cameras, atol=1e-12)
+    # writable NumPy, as SciPy takes it (a read-only view was refused: issue 32)
+    assert isinstance(back, np.ndarray) and back.flags.writeable
+    np.testing.assert_allclose(
+        Rotation.from_rotvec(back[:, :3]).as_matrix(), pose.rotation().as_matrix(), atol=1e-14
+    )
     # the lieax projection and the generator's NumPy one agree
     points = rng.normal(size=(len(cameras), 3)) + np.array([0.0, 0.0, -5.0])
     u, _ = ba.project_numpy(cameras, points)

@@ -215,3 +215,59 @@ def test_unflatten_tangents_rejects_a_short_vector():
     tree = {"pose": SE2.identity(), "v": jnp.zeros(2)}
     with raises(ValueError, "5 entries", "(4,)"):
         lieax.unflatten_tangents(tree, jnp.zeros(4))
+
+
+# ---- what users of other libraries pass (issue 32) -----------------------------------------------
+
+
+def test_factor_graph_input_from_other_habits():
+    """A residual returning a tuple, data as nested lists, raw (x, y, θ) rows where the residual
+    wants SE2, float32 data with float64 variables: errors naming the factor kind (lists are
+    converted)."""
+    from lieax.factorgraph import Factor, FactorGraph, Var
+
+    poses = Var(SE2.exp(jnp.zeros((3, 3))), fixed=[0], name="poses")
+    i, j = np.array([0, 1]), np.array([1, 2])
+
+    def between(a, b, z):
+        return z.between(a.between(b)).log()
+
+    def both(a, b):
+        return a.between(b).log(), a.log()
+
+    with raises(ValueError, "'odometry'", "must return one array (k,)", "tuple"):
+        FactorGraph([Factor(both, (poses[i], poses[j]), name="odometry")])
+    rows = [[1.0, 0.0, 0.1], [1.0, 0.0, 0.1]]
+    factor = Factor(between, (poses[i], poses[j]), rows, name="odometry")
+    assert isinstance(factor.data, np.ndarray) and factor.data.shape == (2, 3)
+    with raises(ValueError, "'odometry'", "has no attribute between", "float64[3]", "lieax group"):
+        FactorGraph([factor])
+    planar = Factor(lambda x, p: x.translation() - p, (poses[np.arange(3)],), [[0.0, 1.0]] * 3)
+    assert FactorGraph([planar], check_gauge=False).residual_dims == (2,)
+    narrow = np.zeros((3, 2), np.float32)
+    gps = Factor(lambda x, p: x.translation() - p, (poses[np.arange(3)],), narrow, name="gps")
+    with raises(ValueError, "'gps': data", "float32", "variables have dtype float64"):
+        FactorGraph([gps], check_gauge=False)
+
+
+def test_foreign_types_name_their_conversion():
+    """A jaxlie group where lieax wants its own, an Open3D cloud where ICP wants points."""
+    from lieax.factorgraph import Factor, Var
+
+    jaxlie = pytest.importorskip("jaxlie")
+    pose = jaxlie.SE3.exp(jnp.zeros((3, 6)))
+    with raises(TypeError, "Var 'poses' value", "jaxlie.SE3", "lieax.SE3(x.parameters())"):
+        Var(pose, name="poses")
+    with raises(TypeError, "jaxlie.SE3", "lieax.SE3(x.parameters())"):
+        lieax.SE3(pose)
+    converted = lieax.SE3(pose.parameters())
+    np.testing.assert_allclose(converted.parameters(), pose.wxyz_xyz)
+    poses = Var(converted, name="poses")
+    with raises(TypeError, "Factor 'prior': data", "jaxlie.SE3"):
+        Factor(lambda x, z: z.between(x).log(), (poses[np.arange(3)],), pose, name="prior")
+
+    o3d = pytest.importorskip("open3d")
+    cloud = o3d.geometry.PointCloud()
+    cloud.points = o3d.utility.Vector3dVector(np.random.default_rng(0).normal(size=(20, 3)))
+    with raises(TypeError, "source", "Open3D PointCloud", "np.asarray(cloud.points)"):
+        lieax.icp.point_to_point(cloud, cloud, max_correspondence_distance=1.0)

@@ -447,7 +447,7 @@ def test_bad_input_errors():
         FactorGraph([Factor(between, (poses[np.r_[-1, i[1:]]], poses[j]), measured)])
     with pytest.raises(ValueError, match=r"sqrt_information must have shape \(3, 3\)"):
         FactorGraph([Factor(between, (poses[i], poses[j]), measured, sqrt_information=np.eye(2))])
-    with pytest.raises(ValueError, match="not symmetric positive definite"):
+    with pytest.raises(ValueError, match="not symmetric positive semi-definite"):
         Factor(between, (poses[i], poses[j]), measured, information=-np.eye(3))
     with pytest.raises(ValueError, match=r"sqrt_information 2 is not finite"):
         roots = np.tile(np.eye(3), (len(i), 1, 1))
@@ -459,7 +459,9 @@ def test_bad_input_errors():
         FactorGraph([Factor(gps, (poses[np.arange(5)],), bad, name="gps")])
     with pytest.raises(ValueError, match=r"leading axis 4"):
         FactorGraph([Factor(gps, (poses[np.arange(4)],), position, name="gps")])
-    with pytest.raises(ValueError, match=r"'poses'\[0\]\): their gauge is free"):
+    with pytest.raises(
+        ValueError, match=r"\[0\], priors constraining 0 of 3 .*: their gauge is free"
+    ):
         FactorGraph([Factor(between, (poses[i], poses[j]), measured)])
     with pytest.raises(ValueError, match=r"uses variable 'poses'\[2\] for arguments 0 and 1"):
         FactorGraph(
@@ -691,3 +693,161 @@ def test_pose_graph_blocks_match_finite_differences(group):
         if angle < np.pi - 1e-3:  # central differences would cross π
             for block, expected in zip(blocks, fd):
                 np.testing.assert_allclose(block, expected, atol=1e-6)
+
+
+# ---- issue 32 ---------------------------------------------------------------------------------
+
+
+def test_x64_switched_on_after_a_graph_was_built():
+    """A graph built in 32-bit mode refuses to run once `jax_enable_x64` is on (it would run in
+    float32, or fail on int32 and int64 indices), and the same structure built again in 64-bit
+    mode is analysed again and solves in float64 (it took the 32-bit graph's cached structure,
+    and its Schur solve failed on `int32` and `int64` indices)."""
+    ba = pytest.importorskip("lieax.ba")
+
+    def build():
+        problem = ba.synthetic_bal(3, 10, 25, seed=2).problem
+        cameras = Var(problem.camera_variables(), fixed=[0], name="cameras")
+        points = Var(jnp.asarray(problem.points), fixed=[0], name="points")
+        args = (cameras[problem.camera_indices], points[problem.point_indices])
+        observed = jnp.asarray(problem.observations)
+        factor = Factor(ba.camera_residual, args, observed, jacobian_fn=ba.camera_jacobians)
+        return FactorGraph([factor], check_gauge=False), points
+
+    with jax.enable_x64(False):
+        narrow, points = build()
+        result = narrow.solve(eliminate=points, solver="dense")
+        assert result.values[1].dtype == jnp.float32
+    with pytest.raises(ValueError, match=r"built with jax_enable_x64=False and is used with"):
+        narrow.solve(eliminate=points, solver="dense")
+    wide, points = build()
+    assert wide.layout is not narrow.layout
+    result = wide.solve(eliminate=points, solver="dense")
+    assert result.status_name == "CONVERGED" and result.values[1].dtype == jnp.float64
+
+
+@pytest.mark.parametrize("algorithm", ["levenberg_marquardt", "gauss_newton"])
+def test_an_exact_fit_converges_with_absolute_tolerance_zero(algorithm):
+    """Noise-free bundle adjustment, gauge fixed at the truth, `absolute_tolerance=0`: the cost
+    falls to the floating-point floor (about 1e-27 from 323) and the solve ends CONVERGED (it
+    ended DIVERGED, damping exhausted on rounding noise, and Gauss-Newton ran to
+    MAX_ITERATIONS)."""
+    import dataclasses
+
+    ba = pytest.importorskip("lieax.ba")
+    generated = ba.synthetic_bal(3, 10, 25, noise=0.0, seed=2)
+    cameras, points = generated.problem.cameras.copy(), generated.problem.points.copy()
+    cameras[0], points[0] = generated.truth.cameras[0], generated.truth.points[0]
+    problem = dataclasses.replace(generated.problem, cameras=cameras, points=points)
+    cameras = Var(problem.camera_variables(), fixed=[0], name="cameras")
+    points = Var(jnp.asarray(problem.points), fixed=[0], name="points")
+    args = (cameras[problem.camera_indices], points[problem.point_indices])
+    observed = jnp.asarray(problem.observations)
+    graph = FactorGraph(
+        [Factor(ba.camera_residual, args, observed, jacobian_fn=ba.camera_jacobians)],
+        check_gauge=False,
+    )
+    result = graph.solve(eliminate=points, algorithm=algorithm, absolute_tolerance=0.0)
+    assert result.status_name == "CONVERGED"
+    assert float(result.cost) < 1e-18 * float(graph.cost())
+    np.testing.assert_allclose(result.values[1], generated.truth.points, atol=1e-9)
+
+
+def partial_prior_chain(n=6, seed=8):
+    """An SE2 chain whose priors on poses 0 and 3 hold positions only (rotation unconstrained,
+    GTSAM's zero rotation precision): truth, indices, measurements, start."""
+    rng = np.random.default_rng(seed)
+    truth, i, j, measured, _, start = chain(n=n, seed=seed)
+    anchors = np.array([0, 3])
+    priors = truth[anchors].rplus(jnp.asarray(rng.normal(size=(2, 3)) * 0.05))
+    return truth, i, j, measured, start, anchors, priors
+
+
+def test_partial_priors_leave_their_free_directions_free():
+    """A prior with `sigmas` inf on the rotation, PSD `information` or a rank-deficient
+    `sqrt_information` whiten alike; the gauge check counts only constrained directions (one
+    position prior leaves the rotation free: refused; two fix it); the free direction stays
+    singular in H; bad partial information is refused naming the factor kind."""
+    _, i, j, measured, start, anchors, priors = partial_prior_chain()
+    poses = Var(start, name="poses")
+    odometry = Factor(between, (poses[i], poses[j]), measured, sigmas=[0.1, 0.1, 0.05])
+    sigmas = np.array([0.1, 0.1, np.inf])
+    by_sigmas = Factor(prior, (poses[anchors],), priors, sigmas=sigmas, name="position")
+    by_information = Factor(
+        prior, (poses[anchors],), priors, information=np.diag([100.0, 100.0, 0.0])
+    )
+    rotated = np.array([[0.6, 0.8, 0.0], [-0.8, 0.6, 0.0], [0.0, 0.0, 1.0]])
+    by_root = Factor(
+        prior, (poses[anchors],), priors, sqrt_information=rotated @ np.diag([10.0, 10.0, 0.0])
+    )
+    for f in (by_sigmas, by_information, by_root):  # one information R^T R
+        root = np.asarray(f.sqrt_information)
+        np.testing.assert_allclose(root.T @ root, np.diag([100.0, 100.0, 0.0]), atol=1e-12)
+    result = FactorGraph([odometry, by_sigmas]).solve(relative_tolerance=1e-12)
+    assert result.status_name == "CONVERGED"
+
+    one = Factor(prior, (poses[anchors[:1]],), priors[:1], sigmas=sigmas, name="position")
+    with pytest.raises(ValueError, match=r"priors constraining 2 of 3 directions\): their gauge"):
+        FactorGraph([odometry, one])
+    # with one position prior, H is singular along one direction (the rotation about it)
+    graph = FactorGraph([odometry, one], check_gauge=False)
+    _, diag, off, grad = graph.linearize()
+    dense = np.asarray(
+        dense_matrix(graph.layout.pattern, *to_padded(graph.layout, diag, off, grad)[:2])
+    )
+    eigenvalues = np.linalg.eigvalsh(dense)
+    assert abs(eigenvalues[0]) < 1e-10 * eigenvalues[-1] < eigenvalues[1]
+
+    with pytest.raises(ValueError, match=r"'position': sigmas 0 has sigma nan at coordinate 1"):
+        Factor(prior, (poses[anchors],), priors, sigmas=[0.1, np.nan, 1.0], name="position")
+    with pytest.raises(ValueError, match=r"sigmas 0 is all inf"):
+        Factor(prior, (poses[anchors],), priors, sigmas=np.full(3, np.inf))
+    with pytest.raises(ValueError, match=r"information 0 is not symmetric positive semi-definite"):
+        Factor(prior, (poses[anchors],), priors, information=np.diag([1.0, 1.0, -1e-3]))
+    with pytest.raises(ValueError, match="not information and sigmas"):
+        Factor(prior, (poses[anchors],), priors, information=np.eye(3), sigmas=np.ones(3))
+
+
+def test_partial_priors_match_gtsam():
+    """Position-only priors (GTSAM's `Diagonal::Precisions` with a zero rotation precision, as
+    its KITTI example's first prior) reach GTSAM's optimum and cost."""
+    gtsam = pytest.importorskip("gtsam")
+    truth, i, j, measured, start, anchors, priors = partial_prior_chain()
+    odometry_sigmas = np.array([0.1, 0.1, 0.05])
+    poses = Var(start, name="poses")
+    graph = FactorGraph(
+        [
+            Factor(between, (poses[i], poses[j]), measured, sigmas=odometry_sigmas),
+            Factor(prior, (poses[anchors],), priors, sigmas=[0.1, 0.1, np.inf]),
+        ]
+    )
+    result = graph.solve(relative_tolerance=1e-12, absolute_tolerance=0.0)
+    assert result.status_name == "CONVERGED"
+
+    def pose2(x):
+        c, s, tx, ty = np.asarray(x.parameters())
+        return gtsam.Pose2(tx, ty, np.arctan2(s, c))
+
+    factors = gtsam.NonlinearFactorGraph()
+    noise = gtsam.noiseModel.Diagonal.Sigmas(odometry_sigmas)
+    for a, b, z in zip(i, j, measured):
+        factors.add(gtsam.BetweenFactorPose2(int(a), int(b), pose2(z), noise))
+    position_only = gtsam.noiseModel.Diagonal.Precisions(np.array([100.0, 100.0, 0.0]))
+    for a, z in zip(anchors, priors):
+        factors.add(gtsam.PriorFactorPose2(int(a), pose2(z), position_only))
+    initial = gtsam.Values()
+    for a in range(start.batch_shape[0]):
+        initial.insert(a, pose2(start[a]))
+    parameters = gtsam.LevenbergMarquardtParams()
+    parameters.setRelativeErrorTol(1e-12)
+    parameters.setAbsoluteErrorTol(0.0)
+    solved = gtsam.LevenbergMarquardtOptimizer(factors, initial, parameters).optimize()
+    np.testing.assert_allclose(result.cost, factors.error(solved), rtol=1e-8)
+    for a in range(start.batch_shape[0]):
+        expected = solved.atPose2(a)
+        ours = pose2(result.values[0][a])
+        np.testing.assert_allclose(
+            [ours.x(), ours.y(), ours.theta()],
+            [expected.x(), expected.y(), expected.theta()],
+            atol=1e-7,
+        )

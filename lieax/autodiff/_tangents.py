@@ -11,12 +11,13 @@ import math
 import jax
 import jax.numpy as jnp
 
+from .._checks import check_not_foreign, foreign_conversion
 from ..groups._base import AbstractManifold
 from ..retractions import Retraction, exp
 
 
 def _is_leaf(x) -> bool:
-    return isinstance(x, AbstractManifold) or x is None
+    return isinstance(x, AbstractManifold) or x is None or foreign_conversion(x) is not None
 
 
 def manifold_leaves(tree, what: str = "argument"):
@@ -28,6 +29,7 @@ def manifold_leaves(tree, what: str = "argument"):
         where = f"{what}{jax.tree_util.keystr(path)}"
         if leaf is None:
             raise TypeError(f"{where} is None; lieax differentiates groups and float arrays only.")
+        check_not_foreign(leaf, where)
         if not isinstance(leaf, AbstractManifold):
             dtype = getattr(leaf, "dtype", None) or jnp.asarray(leaf).dtype
             if not jnp.issubdtype(dtype, jnp.floating):

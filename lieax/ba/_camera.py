@@ -5,7 +5,9 @@ The BAL file stores a camera as 9 numbers: the rotation vector of $R$ (axis time
 tangent, so $R = \mathrm{Exp}(\omega)$), $t$, then $f, k_1, k_2$.
 """
 
+import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .._checks import broadcast_batch, check_last_axis
 from ..cameras._snavely import check_pose as _check_pose
@@ -29,10 +31,15 @@ def bal_to_camera(cameras):
 
 def camera_to_bal(pose, intrinsics):
     r"""BAL's camera 9-vectors `(*batch, 9)` from `(T_camera_world, intrinsics)`: the inverse of
-    `bal_to_camera` (rotation vectors with angle in $[0, \pi]$)."""
+    `bal_to_camera` (rotation vectors with angle in $[0, \pi]$).
+
+    Returns a writable NumPy array (a JAX array under a transformation), the form files and SciPy
+    take: `scipy.spatial.transform.Rotation.from_rotvec` refuses the read-only view
+    `np.asarray` makes of a JAX array ("buffer source array is read-only")."""
     _check_pose(pose)
     intrinsics = check_last_axis(intrinsics, 3, "intrinsics", "f, k1, k2")
     batch = broadcast_batch("camera_to_bal", pose.batch_shape, intrinsics.shape[:-1])
     rotvec = jnp.broadcast_to(pose.rotation().log(), (*batch, 3))
     translation = jnp.broadcast_to(pose.translation(), (*batch, 3))
-    return jnp.concatenate([rotvec, translation, jnp.broadcast_to(intrinsics, (*batch, 3))], -1)
+    cameras = jnp.concatenate([rotvec, translation, jnp.broadcast_to(intrinsics, (*batch, 3))], -1)
+    return cameras if isinstance(cameras, jax.core.Tracer) else np.array(cameras)

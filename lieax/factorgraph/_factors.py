@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._checks import check_not_foreign, foreign_conversion
 from ..autodiff._jacobian import value_and_jacobian
 from ._variables import VarRef
 
@@ -35,8 +36,16 @@ class Factor:
     - `sqrt_information`: $R$, `(k, k)` shared or `(m, k, k)`; or `information` $\Omega$, or
       `covariance` $\Sigma = \Omega^{-1}$ (GTSAM's `noiseModel::Gaussian::Information` and
       `Covariance`; converted by `square_root_information`, `ValueError` naming the factor
-      kind and the first matrix that is not symmetric positive definite). At most one of the
-      three; default identity.
+      kind and the first matrix that is not symmetric positive (semi-)definite), or `sigmas`
+      $\sigma$, `(k,)` shared or `(m, k)`, $R = \mathrm{diag}(1/\sigma)$ (GTSAM's
+      `noiseModel::Diagonal::Sigmas`). At most one of the four; default identity.
+      **Partial information** (a prior that constrains only some coordinates, as GTSAM's KITTI
+      example's prior on the first pose with zero rotation precision): `sigmas` may hold `inf`
+      (weight 0: that coordinate is unconstrained), `information` may be positive
+      semi-definite (its zero eigenvalues' directions are unconstrained) and `sqrt_information`
+      rank deficient (zero rows). The gauge check of `FactorGraph` counts only the constrained
+      directions. NaN, negative or zero sigmas, an information with a negative eigenvalue, a
+      non-finite or all-zero $R$ stay errors.
     - `loss`: a robust loss (`lieax.lstsq.Huber`, `Cauchy`, ...) or `None`.
     - `jacobian_fn`: optional `jacobian_fn(*xs, data) -> (residual, (J_a, ...))`, blocks
       `(k, tangent_dim)` in right-local coordinates, for one instance.
@@ -52,6 +61,7 @@ class Factor:
         sqrt_information=None,
         information=None,
         covariance=None,
+        sigmas=None,
         loss=None,
         jacobian_fn=None,
         name=None,
@@ -70,27 +80,31 @@ class Factor:
                 f"{[len(i) for i in self.indices]}."
             )
         self.count = counts.pop()
-        self.data = data
+        self.data = _data_arrays(data, name, variables_dtype(self.vars))
         given = [
             option
             for option, value in (
                 ("sqrt_information", sqrt_information),
                 ("information", information),
                 ("covariance", covariance),
+                ("sigmas", sigmas),
             )
             if value is not None
         ]
         if len(given) > 1:
             raise ValueError(
-                f"Factor {name!r}: give one of sqrt_information, information and covariance, "
-                f"not {' and '.join(given)}."
+                f"Factor {name!r}: give one of sqrt_information, information, covariance and "
+                f"sigmas, not {' and '.join(given)}."
             )
         if information is not None or covariance is not None:
             sqrt_information = square_root_information(
                 information if covariance is None else covariance,
                 f"Factor {name!r}: {given[0]}",
                 covariance=covariance is not None,
+                semidefinite=information is not None,
             )
+        elif sigmas is not None:
+            sqrt_information = sigmas_to_sqrt_information(sigmas, f"Factor {name!r}: sigmas")
         self.sqrt_information = sqrt_information
         self.loss = loss
         self.jacobian_fn = jacobian_fn
@@ -106,6 +120,33 @@ class Factor:
         return f"Factor({self.name!r}, count={self.count}, vars=({names}))"
 
 
+def variables_dtype(variables):
+    """The floating dtype of the values of `variables` (their leaves' common dtype)."""
+    leaves = jax.tree_util.tree_leaves(tuple(v.value for v in variables))
+    return np.result_type(*(jnp.result_type(x) for x in leaves))
+
+
+def _data_arrays(data, name, dtype):
+    """`data` with each nested Python list of numbers made a NumPy array of the variables'
+    `dtype` (`[[x, y], ...]` is one `(m, 2)` leaf, not `2m` scalars); `TypeError` naming the
+    factor kind for a jaxlie group or an Open3D cloud (`lieax._checks.check_not_foreign`)."""
+
+    def numbers(x):
+        return isinstance(x, list) and all(
+            numbers(y) or (isinstance(y, (int, float)) and not isinstance(y, bool)) for y in x
+        )
+
+    def convert(path, leaf):
+        if numbers(leaf):
+            return np.asarray(leaf, dtype=dtype)
+        check_not_foreign(leaf, f"Factor {name!r}: data{jax.tree_util.keystr(path)}")
+        return leaf
+
+    return jax.tree_util.tree_map_with_path(
+        convert, data, is_leaf=lambda x: numbers(x) or foreign_conversion(x) is not None
+    )
+
+
 def _index_array(index, name, position):
     index = np.asarray(index)
     if index.ndim == 0:
@@ -118,7 +159,31 @@ def _index_array(index, name, position):
     return index.astype(np.int64)
 
 
-def square_root_information(matrix, what="information matrix", *, covariance=False):
+def sigmas_to_sqrt_information(sigmas, what="sigmas"):
+    r"""$R = \mathrm{diag}(1/\sigma)$ of standard deviations `(..., k)` (numpy float64; GTSAM's
+    `noiseModel::Diagonal::Sigmas`): $\sigma = \infty$ gives weight 0, an unconstrained
+    coordinate. `ValueError` naming `what` and the first bad entry for a NaN, zero or negative
+    sigma, or a row with no finite sigma (it constrains nothing)."""
+    sigmas = np.asarray(sigmas, dtype=np.float64)
+    if sigmas.ndim < 1:
+        raise ValueError(f"{what} must have shape (..., k), got {sigmas.shape}.")
+    flat = sigmas.reshape(-1, sigmas.shape[-1])
+    bad = ~(flat > 0)  # NaN, zero or negative
+    if np.any(bad):
+        first = np.argwhere(bad)[0]
+        raise ValueError(
+            f"{what} {int(first[0])} has sigma {flat[tuple(first)]} at coordinate "
+            f"{int(first[1])}: sigmas must be positive (inf for an unconstrained coordinate)."
+        )
+    if np.any(np.all(np.isinf(flat), axis=1)):
+        first = int(np.argmax(np.all(np.isinf(flat), axis=1)))
+        raise ValueError(f"{what} {first} is all inf: it constrains nothing (drop it).")
+    weights = 1.0 / sigmas
+    return weights[..., :, None] * np.eye(sigmas.shape[-1])
+
+
+def square_root_information(matrix, what="information matrix", *, covariance=False,
+                            semidefinite=False):  # fmt: skip
     r"""The square-root information $R$, $R^\top R = \Omega$, of a batch `(..., d, d)` of
     information matrices $\Omega$ or, with `covariance=True`, of covariances
     $\Sigma = \Omega^{-1}$ (numpy float64; the one conversion of `Factor`, `lieax.graph` and the
@@ -135,6 +200,12 @@ def square_root_information(matrix, what="information matrix", *, covariance=Fal
     Each matrix must be finite, symmetric to $10^{-9}$ of its largest entry (its symmetric part
     is factored) and positive definite; else `ValueError`: "`what` `i` is not symmetric
     positive definite (eigenvalues ...)", `i` the first bad one in the flattened batch.
+
+    With `semidefinite=True` an information matrix may be positive semi-definite (a prior that
+    leaves some directions free): one that Cholesky refuses is factored by its eigenvalues,
+    $\Omega = V \Lambda V^\top$, $R = \Lambda^{1/2} V^\top$ with the eigenvalues at most
+    $10^{-9}$ of the largest (rounding) set to 0, so $R^\top R = \Omega$ and $R$ has a zero row
+    per free direction. An eigenvalue below $-10^{-9}$ of the largest is still an error.
     """
     matrix = np.asarray(matrix, dtype=np.float64)
     if matrix.ndim < 2 or matrix.shape[-1] != matrix.shape[-2]:
@@ -150,13 +221,20 @@ def square_root_information(matrix, what="information matrix", *, covariance=Fal
             raise np.linalg.LinAlgError
         lower = np.linalg.cholesky(batch)  # raises unless every matrix is positive definite
     except np.linalg.LinAlgError:
-        eigenvalues = np.linalg.eigvalsh(np.where(finite[:, None, None], batch, 0.0))
-        bad = ~symmetric | (eigenvalues[:, 0] <= 0)
-        first = int(np.argmax(bad))
-        raise ValueError(
-            f"{what} {first} is not symmetric positive definite (eigenvalues "
-            f"{np.array2string(eigenvalues[first], precision=3)})."
-        ) from None
+        semidefinite = semidefinite and not covariance
+        eigenvalues, vectors = np.linalg.eigh(np.where(finite[:, None, None], batch, 0.0))
+        rounding = 1e-9 * np.abs(eigenvalues).max(axis=1, initial=0.0)
+        lowest = eigenvalues[:, 0]
+        bad = ~symmetric | ((lowest < -rounding) if semidefinite else (lowest <= 0))
+        if np.any(bad) or not semidefinite:
+            first = int(np.argmax(bad))
+            kind = "semi-definite" if semidefinite else "definite"
+            raise ValueError(
+                f"{what} {first} is not symmetric positive {kind} (eigenvalues "
+                f"{np.array2string(eigenvalues[first], precision=3)})."
+            ) from None
+        kept = np.where(eigenvalues > rounding[:, None], eigenvalues, 0.0)
+        return (np.sqrt(kept)[:, :, None] * np.swapaxes(vectors, 1, 2)).reshape(matrix.shape)
     root = np.linalg.inv(lower) if covariance else np.swapaxes(lower, 1, 2)
     return root.reshape(matrix.shape)
 

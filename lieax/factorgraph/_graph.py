@@ -17,7 +17,7 @@ from ..autodiff._tangents import check_retraction, manifold_leaves
 from ..lstsq import NonFiniteStartError, SolveError, Status
 from ..lstsq._solution import is_failure
 from ..retractions import exp
-from ._factors import Factor, linearize_one, residual_one
+from ._factors import Factor, linearize_one, residual_one, variables_dtype
 from ._implicit import solve_implicit
 from ._solve import PARAMETERS, make_loop
 from ._structure import analyze, digest, schur_layout
@@ -47,8 +47,9 @@ class FactorGraph:
     - `factors`: a sequence of `Factor`s (one per factor kind).
     - `variables`: the `Var`s, in the order of the solution's values (default: in the order the
       factors first name them).
-    - `check_gauge`: `ValueError` when a connected component has no fixed variable and no unary
-      factor (see `_structure.check_anchored`).
+    - `check_gauge`: `ValueError` when a connected component has no fixed variable and its
+      unary factors constrain fewer directions than its variables have (see
+      `_structure.check_anchored`; a partial prior counts only its constrained directions).
 
     Construction validates everything that can be checked without compiling: index ranges,
     residual and information shapes (`jax.eval_shape` of one instance), positive-definite
@@ -81,6 +82,15 @@ class FactorGraph:
         self.variables = variables
         shapes = {}  # kinds with one residual and the same argument shapes are traced once
         self.residual_dims = tuple(_check_factor(f, shapes) for f in factors)
+        # the directions each unary factor constrains (the gauge check counts them)
+        unary = (
+            {k: constrained_directions(f) for k, f in enumerate(factors) if len(f.vars) == 1}
+            if check_gauge
+            else {}
+        )
+        # JAX's 64-bit mode when the graph was built: its host index arrays are traced into the
+        # loop as constants, and JAX keeps their 32-bit conversions across a later switch
+        self._x64 = bool(jax.config.jax_enable_x64)
         key = (
             tuple(
                 (jax.tree_util.tree_structure(v.value), v.leaf_dims, v.count, digest(v.fixed))
@@ -94,10 +104,12 @@ class FactorGraph:
                 for f in factors
             ),
             check_gauge,
+            tuple((k, digest(r)) for k, r in unary.items()),
+            self._x64,
         )
         cached = _CACHE.get(key)
         if cached is None:
-            cached = analyze(variables, factors, check_gauge) + ({}, {})
+            cached = analyze(variables, factors, unary if check_gauge else None) + ({}, {})
             if len(_CACHE) >= _CACHE_SIZE:
                 _CACHE.pop(next(iter(_CACHE)))
             _CACHE[key] = cached
@@ -146,6 +158,7 @@ class FactorGraph:
         compiled once per graph)."""
         from ._assembly import cost
 
+        self._check_x64()
         if self._cost is None:  # one compilation, not one per operation on first use
             self._cost = jax.jit(lambda v, d: cost(self.factors, self.plans, v, d))
         values = self.initial_values if values is None else tuple(values)
@@ -156,12 +169,27 @@ class FactorGraph:
         masked), per kind and per pair of kinds of `layout` (jitted, compiled once per graph)."""
         from ._assembly import linearize
 
+        self._check_x64()
         if self._linearize is None:
             self._linearize = jax.jit(
                 lambda v, d: linearize(self.layout, self.factors, self.plans, v, d)
             )
         values = self.initial_values if values is None else tuple(values)
         return self._linearize(values, self._data(data))
+
+    def _check_x64(self):
+        """`ValueError` when JAX's 64-bit mode changed since the graph was built: its arrays
+        (values, data, and the structure's index arrays, whose conversions JAX keeps) have the
+        widths of the mode they were made in, so the solve would run in float32 after
+        `jax_enable_x64` was switched on, or fail on mixed integer widths. A graph built again
+        in the new mode gets a structure of its own (the cache is keyed by the mode)."""
+        x64 = bool(jax.config.jax_enable_x64)
+        if x64 != self._x64:
+            raise ValueError(
+                f"this FactorGraph was built with jax_enable_x64={self._x64} and is used with "
+                f"jax_enable_x64={x64}: build its Vars, Factors and FactorGraph again after "
+                "switching (better: set jax_enable_x64 once, at startup, before making arrays)."
+            )
 
     def _data(self, data):
         if data is None:
@@ -229,6 +257,7 @@ class FactorGraph:
 
         **Returns:** a `SolveResult`.
         """
+        self._check_x64()
         loop = self._loop(
             solver, eliminate, max_iterations, algorithm, damping, lambda_update, retraction,
             verbose, cg_max_iterations,
@@ -472,6 +501,27 @@ def _result(solution, summary):
     )
 
 
+def _argument_types(f, xs, data):
+    """What the residual of `f` receives, for an error: each argument's type, and the data as
+    arrays of their per-instance shapes (a residual that calls a group method on data rows
+    wants the data as a lieax group, e.g. `lieax.SE2` batched `(m,)`, not `(x, y, theta)` rows)."""
+
+    def described(x):
+        if isinstance(x, jax.ShapeDtypeStruct):
+            return f"an array {x.dtype}{list(x.shape)}"
+        return type(x).__name__
+
+    arguments = ", ".join(f"{described(x)} ({v.name!r})" for x, v in zip(xs, f.vars))
+    text = f"it receives {arguments}"
+    if data is not None:
+        leaves = jax.tree_util.tree_leaves(data, is_leaf=lambda x: hasattr(x, "_params"))
+        text += f" and data {', '.join(described(x) for x in leaves)} per instance"
+    return (
+        text + ": pass data that the residual calls group methods on as a lieax group batched "
+        f"({f.count},), e.g. lieax.SE2.from_xy_theta(x, y, theta) or lieax.SE3(wxyz_xyz)."
+    )
+
+
 def _check_factor(f, shapes):
     """The residual dimension `k` of factor kind `f` (also kept as `f.residual_size`), its
     shapes checked by `jax.eval_shape` (nothing is compiled) of the residual, or of the
@@ -480,13 +530,23 @@ def _check_factor(f, shapes):
     `jacobian_fn` and argument shapes, for the kinds that share them. `ValueError`s name the
     factor kind."""
     m = f.count
-    data_leaves = jax.tree_util.tree_leaves(f.data)
-    for leaf in data_leaves:
+    dtype = variables_dtype(f.vars)
+    for path, leaf in jax.tree_util.tree_leaves_with_path(f.data):
         shape = jnp.shape(leaf)
+        where = f"factor kind {f.name!r}: data{jax.tree_util.keystr(path)}"
         if not shape or shape[0] != m:
             raise ValueError(
-                f"factor kind {f.name!r}: every data leaf must have leading axis {m} (one per "
-                f"instance), got shape {shape}."
+                f"{where} must have leading axis {m} (one entry per instance, as every data "
+                f"leaf), got shape {shape}."
+            )
+        leaf_dtype = jnp.result_type(leaf)
+        if jnp.issubdtype(leaf_dtype, jnp.inexact) and leaf_dtype != dtype:
+            # JAX would promote silently: float32 data in a float64 solve kept only 7 digits
+            # (a UTM coordinate of 4e6 m to 0.25 m), float64 data in a float32 solve makes the
+            # residual float64
+            raise ValueError(
+                f"{where} has dtype {leaf_dtype} but the factor's variables have dtype {dtype}; "
+                f"give them one dtype (for example np.asarray(data, np.{dtype}))."
             )
         if isinstance(leaf, jax.core.Tracer):
             continue
@@ -524,6 +584,17 @@ def _check_factor(f, shapes):
             f"factor kind {f.name!r}: its residual cannot be evaluated on one instance of its "
             f"arguments ({error})."
         ) from error
+    except AttributeError as error:
+        raise ValueError(
+            f"factor kind {f.name!r}: its residual cannot be evaluated on one instance of its "
+            f"arguments ({error}); {_argument_types(f, xs, one)}"
+        ) from error
+    if f.jacobian_fn is None and not isinstance(out, jax.ShapeDtypeStruct):
+        raise ValueError(
+            f"factor kind {f.name!r}: the residual must return one array (k,), got "
+            f"{type(out).__name__} {jax.tree_util.tree_map(lambda x: x.shape, out)} (concatenate "
+            "its parts, e.g. jnp.concatenate([r1, r2]))."
+        )
     if len(out.shape) != 1:
         raise ValueError(
             f"factor kind {f.name!r}: the residual must be a vector (k,), got shape {out.shape}."
@@ -548,15 +619,25 @@ def _check_factor(f, shapes):
             )
         if not isinstance(root, jax.core.Tracer):
             batch = np.asarray(root, dtype=np.float64).reshape(-1, k, k)
-            finite = np.all(np.isfinite(batch), axis=(1, 2))
-            singular = (
-                np.linalg.svd(np.where(finite[:, None, None], batch, 0.0), compute_uv=False)[:, -1]
-                <= 0
-            )
-            bad = ~finite | singular
+            bad = ~np.all(np.isfinite(batch), axis=(1, 2)) | np.all(batch == 0, axis=(1, 2))
             if np.any(bad):
                 raise ValueError(
                     f"factor kind {f.name!r}: sqrt_information {int(np.argmax(bad))} is not "
-                    "finite and non-singular (its information R^T R is not positive definite)."
+                    "finite or is all zero (a rank-deficient R constrains only some directions; "
+                    "a zero R constrains none: drop the instance)."
                 )
     return k
+
+
+def constrained_directions(f):
+    """Per instance of factor kind `f`, how many directions its whitened residual constrains:
+    the rank of its `sqrt_information` $R$ (its residual size `k` for the identity or a traced
+    $R$), at most its variable's tangent dimension (for the gauge check of unary factors)."""
+    k, dim = f.residual_size, sum(v.tangent_dim for v in f.vars)
+    root = f.sqrt_information
+    if root is None or isinstance(root, jax.core.Tracer):
+        ranks = np.full(f.count, k)
+    else:
+        batch = np.asarray(root, dtype=np.float64).reshape(-1, k, k)
+        ranks = np.broadcast_to(np.linalg.matrix_rank(batch), (f.count,))
+    return np.minimum(ranks, dim)

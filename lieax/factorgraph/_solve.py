@@ -26,7 +26,11 @@ An iteration ends with a taken step or, without one, when the cost change is bel
 `relative_tolerance` × cost; the run stops when an iteration decreases the cost by at most
 `absolute_tolerance` or `relative_tolerance` × cost (`CONVERGED`), after `max_iterations`
 iterations (`MAX_ITERATIONS`), when $\lambda$ reaches `lambda_max` without a decrease
-(`DIVERGED`) or when the linearization is not finite (`NONFINITE`). A point whose gradient is
+(`DIVERGED`) or when the linearization is not finite (`NONFINITE`). An exact fit is
+`CONVERGED`: `absolute_tolerance` is raised to $\varepsilon c_0$, the rounding error of the
+start's cost $c_0$ (a smaller change of the cost is rounding noise, so `absolute_tolerance=0`
+stops at the floating-point floor instead of iterating on noise), and running out of damping at
+a cost at most $\varepsilon c_0$ is convergence at that floor, not divergence. A point whose gradient is
 exactly zero (a zero error, as GTSAM's `errorTol` of 0) is `CONVERGED` (there is no step to try;
 at the start, after 0 iterations); no other start is: every other convergence test compares a
 tried step's decrease.
@@ -276,14 +280,17 @@ def make_loop(graph, options):
             )  # fmt: skip
             params, new_cost, _ = evaluation
             decrease = cost - next_cost
+            # the rounding error of the start's cost: a smaller change is noise, and a cost below
+            # it is an exact fit at the floating-point floor (`history[0]` is the start's cost)
+            floor = jnp.finfo(dtype).eps * state.history[0]
             converged = (
                 done
                 & ~gave_up
                 & (
-                    (jnp.abs(decrease) <= params["absolute_tolerance"])
+                    (jnp.abs(decrease) <= jnp.maximum(params["absolute_tolerance"], floor))
                     | (jnp.abs(decrease) <= params["relative_tolerance"] * cost)
                 )
-            )
+            ) | (gave_up & (next_cost <= floor))
             # no step decreased the cost: Levenberg-Marquardt ran out of damping, Gauss-Newton's
             # step was not finite
             nonfinite, diverged = ~jnp.isfinite(next_cost), gave_up & (decrease <= 0)

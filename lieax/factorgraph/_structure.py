@@ -128,9 +128,10 @@ class FactorPlan:
     grams: tuple
 
 
-def analyze(variables, factors, check_gauge):
-    """`(layout, factor_plans)`; `ValueError`s for bad indices, repeated arguments and
-    (with `check_gauge`) unanchored components."""
+def analyze(variables, factors, unary=None):
+    """`(layout, factor_plans)`; `ValueError`s for bad indices, repeated arguments and, unless
+    `unary` is `None`, unanchored components (`unary[j]`: the directions each instance of the
+    unary factor kind `j` constrains, `check_anchored`)."""
     kind_of = {id(v): k for k, v in enumerate(variables)}
     counts = tuple(v.count for v in variables)
     links = {}
@@ -186,8 +187,8 @@ def analyze(variables, factors, check_gauge):
         )
         grams = tuple(_gram_or_none(index, counts[k]) for k, index in zip(kinds, f.indices))
         plans.append(FactorPlan(kinds, f.indices, couplings, grams))
-    if check_gauge:
-        check_anchored(variables, factors, layout, plans)
+    if unary is not None:
+        check_anchored(variables, factors, layout, plans, unary)
     return layout, plans
 
 
@@ -205,18 +206,28 @@ def _gram_or_none(index, count):
     return gram_plan(terms, terms, index, count, len(index), len(index))
 
 
-def check_anchored(variables, factors, layout, plans):
+def check_anchored(variables, factors, layout, plans, unary):
     """`ValueError` unless every connected component of the graph (instances linked by
-    factors) holds a fixed instance or an instance of a unary factor: elsewhere a relative
-    factor leaves a free gauge (the component can move as a whole)."""
+    factors) holds a fixed instance or unary factors that constrain, together, at least as many
+    directions as the largest tangent dimension among its variables (`unary[j]`: per instance
+    of the unary kind `j`, the rank of its square-root information): elsewhere relative factors
+    leave a free gauge (the component can move as a whole). The count is necessary, not
+    sufficient (two position priors leave the rotation about the line through them free): a
+    prior with zero rotation precision on the first pose fixes no rotation, GPS positions on
+    two poses of a 2D chain fix its gauge."""
     n = int(layout.offsets[-1])
     count, labels = connected_components(n, layout.pattern.rows, layout.pattern.cols)
     anchored = np.zeros(count, dtype=bool)
     for k, v in enumerate(variables):
         anchored[labels[layout.offsets[k] + v.fixed]] = True
-    for plan in plans:
-        if len(plan.kinds) == 1:
-            anchored[labels[layout.offsets[plan.kinds[0]] + plan.indices[0]]] = True
+    constrained = np.zeros(count, np.int64)
+    for j, ranks in unary.items():
+        node = layout.offsets[plans[j].kinds[0]] + plans[j].indices[0]
+        np.add.at(constrained, labels[node], ranks)
+    dims = np.repeat(layout.dims, layout.counts)
+    needed = np.zeros(count, np.int64)
+    np.maximum.at(needed, labels, dims)
+    anchored |= constrained >= needed
     if not anchored.all():
         free = np.flatnonzero(~anchored)
         sizes = np.bincount(labels, minlength=count)
@@ -225,14 +236,15 @@ def check_anchored(variables, factors, layout, plans):
             first = int(np.argmax(labels == c))
             k = int(np.searchsorted(layout.offsets, first, side="right") - 1)
             described.append(
-                f"{sizes[c]} variables from {variables[k].name!r}[{first - layout.offsets[k]}]"
+                f"{sizes[c]} variables from {variables[k].name!r}[{first - layout.offsets[k]}], "
+                f"priors constraining {constrained[c]} of {needed[c]} directions"
             )
         raise ValueError(
             f"{len(free)} of the graph's {count} connected components have no fixed variable "
-            f"and no unary (prior) factor ({'; '.join(described)}"
-            f"{', ...' if len(free) > 3 else ''}): their gauge is free and the normal equations "
-            "are singular. Fix a variable (Var(..., fixed=...)), add a prior factor, or pass "
-            "check_gauge=False to rely on the damping."
+            f"and no unary (prior) factors that constrain all its directions "
+            f"({'; '.join(described)}{', ...' if len(free) > 3 else ''}): their gauge is free "
+            "and the normal equations are singular. Fix a variable (Var(..., fixed=...)), add "
+            "a prior factor, or pass check_gauge=False to rely on the damping."
         )
 
 

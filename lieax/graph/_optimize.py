@@ -19,6 +19,7 @@ again; an outer iteration ends with a taken step, or without one when the cost c
 import dataclasses
 import hashlib
 
+import jax
 import numpy as np
 
 from .. import retractions
@@ -188,6 +189,7 @@ def _factor_graph(graph, exact):
         graph.num_poses,
         _digest(graph.between.i, graph.between.j, prior_index, graph.fixed),
         exact,
+        bool(jax.config.jax_enable_x64),  # a `FactorGraph` is bound to the mode it was built in
     )
     factor_graph = _CACHE.get(key)
     if factor_graph is None:
