@@ -104,6 +104,17 @@ def factorization_cost(layout, method):
     return SolveCost(0.0, seconds, method, flops, pairs, fill)
 
 
+def factorization_bound(layout):
+    """A lower bound of the modelled seconds of `layout`'s sparse factorization, from its
+    pattern alone: every off-diagonal block of $H$ is one of $L$, so the $c_j$ sum to at least
+    the pattern's $P$ pairs, and the model's terms, convex in $c_j$, are least at
+    $c_j = P/N$ (Jensen's inequality)."""
+    n, d = int(layout.offsets[-1]), layout.block_size
+    c = layout.pattern.num_pairs / max(n, 1)
+    flops = n * float(_front_work(1, c)) * d**3
+    return flops * _FLOP_SECONDS + n * ((1 + c) * d) ** 2 * _ENTRY_SECONDS
+
+
 def formation_flops(layout, e):
     """Multiply-adds forming the reduced system when kind `e` of `layout` is eliminated."""
     d_e = layout.dims[e]
@@ -118,6 +129,12 @@ def formation_flops(layout, e):
     return float(
         np.sum(d_e**3 + d_e**2 * linked + 0.5 * d_e * (linked**2 + squares) * (linked > 0))
     )
+
+
+def formation_seconds(layout, e):
+    """The modelled seconds of forming the reduced system when kind `e` is eliminated (cheap:
+    from the link counts, without the reduced pattern)."""
+    return formation_flops(layout, e) * _FLOP_SECONDS
 
 
 def candidates(layout):

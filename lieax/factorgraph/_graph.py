@@ -18,7 +18,13 @@ from ..autodiff._tangents import check_retraction, manifold_leaves
 from ..lstsq import NonFiniteStartError, SolveError, Status
 from ..lstsq._solution import is_failure
 from ..retractions import exp
-from ._elimination import candidates, elimination_cost, factorization_cost
+from ._elimination import (
+    candidates,
+    elimination_cost,
+    factorization_bound,
+    factorization_cost,
+    formation_seconds,
+)
 from ._factors import Factor, linearize_one, residual_one
 from ._implicit import solve_implicit
 from ._solve import PARAMETERS, make_loop
@@ -398,10 +404,7 @@ class FactorGraph:
                 raise ValueError(f"eliminate must be a Var, None or 'auto', got {eliminate!r}.")
             key = ("auto", solver)
             if key not in self._schur:
-                costs = {k: self._elimination_cost(k, solver) for k in candidates(self.layout)}
-                whole = self._elimination_cost(None, solver).total
-                best = min(costs, key=lambda k: costs[k].total, default=None)
-                self._schur[key] = best if best is not None and costs[best].total < whole else None
+                self._schur[key] = self._cheapest_elimination(solver)
             return self._schur[key]
         e = self.index(eliminate)
         cost, whole = self._elimination_cost(e, solver), self._elimination_cost(None, solver)
@@ -414,6 +417,29 @@ class FactorGraph:
                 stacklevel=5,
             )
         return e
+
+    def _cheapest_elimination(self, solver):
+        """The kind whose elimination makes a solve by `solver` cheapest, or `None` when no
+        elimination beats the whole system (`_elimination`). A candidate whose formation alone
+        costs more is passed over without building its reduced pattern (as large as its fill:
+        every pair of points of a camera); the whole system's factorization is analysed only
+        when the best candidate does not beat its lower bound."""
+
+        def whole():
+            return self._elimination_cost(None, solver).total
+
+        # the sparse factor's bound, where `"auto"` cannot pick the dense one
+        small = solver != "cholesky" and self.layout.padded_unknowns <= _DENSE_FILLED_LIMIT
+        bound = whole() if solver == "dense" or small else factorization_bound(self.layout)
+        formation = {k: formation_seconds(self.layout, k) for k in candidates(self.layout)}
+        best, least = None, np.inf
+        for k in sorted(formation, key=formation.get):
+            if formation[k] >= least or (formation[k] >= bound and formation[k] >= whole()):
+                continue
+            cost = self._elimination_cost(k, solver).total
+            if cost < least:
+                best, least = k, cost
+        return best if best is not None and (least < bound or least < whole()) else None
 
     def _elimination_cost(self, e, solver):
         """The `_elimination.SolveCost` of a solve by `solver` eliminating kind `e` (`None`:
