@@ -527,6 +527,21 @@ def test_auto_elimination_choice_follows_the_cost_model():
     assert eliminated.total > 5 * whole.total and eliminated.flops > 100 * whole.flops
     with pytest.raises(ValueError, match="eliminate must be a Var, None or 'auto'"):
         graph.solve(eliminate="points")
+    # a larger bundle: the points' elimination beats the whole system's lower bound, so the
+    # whole is not analysed (nor the cameras' reduced system: its formation alone costs more)
+    from lieax import ba
+
+    problem = ba.synthetic_bal(20, 400, 1000, seed=0).problem
+    cameras = Var(problem.camera_variables(jnp.float64), name="cameras")
+    points = Var(jnp.asarray(problem.points), name="points")
+    args = (cameras[problem.camera_indices], points[problem.point_indices])
+    bundle = FactorGraph(
+        [Factor(ba.camera_residual, args, jnp.asarray(problem.observations))], check_gauge=False
+    )
+    assert bundle._eliminated("auto", "auto") == 1
+    assert ("cost", None, "auto") not in bundle._schur and ("reduced", 0) not in bundle._schur
+    eliminated, whole = bundle._elimination_cost(1, "auto"), bundle._elimination_cost(None, "auto")
+    assert eliminated.total < whole.total
 
 
 def test_marquardt_damping_takes_nielsens_rule_by_default():

@@ -219,9 +219,9 @@ class FactorGraph:
           share factors: points in bundle adjustment), `None` for none, or `"auto"`: the kind
           whose elimination makes a linear solve cheapest by the cost model of
           `_elimination` (the multifrontal Cholesky's: the modelled time of forming and
-          factoring the reduced system, against factoring the whole), or none when none pays: points seen by a few cameras are
-          eliminated, landmarks seen by most poses are not (they would make the reduced
-          pose system dense). An explicit `Var` that the model finds costlier than no
+          factoring the reduced system, against factoring the whole), or none when none
+          pays: points seen by a few cameras are eliminated, landmarks seen by most poses
+          are not (they would make the reduced pose system dense). An explicit `Var` that the model finds costlier than no
           elimination is still eliminated, with a `UserWarning` naming both costs.
         - `algorithm`: `"levenberg_marquardt"` or `"gauss_newton"`.
         - `damping`: `"identity"` ($\lambda I$, GTSAM) or `"marquardt"` ($\lambda$ diag $H$,
@@ -407,8 +407,12 @@ class FactorGraph:
                 self._schur[key] = self._cheapest_elimination(solver)
             return self._schur[key]
         e = self.index(eliminate)
-        cost, whole = self._elimination_cost(e, solver), self._elimination_cost(None, solver)
-        if cost.total > whole.total:
+        cost = self._elimination_cost(e, solver)
+        # below the whole system's bound it pays (the whole is not analysed to say so)
+        whole = (
+            None if cost.total < self._whole_bound(solver) else self._elimination_cost(None, solver)
+        )
+        if whole is not None and cost.total > whole.total:
             warnings.warn(
                 f"eliminating {self.variables[e].name!r} by the Schur complement is predicted to "
                 f"cost more than not eliminating: {cost.describe()} against "
@@ -428,9 +432,7 @@ class FactorGraph:
         def whole():
             return self._elimination_cost(None, solver).total
 
-        # the sparse factor's bound, where `"auto"` cannot pick the dense one
-        small = solver != "cholesky" and self.layout.padded_unknowns <= _DENSE_FILLED_LIMIT
-        bound = whole() if solver == "dense" or small else factorization_bound(self.layout)
+        bound = self._whole_bound(solver)
         formation = {k: formation_seconds(self.layout, k) for k in candidates(self.layout)}
         best, least = None, np.inf
         for k in sorted(formation, key=formation.get):
@@ -440,6 +442,15 @@ class FactorGraph:
             if cost < least:
                 best, least = k, cost
         return best if best is not None and (least < bound or least < whole()) else None
+
+    def _whole_bound(self, solver):
+        """A lower bound of the modelled cost of a solve by `solver` without elimination: the
+        sparse factor's (`_elimination.factorization_bound`), where `"auto"` cannot pick the
+        dense one, else the cost itself."""
+        small = solver != "cholesky" and self.layout.padded_unknowns <= _DENSE_FILLED_LIMIT
+        if solver == "dense" or small:
+            return self._elimination_cost(None, solver).total
+        return factorization_bound(self.layout)
 
     def _elimination_cost(self, e, solver):
         """The `_elimination.SolveCost` of a solve by `solver` eliminating kind `e` (`None`:
