@@ -18,7 +18,14 @@ monitoring events) and the rest (tracing, lowering, host-side setup), the first 
 wall and in this process's CPU seconds (a loaded machine inflates the wall time), and the warm
 solve.
 
+The last table is the Schur choice (`solve(eliminate="auto")`, the default): on a generated
+bundle adjustment whose points are seen by 2-3 cameras and on generated 2D landmark SLAM whose
+landmarks are seen by most poses, the warm solve with `"auto"`, with the landmarks or points
+forced out by the Schur complement (which warns when the model finds it costlier) and with no
+elimination, the time `"auto"`'s decision took, and the model's figures for both.
+
     python benchmarks/factorgraph.py --data ../shared/data [--rounds 5] [--sets intel,sphere2500]
+                                     [--no-schur]
 """
 
 import argparse
@@ -214,7 +221,7 @@ def bundle_adjustment(cameras, points, observations, rounds):
         "Schur + dense": {"eliminate": pts, "solver": "dense"},
         "Schur + cholesky": {"eliminate": pts, "solver": "cholesky"},
         "Schur + cg": {"eliminate": pts, "solver": "cg"},
-        "cholesky (no Schur)": {"solver": "cholesky"},
+        "cholesky (no Schur)": {"eliminate": None, "solver": "cholesky"},
     }
     results, first = {}, {}
     for name, options in variants.items():
@@ -238,6 +245,103 @@ def bundle_adjustment(cameras, points, observations, rounds):
     ], float(graph.cost())
 
 
+def between(a, b, z):
+    return z.between(a.between(b)).log()
+
+
+def pose_prior(x, z):
+    return z.between(x).log()
+
+
+def observe(pose, point, z):
+    return pose.inverse() @ point - z
+
+
+def landmark_slam(poses, landmarks, seen, seed=0):
+    """`(graph, landmarks)`: 2D landmark SLAM, SE2 poses on a circle chained by odometry, a prior
+    on the first, each landmark seen by about `seen` of the poses (exact measurements, the start
+    perturbed)."""
+    rng = np.random.default_rng(seed)
+    angle = np.linspace(0.0, 2 * np.pi, poses)
+    truth = SE2.exp(jnp.asarray(np.stack([10 * np.cos(angle), 10 * np.sin(angle), angle], -1)))
+    marks = rng.uniform(-12, 12, size=(landmarks, 2))
+    pose_index, mark_index = np.nonzero(rng.random((poses, landmarks)) < seen)
+    i = np.arange(poses - 1)
+    seen_at = jax.vmap(lambda x, p: x.inverse() @ p)(truth[pose_index], marks[mark_index])
+    x = Var(truth.rplus(jnp.asarray(rng.normal(size=(poses, 3)) * 0.05)), name="poses")
+    m = Var(jnp.asarray(marks + rng.normal(size=marks.shape) * 0.1), name="landmarks")
+    graph = FactorGraph(
+        [
+            Factor(between, (x[i], x[i + 1]), truth[i].between(truth[i + 1])),
+            Factor(pose_prior, (x[0],), truth[:1]),
+            Factor(observe, (x[pose_index], m[mark_index]), seen_at),
+        ]
+    )
+    return graph, m
+
+
+def schur_choice(rounds):
+    """`eliminate="auto"` against forcing the elimination and against none, warm medians in one
+    process: bundle adjustment (points seen by 2-3 cameras: auto eliminates them) and landmark
+    SLAM (landmarks seen by most poses: auto keeps them)."""
+    import warnings
+
+    from lieax import ba
+
+    problem = ba.synthetic_bal(20, 400, 1000, seed=0).problem
+    cams = Var(problem.camera_variables(jnp.float64), fixed=[0], name="cameras")
+    pts = Var(jnp.asarray(problem.points), fixed=[0], name="points")
+    bundle = FactorGraph(
+        [
+            Factor(
+                ba.camera_residual,
+                (cams[problem.camera_indices], pts[problem.point_indices]),
+                jnp.asarray(problem.observations),
+                jacobian_fn=ba.camera_jacobians,
+            )
+        ],
+        check_gauge=False,
+    )
+    cases = {
+        "BA: 20 cameras, 400 points seen by 2.5": (bundle, pts),
+        "SLAM: 200 poses, 10 landmarks seen by 90%": landmark_slam(200, 10, 0.9),
+        "SLAM: 500 poses, 20 landmarks seen by 35%": landmark_slam(500, 20, 0.35),
+    }
+    rows = []
+    for name, (graph, kind) in cases.items():
+        variants = {"auto": {}, "eliminated": {"eliminate": kind}, "none": {"eliminate": None}}
+        start = time.perf_counter()
+        choice = graph._eliminated("auto", "auto")
+        decision = time.perf_counter() - start
+        results = {}
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            for variant, options in variants.items():
+                results[variant] = jax.block_until_ready(graph.solve(**options, throw=False))
+        timings = time_interleaved(
+            {v: (lambda o=o, g=graph: g.solve(**o, throw=False).cost) for v, o in variants.items()},
+            rounds, warmup=1, min_sample_s=0.02,
+        )  # fmt: skip
+        eliminated = graph._elimination_cost(graph.index(kind), "auto")
+        whole = graph._elimination_cost(None, "auto")
+        rows.append(
+            [
+                name,
+                "eliminate" if choice is not None else "keep",
+                format_seconds(decision),
+                format_seconds(timings["auto"].median),
+                format_seconds(timings["eliminated"].median),
+                format_seconds(timings["none"].median),
+                format_ratio(timings["eliminated"].median, timings["none"].median),
+                f"{eliminated.total * 1e3:.3g} / {whole.total * 1e3:.3g}",
+                f"{eliminated.off_blocks} / {whole.off_blocks}",
+                "yes" if caught else "no",
+                " / ".join(f"{float(r.cost):.3g}" for r in results.values()),
+            ]
+        )
+    return rows
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", default=os.environ.get("LIEAX_DATA_DIR", "../shared/data"))
@@ -246,6 +350,7 @@ def main(argv=None):
     parser.add_argument("--poses", type=int, default=10000)
     parser.add_argument("--kinds", default="1,2,3,4,5", help="numbers of factor kinds ('')")
     parser.add_argument("--ba", default="20,400,2400", help="cameras,points,observations ('')")
+    parser.add_argument("--schur", action=argparse.BooleanOptionalAction, default=True)
     args = parser.parse_args(argv)
     try:
         import gtsam  # noqa: F401
@@ -307,6 +412,24 @@ def main(argv=None):
         print()
         headers = ["linear solver", "warm solve", "iterations", "final cost", "first call"]
         print(markdown_table(headers, rows))
+        print()
+    if args.schur:
+        print("The Schur choice: eliminate='auto' against forcing the elimination and none:")
+        print()
+        headers = [
+            "problem",
+            "auto",
+            "decision",
+            "auto solve",
+            "eliminated",
+            "not eliminated",
+            "eliminated / not",
+            "model (ms) eliminated / not",
+            "off-diagonal blocks eliminated / not",
+            "warned",
+            "final cost auto / eliminated / not",
+        ]
+        print(markdown_table(headers, schur_choice(args.rounds)))
 
 
 if __name__ == "__main__":

@@ -9,6 +9,7 @@ built once per module (fixtures) so that each structure compiles its loop once.
 """
 
 import os
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -214,7 +215,7 @@ def test_landmarks_two_kinds_three_factors(landmarks):
     assert np.unique(np.concatenate(graph.plans[2].indices[1:])).size == 5  # all points seen
     results = [
         graph.solve(relative_tolerance=1e-14, absolute_tolerance=1e-20, **options)
-        for options in ({}, {"eliminate": marks})
+        for options in ({"eliminate": None}, {"eliminate": marks})
     ]
     for result in results:
         assert result.status_name == "CONVERGED"
@@ -304,7 +305,7 @@ def bundle():
         {"eliminate": "points", "solver": "dense"},
         {"eliminate": "points", "solver": "cholesky"},
         {"eliminate": "points", "solver": "cg"},
-        {"solver": "cholesky"},
+        {"eliminate": None, "solver": "cholesky"},
     ],
 )
 def test_bundle_adjustment_solvers_agree(bundle, options):
@@ -431,6 +432,142 @@ def test_implicit_derivative_matches_finite_differences(gps_graph):
     fd = (x(position + eps * direction) - x(position - eps * direction)) / (2 * eps)
     np.testing.assert_allclose(np.vdot(grad, direction), fd, rtol=1e-5)
     assert np.all(np.isfinite(grad))
+
+
+# ---- the Schur choice (eliminate="auto") --------------------------------------------------
+
+
+def landmark_slam(n_poses=200, n_marks=10, seen=0.9, seed=0):
+    """2D landmark SLAM: SE2 poses on a circle chained by odometry, a prior on the first, and
+    `n_marks` landmarks each seen by about `seen` of the poses (exact measurements)."""
+    rng = np.random.default_rng(seed)
+    angle = np.linspace(0.0, 2 * np.pi, n_poses)
+    xi = np.stack([10 * np.cos(angle), 10 * np.sin(angle), angle + np.pi / 2], -1)
+    truth = SE2.exp(jnp.asarray(xi))
+    marks = rng.uniform(-12, 12, size=(n_marks, 2))
+    pose_index, mark_index = np.nonzero(rng.random((n_poses, n_marks)) < seen)
+    i = np.arange(n_poses - 1)
+    seen_at = jax.vmap(lambda x, p: x.inverse() @ p)(truth[pose_index], marks[mark_index])
+    poses = Var(truth.rplus(jnp.asarray(rng.normal(size=(n_poses, 3)) * 0.05)), name="poses")
+    landmarks = Var(jnp.asarray(marks + rng.normal(size=marks.shape) * 0.1), name="landmarks")
+    graph = FactorGraph(
+        [
+            Factor(between, (poses[i], poses[i + 1]), truth[i].between(truth[i + 1])),
+            Factor(prior, (poses[0],), truth[:1]),
+            Factor(observe, (poses[pose_index], landmarks[mark_index]), seen_at),
+        ]
+    )
+    return graph, landmarks
+
+
+def few_camera_bundle():
+    """Bundle adjustment: 6 cameras, 40 points each seen by 2-3 of them on average
+    (`lieax.ba`, exact observations), one camera and one point fixed at the truth (the
+    gauge)."""
+    from lieax import ba
+
+    generated = ba.synthetic_bal(6, 40, 90, noise=0.0, seed=3)
+    problem, truth = generated.problem, generated.truth
+    start = problem.with_parameters(
+        np.r_[truth.cameras[:1], problem.cameras[1:]], np.r_[truth.points[:1], problem.points[1:]]
+    )
+    cameras = Var(start.camera_variables(jnp.float64), fixed=[0], name="cameras")
+    points = Var(jnp.asarray(start.points), fixed=[0], name="points")
+    factor = Factor(
+        ba.camera_residual,
+        (cameras[problem.camera_indices], points[problem.point_indices]),
+        jnp.asarray(problem.observations),
+        jacobian_fn=ba.camera_jacobians,
+    )
+    assert np.mean(np.bincount(problem.point_indices)) <= 3
+    return FactorGraph([factor], check_gauge=False), points
+
+
+TIGHT = {"relative_tolerance": 1e-15, "absolute_tolerance": 0.0, "throw": False}
+
+
+def test_auto_elimination_eliminates_points_seen_by_few_cameras():
+    graph, points = few_camera_bundle()
+    assert graph._eliminated("auto", "auto") == graph.index(points)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # an explicit elimination that pays says nothing
+        forced = graph.solve(eliminate=points, **TIGHT)
+    auto, whole = graph.solve(**TIGHT), graph.solve(eliminate=None, **TIGHT)
+    assert float(auto.cost) < 1e-20  # exact observations
+    for result in (forced, whole):
+        assert float(result.cost) < 1e-20
+        for a, b in zip(jax.tree.leaves(result.values), jax.tree.leaves(auto.values)):
+            np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10)
+
+
+def test_auto_elimination_keeps_landmarks_seen_by_most_poses():
+    graph, landmarks = landmark_slam()
+    assert graph._eliminated("auto", "auto") is None
+    with pytest.warns(
+        UserWarning,
+        match=r"eliminating 'landmarks'.* cost more .* ms modelled .* against .* ms modelled",
+    ):
+        forced = graph.solve(eliminate=landmarks, **TIGHT)
+    auto = graph.solve(**TIGHT)
+    assert float(auto.cost) < 1e-20  # exact measurements
+    for a, b in zip(jax.tree.leaves(forced.values), jax.tree.leaves(auto.values)):
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10)
+
+
+def test_auto_elimination_choice_follows_the_cost_model():
+    """The model's figures: landmarks seen by most poses link every pair of poses in the
+    reduced system, whose dense factorization costs more than the whole sparse system's."""
+    from lieax.factorgraph._elimination import candidates
+
+    graph, _ = landmark_slam()
+    assert candidates(graph.layout) == (1,)  # the poses share factors, the landmarks do not
+    eliminated, whole = graph._elimination_cost(1, "auto"), graph._elimination_cost(None, "auto")
+    assert eliminated.off_blocks == 200 * 199 // 2 and eliminated.method == "dense"
+    assert whole.off_blocks < 0.2 * eliminated.off_blocks and whole.method == "cholesky"
+    assert eliminated.total > 5 * whole.total and eliminated.flops > 100 * whole.flops
+    with pytest.raises(ValueError, match="eliminate must be a Var, None or 'auto'"):
+        graph.solve(eliminate="points")
+    # a larger bundle: the points' elimination beats the whole system's lower bound, so the
+    # whole is not analysed (nor the cameras' reduced system: its formation alone costs more)
+    from lieax import ba
+
+    problem = ba.synthetic_bal(20, 400, 1000, seed=0).problem
+    cameras = Var(problem.camera_variables(jnp.float64), name="cameras")
+    points = Var(jnp.asarray(problem.points), name="points")
+    args = (cameras[problem.camera_indices], points[problem.point_indices])
+    bundle = FactorGraph(
+        [Factor(ba.camera_residual, args, jnp.asarray(problem.observations))], check_gauge=False
+    )
+    assert bundle._eliminated("auto", "auto") == 1
+    assert ("cost", None, "auto") not in bundle._schur and ("reduced", 0) not in bundle._schur
+    eliminated, whole = bundle._elimination_cost(1, "auto"), bundle._elimination_cost(None, "auto")
+    assert eliminated.total < whole.total
+
+
+def test_marquardt_damping_takes_nielsens_rule_by_default():
+    """GTSAM's ×10 / ÷10 with the Marquardt diagonal ping-pongs: a step taken at λ, the next
+    rejected at λ/10, taken again at λ (more rejected steps than taken, here 19 of 32 solves);
+    the default with `damping="marquardt"` is Nielsen's rule, which settles (8 of 22)."""
+    from lieax import ba
+
+    problem = ba.synthetic_bal(3, 7, 18, noise=0.0, seed=0).problem  # solvable exactly
+    cameras = Var(problem.camera_variables(jnp.float64), name="cameras")
+    points = Var(jnp.asarray(problem.points), name="points")
+    factor = Factor(
+        ba.camera_residual,
+        (cameras[problem.camera_indices], points[problem.point_indices]),
+        jnp.asarray(problem.observations),
+        jacobian_fn=ba.camera_jacobians,
+    )
+    graph = FactorGraph([factor], check_gauge=False)
+    options = {"damping": "marquardt", "absolute_tolerance": 0.0, "throw": False}
+    default, gtsam_rule = graph.solve(**options), graph.solve(lambda_update="gtsam", **options)
+    for result in (default, gtsam_rule):
+        assert float(result.cost) < 1e-20
+    rejected = [int(r.linear_solves) - int(r.iterations) for r in (default, gtsam_rule)]
+    assert rejected[1] > int(gtsam_rule.iterations)
+    assert rejected[0] < 0.5 * int(default.linear_solves)
+    assert int(default.linear_solves) < int(gtsam_rule.linear_solves)
 
 
 # ---- bad input --------------------------------------------------------------------------------

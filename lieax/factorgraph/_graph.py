@@ -7,6 +7,7 @@ or new measurements of the same structure reuse it, under `vmap` too.
 """
 
 import operator
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -17,6 +18,13 @@ from ..autodiff._tangents import check_retraction, manifold_leaves
 from ..lstsq import NonFiniteStartError, SolveError, Status
 from ..lstsq._solution import is_failure
 from ..retractions import exp
+from ._elimination import (
+    candidates,
+    elimination_cost,
+    factorization_bound,
+    factorization_cost,
+    formation_seconds,
+)
 from ._factors import Factor, linearize_one, residual_one, variables_dtype
 from ._implicit import solve_implicit
 from ._solve import PARAMETERS, make_loop
@@ -205,11 +213,11 @@ class FactorGraph:
         data=None,
         *,
         solver="auto",
-        eliminate=None,
+        eliminate="auto",
         max_iterations=100,
         algorithm="levenberg_marquardt",
         damping="identity",
-        lambda_update="gtsam",
+        lambda_update="auto",
         retraction=None,
         lambda_initial=1e-5,
         lambda_factor=10.0,
@@ -236,13 +244,23 @@ class FactorGraph:
           at least half dense, else cholesky); with `eliminate`, the
           solver of the reduced system.
         - `eliminate`: a `Var` to eliminate by the Schur complement (its instances must not
-          share factors: points in bundle adjustment).
+          share factors: points in bundle adjustment), `None` for none, or `"auto"`: the kind
+          whose elimination makes a linear solve cheapest by the cost model of
+          `_elimination` (the multifrontal Cholesky's: the modelled time of forming and
+          factoring the reduced system, against factoring the whole), or none when none
+          pays: points seen by a few cameras are eliminated, landmarks seen by most poses
+          are not (they would make the reduced pose system dense). An explicit `Var` that the model finds costlier than no
+          elimination is still eliminated, with a `UserWarning` naming both costs.
         - `algorithm`: `"levenberg_marquardt"` or `"gauss_newton"`.
         - `damping`: `"identity"` ($\lambda I$, GTSAM) or `"marquardt"` ($\lambda$ diag $H$,
           clipped to `[diagonal_min, diagonal_max]`, Ceres).
-        - `lambda_update`: `"gtsam"` (GTSAM 4.3's: divide or multiply by `lambda_factor`) or
+        - `lambda_update`: `"gtsam"` (GTSAM 4.3's: divide or multiply by `lambda_factor`),
           `"nielsen"` (Madsen-Nielsen-Tingleff's, Ceres', the rule of
-          `lieax.lstsq.LevenbergMarquardt`); see `_solve`.
+          `lieax.lstsq.LevenbergMarquardt`) or `"auto"`: `"nielsen"` with
+          `damping="marquardt"`, `"gtsam"` with `"identity"`, the pairs of Ceres and of
+          GTSAM's own defaults (its `ceresDefaults()` pairs the diagonal with Nielsen's rule);
+          GTSAM's ×10 / ÷10 with the Marquardt diagonal ping-pongs between two $\lambda$ (see
+          `_solve`).
         - `retraction`: how a step moves the values, a `lieax.retractions.Retraction` (default
           `lieax.retractions.exp`, $x \oplus \delta$; `cayley` is GTSAM's default Pose3 chart).
           The Jacobians and the optimum do not depend on it, the path to the optimum does.
@@ -345,20 +363,24 @@ class FactorGraph:
             raise ValueError(f"unknown algorithm {algorithm!r}.")
         if damping not in ("identity", "marquardt"):
             raise ValueError(f"damping must be 'identity' or 'marquardt', got {damping!r}.")
-        if lambda_update not in ("gtsam", "nielsen"):
-            raise ValueError(f"lambda_update must be 'gtsam' or 'nielsen', got {lambda_update!r}.")
+        if lambda_update not in ("auto", "gtsam", "nielsen"):
+            raise ValueError(
+                f"lambda_update must be 'auto', 'gtsam' or 'nielsen', got {lambda_update!r}."
+            )
+        if lambda_update == "auto":
+            lambda_update = "nielsen" if damping == "marquardt" else "gtsam"
         max_iterations = _count(max_iterations, "max_iterations")
         if cg_max_iterations is not None:
             cg_max_iterations = _count(cg_max_iterations, "cg_max_iterations")
         retraction = exp if retraction is None else check_retraction(retraction)
         schur = None
         layout = self.layout
-        if eliminate is not None:
-            e = self.index(eliminate)
+        e = self._eliminated(eliminate, solver)
+        if e is not None:
             schur = self._schur.get(e)
             if schur is None:
                 schur = self._schur[e] = schur_layout(
-                    self.layout, e, [v.name for v in self.variables]
+                    self.layout, e, self._names(), self._schur.get(("reduced", e))
                 )
             layout = schur.layout
         if solver == "auto":
@@ -397,6 +419,84 @@ class FactorGraph:
         if loop is None:
             loop = self._loops[key] = make_loop(self, options)
         return loop, layout, solver
+
+    def _names(self):
+        return [v.name for v in self.variables]
+
+    def _eliminated(self, eliminate, solver):
+        """The kind `solve(eliminate=...)` eliminates, or `None` (see `solve`; the costs are
+        kept with the structure, per solver)."""
+        if eliminate is None:
+            return None
+        if isinstance(eliminate, str):
+            if eliminate != "auto":
+                raise ValueError(f"eliminate must be a Var, None or 'auto', got {eliminate!r}.")
+            key = ("auto", solver)
+            if key not in self._schur:
+                self._schur[key] = self._cheapest_elimination(solver)
+            return self._schur[key]
+        e = self.index(eliminate)
+        cost = self._elimination_cost(e, solver)
+        # below the whole system's bound it pays (the whole is not analysed to say so)
+        whole = (
+            None if cost.total < self._whole_bound(solver) else self._elimination_cost(None, solver)
+        )
+        if whole is not None and cost.total > whole.total:
+            warnings.warn(
+                f"eliminating {self.variables[e].name!r} by the Schur complement is predicted to "
+                f"cost more than not eliminating: {cost.describe()} against "
+                f"{whole.describe()} for the whole system. Pass eliminate='auto' (the default) "
+                "or None.",
+                stacklevel=5,
+            )
+        return e
+
+    def _cheapest_elimination(self, solver):
+        """The kind whose elimination makes a solve by `solver` cheapest, or `None` when no
+        elimination beats the whole system (`_elimination`). A candidate whose formation alone
+        costs more is passed over without building its reduced pattern (as large as its fill:
+        every pair of points of a camera); the whole system's factorization is analysed only
+        when the best candidate does not beat its lower bound."""
+
+        def whole():
+            return self._elimination_cost(None, solver).total
+
+        bound = self._whole_bound(solver)
+        formation = {k: formation_seconds(self.layout, k) for k in candidates(self.layout)}
+        best, least = None, np.inf
+        for k in sorted(formation, key=formation.get):
+            if formation[k] >= least or (formation[k] >= bound and formation[k] >= whole()):
+                continue
+            cost = self._elimination_cost(k, solver).total
+            if cost < least:
+                best, least = k, cost
+        return best if best is not None and (least < bound or least < whole()) else None
+
+    def _whole_bound(self, solver):
+        """A lower bound of the modelled cost of a solve by `solver` without elimination: the
+        sparse factor's (`_elimination.factorization_bound`), where `"auto"` cannot pick the
+        dense one, else the cost itself."""
+        small = solver != "cholesky" and self.layout.padded_unknowns <= _DENSE_FILLED_LIMIT
+        if solver == "dense" or small:
+            return self._elimination_cost(None, solver).total
+        return factorization_bound(self.layout)
+
+    def _elimination_cost(self, e, solver):
+        """The `_elimination.SolveCost` of a solve by `solver` eliminating kind `e` (`None`:
+        none), kept with the structure."""
+        key = ("cost", e, solver)
+        if key not in self._schur:
+
+            def method_of(layout):
+                return solver if solver in ("dense", "cholesky") else _auto_method(layout)
+
+            if e is None:
+                self._schur[key] = factorization_cost(self.layout, method_of(self.layout))
+            else:
+                cost, reduced = elimination_cost(self.layout, e, self._names(), method_of)
+                self._schur[key] = cost
+                self._schur.setdefault(("reduced", e), reduced)
+        return self._schur[key]
 
     def _checked_leaves(self, values):
         """The array leaves of `values` when they have the structure, shapes and floating

@@ -46,6 +46,7 @@ class Layout:
         self.block_size = max(self.dims)
         self._plan = None
         self._analysis = None
+        self.sparse_cost = None  # `(seconds, multiply-adds, fill)`, `_elimination`
         self._lock = threading.Lock()
         n = int(self.offsets[-1])
         items = self.pairs.items()
@@ -297,8 +298,43 @@ class SchurPlan:
     fill: tuple
 
 
-def schur_layout(layout, e, names):
-    """The `SchurPlan` eliminating kind `e` (see the module docstring)."""
+def schur_layout(layout, e, names, reduced=None):
+    """The `SchurPlan` eliminating kind `e` (see the module docstring); `reduced`, the
+    `reduced_layout` of `e` when it is at hand (`elimination_cost` builds it)."""
+    kept, new, links, pieces, fill_raw = _reduction(layout, e, names)
+    if reduced is None:
+        reduced = _reduced(layout, kept, pieces)
+    pairs = reduced.pairs
+    original = {
+        (a, b): ((new[a], new[b]), pair_slots(pairs, new[a], new[b], rows, cols))
+        for (a, b), (rows, cols) in layout.pairs.items()
+        if e not in (a, b)
+    }
+    diagonal = {}
+    for r, (_, _, inst, _, _) in links.items():
+        terms = np.arange(len(inst))
+        diagonal[r] = gram_plan(terms, terms, inst, reduced.counts[new[r]], len(inst), len(inst))
+    fill = []
+    for r1, r2, u, v, key, ia, ib in fill_raw:
+        slots = pair_slots(pairs, *key, ia, ib)
+        pad_u, pad_v = len(links[r1][2]), len(links[r2][2])
+        plan = gram_plan(u, v, slots, len(pairs[key][0]), pad_u, pad_v)
+        fill.append((r1, r2, key, plan))
+    return SchurPlan(e, kept, reduced, links, original, diagonal, tuple(fill))
+
+
+def reduced_layout(layout, e, names):
+    """The `Layout` of the reduced system after eliminating kind `e` (its pattern only, without
+    the `SchurPlan`'s Gram plans)."""
+    kept, _, _, pieces, _ = _reduction(layout, e, names)
+    return _reduced(layout, kept, pieces)
+
+
+def _reduction(layout, e, names):
+    """`(kept, new, links, pieces, fill_raw)` of the elimination of kind `e`: the kept kinds and
+    their new indices, the links of each kept kind to `e` (as `SchurPlan.links`), the block
+    pairs of the reduced system per reduced key, and per pair of linked kinds the pairs of
+    links `(u, v)` of a common eliminated instance with the blocks they fill."""
     if (e, e) in layout.pairs and len(layout.pairs[(e, e)][0]):
         raise ValueError(
             f"cannot eliminate variable kind {names[e]!r}: some of its instances share a factor "
@@ -334,32 +370,20 @@ def schur_layout(layout, e, names):
             key = (new[r1], new[r2])
             pieces.setdefault(key, []).append((ia, ib))
             fill_raw.append((r1, r2, u, v, key, ia, ib))
+    return kept, new, links, pieces, fill_raw
+
+
+def _reduced(layout, kept, pieces):
     pairs = {
         key: unique_pairs(np.concatenate([a for a, _ in v]), np.concatenate([b for _, b in v]))
         for key, v in sorted(pieces.items())
     }
-    reduced = Layout(
+    return Layout(
         tuple(layout.dims[k] for k in kept),
         tuple(layout.counts[k] for k in kept),
         pairs,
         tuple(layout.free[k] for k in kept),
     )
-    original = {
-        (a, b): ((new[a], new[b]), pair_slots(pairs, new[a], new[b], rows, cols))
-        for (a, b), (rows, cols) in layout.pairs.items()
-        if e not in (a, b)
-    }
-    diagonal = {}
-    for r, (_, _, inst, _, _) in links.items():
-        terms = np.arange(len(inst))
-        diagonal[r] = gram_plan(terms, terms, inst, reduced.counts[new[r]], len(inst), len(inst))
-    fill = []
-    for r1, r2, u, v, key, ia, ib in fill_raw:
-        slots = pair_slots(pairs, *key, ia, ib)
-        pad_u, pad_v = len(links[r1][2]), len(links[r2][2])
-        plan = gram_plan(u, v, slots, len(pairs[key][0]), pad_u, pad_v)
-        fill.append((r1, r2, key, plan))
-    return SchurPlan(e, kept, reduced, links, original, diagonal, tuple(fill))
 
 
 def _ranges(lengths):
