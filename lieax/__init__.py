@@ -26,6 +26,7 @@ from . import (
     sharding,
 )
 from ._align import align
+from ._compilation_cache import enable_compilation_cache
 from .autodiff import (
     flatten_tangents,
     grad,
@@ -64,6 +65,7 @@ __all__ = [
     "align",
     "ba",
     "conventions",
+    "enable_compilation_cache",
     "factorgraph",
     "flatten_tangents",
     "grad",
