@@ -12,9 +12,12 @@ def is_concrete(*trees) -> bool:
 
 
 def to_device(array) -> jax.Array:
-    """A host array as a JAX array in JAX's dtype for it (float64 is float32 without x64), by one
-    transfer: `jnp.asarray` of a NumPy array compiles a small XLA program per shape and dtype on
-    first use, and building a problem would wait on many of them (issue 30)."""
+    """A host array (or Python numbers) as a JAX array in JAX's dtype for it (float64 is float32
+    without x64), by one transfer: `jnp.asarray` of a NumPy array compiles a small XLA program
+    per shape and dtype on first use, and building a problem would wait on many of them
+    (issue 30). JAX arrays and tracers are returned as they are."""
+    if isinstance(array, jax.Array):
+        return array
     array = np.asarray(array)
     return jax.device_put(array.astype(jax.dtypes.canonicalize_dtype(array.dtype), copy=False))
 

@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import as_float_array
+from .._checks import as_float_array, is_concrete, to_device
 from .._linalg import cross, dot, matvec, skew
 from ..groups import _so3 as so3
 from ..groups._se3 import SE3
@@ -71,10 +71,10 @@ class ImuParams(NamedTuple):
         integration sigma."""
         eye = np.eye(3)
         return cls(
-            jnp.asarray(accel_noise_density**2 * eye),
-            jnp.asarray(gyro_noise_density**2 * eye),
-            jnp.asarray(integration_sigma**2 * eye),
-            jnp.asarray([0.0, 0.0, -float(gravity)]),
+            to_device(accel_noise_density**2 * eye),  # transfers, no compiled conversion
+            to_device(gyro_noise_density**2 * eye),
+            to_device(integration_sigma**2 * eye),
+            to_device(np.array([0.0, 0.0, -float(gravity)])),
             body_P_sensor,
             None if omega_coriolis is None else jnp.asarray(omega_coriolis, dtype=float),
         )
@@ -200,24 +200,35 @@ def _check_samples(gyro, accel, dt, bias, params):
         raise ImuError("an interval needs at least one sample.")
     dt = as_float_array(dt, "dt")
     if dt.ndim == 0:
-        dt = jnp.broadcast_to(dt, gyro.shape[:1])
+        dt = (
+            jnp.broadcast_to(dt, gyro.shape[:1])
+            if not is_concrete(dt)
+            else to_device(np.broadcast_to(np.asarray(dt), gyro.shape[:1]))
+        )
     if dt.shape != gyro.shape[:1]:
         raise ImuError(f"dt must be a scalar or have shape ({gyro.shape[0]},), got {dt.shape}.")
     bias = as_float_array(bias, "bias")
     if bias.shape != (6,):
         raise ImuError(f"bias must be (b_acc, b_gyro) of shape (6,), got {bias.shape}.")
-    finite = jnp.isfinite(gyro).all(-1) & jnp.isfinite(accel).all(-1) & jnp.isfinite(dt)
-    ok = finite & (dt > 0)
-    if not isinstance(ok, jax.core.Tracer):
-        ok_np = np.asarray(ok)
-        if not ok_np.all():
-            k = int(np.flatnonzero(~ok_np)[0])
-            what = "non-finite gyro, accel or dt" if not np.asarray(finite)[k] else "dt <= 0"
-            raise ImuError(f"sample {k}: {what} (dt = {float(dt[k])}).")
-        if not bool(jnp.isfinite(bias).all()):
+    if not is_concrete(gyro, accel, dt):
+        finite = jnp.isfinite(gyro).all(-1) & jnp.isfinite(accel).all(-1) & jnp.isfinite(dt)
+        return gyro, accel, dt, bias, (finite & (dt > 0)).all() & jnp.isfinite(bias).all()
+    # concrete samples: checked in NumPy (no compilation)
+    gyro_np, accel_np, dt_np = np.asarray(gyro), np.asarray(accel), np.asarray(dt)
+    finite = np.isfinite(gyro_np).all(-1) & np.isfinite(accel_np).all(-1) & np.isfinite(dt_np)
+    ok = finite & (dt_np > 0)
+    if not ok.all():
+        k = int(np.flatnonzero(~ok)[0])
+        what = "non-finite gyro, accel or dt" if not finite[k] else "dt <= 0"
+        raise ImuError(f"sample {k}: {what} (dt = {float(dt_np[k])}).")
+    if is_concrete(bias):
+        if not np.isfinite(np.asarray(bias)).all():
             raise ImuError("bias has non-finite values.")
-    ok = ok.all() & jnp.isfinite(bias).all()
-    return gyro, accel, dt, bias, ok
+        return gyro, accel, dt, bias, to_device(np.bool_(True))
+    bias_finite = jnp.isfinite(bias).all()  # a traced bias with concrete samples
+    if not bool(bias_finite):
+        raise ImuError("bias has non-finite values.")
+    return gyro, accel, dt, bias, bias_finite
 
 
 def _corrected(accel, gyro, bias, params):
@@ -678,7 +689,10 @@ def preintegrate(gyro, accel, dt, bias, params: ImuParams) -> Preintegrated:
     gyro, accel, dt, bias, ok = _check_samples(gyro, accel, dt, bias, params)
     dtype = jnp.result_type(gyro, accel, dt, bias)
     gyro, accel, dt, bias = (a.astype(dtype) for a in (gyro, accel, dt, bias))
-    params = jax.tree.map(lambda a: jnp.asarray(a, dtype), params)
+    params = jax.tree.map(
+        lambda a: to_device(np.asarray(a, dtype)) if is_concrete(a) else jnp.asarray(a, dtype),
+        params,
+    )
     x, cov, jac = _scan(gyro, accel, dt, bias, params)
     return _result(x, dt.sum(), cov, jac, bias, ok)
 
