@@ -184,6 +184,8 @@ def _constructors(rng, dtype):
         ("SE2.from_xy_theta", SE2.from_xy_theta, tuple(angles)),
         ("SE2.from_xy_theta (numbers)", SE2.from_xy_theta, (1.0, 2, angles[2])),
         ("SO3.exp", SO3.exp, (rotvecs,)),
+        ("SE3.exp", SE3.exp, (np.concatenate([rotvecs[::-1], rotvecs], -1),)),
+        ("SE2.exp", SE2.exp, (np.concatenate([rotvecs[:, :2], rotvecs[:, 2:]], -1),)),
         ("SO3.from_rotvec", SO3.from_rotvec, (rotvecs,)),
         ("SO3.from_rpy", SO3.from_rpy, tuple(angles)),
         ("SO3.from_xyzw", SO3.from_xyzw, (np.roll(np.asarray(so3.parameters()), -1, -1),)),

@@ -265,6 +265,7 @@ class SE2(AbstractGroup):
     space_dim = 2
     matrix_dim = 3
     parameters_layout = "cos, sin, x, y"
+    _host_exp = staticmethod(_host.se2_exp)
     _host_from_matrix = staticmethod(
         lambda m: np.concatenate([_host.so2_nearest_rotation(m[..., :2, :2]), m[..., :2, 2]], -1)
     )

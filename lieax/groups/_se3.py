@@ -310,6 +310,7 @@ class SE3(AbstractGroup):
     space_dim = 3
     matrix_dim = 4
     parameters_layout = "quaternion wxyz, then translation xyz"
+    _host_exp = staticmethod(_host.se3_exp)
     _host_from_matrix = staticmethod(
         lambda m: np.concatenate([_host.so3_from_matrix(m[..., :3, :3]), m[..., :3, 3]], -1)
     )
