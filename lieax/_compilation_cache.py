@@ -18,8 +18,8 @@ def enable_compilation_cache(path=None) -> pathlib.Path:
     call: seconds on a CPU).
 
     **Arguments:**
-    - `path`: the cache directory (created if missing); by default `default_cache_dir()`,
-      `$XDG_CACHE_HOME/lieax/jax` or `~/.cache/lieax/jax`.
+    - `path`: the cache directory (created if missing); by default `$XDG_CACHE_HOME/lieax/jax`,
+      or `~/.cache/lieax/jax` where `XDG_CACHE_HOME` is unset.
 
     **Returns:** the directory, as a `pathlib.Path`.
 
