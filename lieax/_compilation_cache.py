@@ -28,9 +28,10 @@ def enable_compilation_cache(path=None) -> pathlib.Path:
     `jax_persistent_cache_min_entry_size_bytes` to -1 (JAX's defaults skip programs that compile
     in under a second, which is most of lieax's: a solver's loop, the groups' small programs), for
     the whole process and every library in it, as setting them yourself would. Call it before the
-    first computation; a call after some programs were compiled also works (JAX's cache is reset
-    to the new directory), and those programs are written once compiled again. The cache is
-    trusted: do not point it at a directory others may write to.
+    first computation: a later call also works (JAX's cache is reset to the new directory), but
+    the programs this process compiled before it are not written (JAX keeps them in memory and
+    does not compile them again). The cache is trusted: do not point it at a directory others
+    may write to.
 
     What JAX cannot cache: a program that contains a Python host callback. Such a program is
     compiled in every process. In lieax today:
