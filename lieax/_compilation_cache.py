@@ -40,9 +40,10 @@ def enable_compilation_cache(path=None) -> pathlib.Path:
       `examples/icp_demo.py` and of the LiDAR pairs; `search="grid"` (and `"graph"` for the
       normals) has no callback and is cached;
     - `lieax.factorgraph` with `solver="cholesky"` (the host multifrontal Cholesky, which
-      `solver="auto"` picks above a few hundred unknowns: bundle adjustment, large landmark
-      graphs) and `lieax.graph.optimize` (cholesky by default): the solve loop; `"dense"` and
-      `"cg"` are cached (the README's factor-graph example is dense);
+      `solver="auto"` picks for systems above 300–800 unknowns: a landmark graph of thousands of
+      poses, an IMU smoother of hundreds of keyframes) and `lieax.graph.optimize` (cholesky by
+      default): the solve loop; `"dense"` and `"cg"` are cached (the README's factor-graph
+      example, and bundle adjustment at Ladybug-49 size, whose reduced camera system is dense);
     - a solver's `throw=True` inside your own `jit` (the error is raised from a callback in the
       compiled program); outside `jit` the status is read after the program returns, which
       keeps it cacheable, and `throw=False` never adds a callback;
