@@ -28,6 +28,7 @@ from . import (
     sharding,
 )
 from ._align import align
+from ._compilation_cache import enable_compilation_cache
 from .autodiff import (
     flatten_tangents,
     grad,
@@ -67,6 +68,7 @@ __all__ = [
     "ba",
     "cameras",
     "conventions",
+    "enable_compilation_cache",
     "factorgraph",
     "flatten_tangents",
     "grad",

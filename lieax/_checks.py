@@ -28,13 +28,33 @@ def check_not_foreign(x, what: str) -> None:
         raise TypeError(f"{what} is {conversion}.")
 
 
+def is_concrete(*trees) -> bool:
+    """Whether no leaf of `trees` is traced (by `jit`, `vmap`, `grad`, ...): concrete values can be
+    worked on in NumPy, which compiles nothing (see `to_device`)."""
+    return not any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(trees))
+
+
+def to_device(array) -> jax.Array:
+    """A host array (or Python numbers) as a JAX array in JAX's dtype for it (float64 is float32
+    without x64), by one transfer: `jnp.asarray` of a NumPy array compiles a small XLA program
+    per shape and dtype on first use, and building a problem would wait on many of them
+    (issue 30). JAX arrays and tracers are returned as they are."""
+    if isinstance(array, jax.Array):
+        return array
+    array = np.asarray(array)
+    return jax.device_put(array.astype(jax.dtypes.canonicalize_dtype(array.dtype), copy=False))
+
+
 def as_float_array(x, what: str) -> jnp.ndarray:
     """`x` as a JAX array with a floating dtype; `TypeError` naming `what` otherwise (with the
     conversion, for a jaxlie group or an Open3D point cloud: `check_not_foreign`). A Python
-    number (`0`, `1`) states no dtype and becomes the default float (float64 under x64)."""
+    number (`0`, `1`) states no dtype and becomes the default float (float64 under x64). Host
+    floats are transferred (`to_device`), not converted by a compiled program."""
     check_not_foreign(x, what)
     if isinstance(x, (int, float)) and not isinstance(x, bool):
-        x = jnp.asarray(x, dtype=jnp.result_type(float))
+        x = np.asarray(x, dtype=jnp.result_type(float))
+    if isinstance(x, np.ndarray) and np.issubdtype(x.dtype, np.floating):
+        x = to_device(x)
     x = jnp.asarray(x)
     if not jnp.issubdtype(x.dtype, jnp.floating):
         raise TypeError(f"{what} must have a floating dtype (float32 or float64), got {x.dtype}.")
@@ -98,15 +118,28 @@ def match_dtype(x, dtype, what: str, owner: str) -> jnp.ndarray:
     )
 
 
+def common_float_dtype(what: str, *values):
+    """The dtype of `common_float_arrays(what, *values)` (and its `TypeError`s)."""
+    stated = sorted({str(as_float_array(v, what).dtype) for v in values if states_dtype(v)})
+    if len(stated) > 1:
+        raise TypeError(f"{what}: arguments of different dtypes {' and '.join(stated)}.")
+    for v in values:  # the floating-dtype check of every value
+        as_float_array(v, what)
+    return np.dtype(stated[0] if stated else jnp.result_type(float))
+
+
 def common_float_arrays(what: str, *values) -> list:
     """`values` as float arrays of one dtype: that of the arguments that state a dtype
     (`states_dtype`; they must agree, else a `TypeError` naming the dtypes), the others taking it;
     the default float when none does."""
-    stated = sorted({str(as_float_array(v, what).dtype) for v in values if states_dtype(v)})
-    if len(stated) > 1:
-        raise TypeError(f"{what}: arguments of different dtypes {' and '.join(stated)}.")
-    dtype = stated[0] if stated else jnp.result_type(float)
+    dtype = common_float_dtype(what, *values)
     return [as_float_array(v, what).astype(dtype) for v in values]
+
+
+def common_host_arrays(what: str, *values) -> list:
+    """`common_float_arrays` for concrete values, as NumPy arrays (no compilation)."""
+    dtype = common_float_dtype(what, *values)
+    return [np.asarray(v).astype(dtype) for v in values]
 
 
 def check_positive(x, what: str) -> None:

@@ -9,6 +9,14 @@ way). Under `vmap` a batch reports per-problem statuses instead (one bad problem
 the others): the callback's batching rule (`jax.custom_batching.custom_vmap`) drops the check.
 The check has no derivative to carry (the status is an integer), so `jvp`, `grad` and the
 implicit derivatives pass through it.
+
+The persistent compilation cache (`lieax.enable_compilation_cache`): JAX writes no program that
+holds a Python callback to it. Called outside `jit`, the solvers (`lstsq.least_squares`,
+`FactorGraph.solve`, the ICP registrations) run their compiled loop, which returns the status,
+and raise in Python afterwards: `raise_if` is never staged and the loop is cached. Only a solve
+with `throw=True` inside the caller's own `jit` stages this callback, so that program (the
+caller's) is compiled again in every process: the documented limit; `throw=False` under `jit`
+(reading the status) keeps it cacheable.
 """
 
 import jax

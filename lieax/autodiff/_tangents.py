@@ -10,8 +10,9 @@ import math
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-from .._checks import check_not_foreign, foreign_conversion
+from .._checks import check_not_foreign, foreign_conversion, to_device
 from ..groups._base import AbstractManifold
 from ..retractions import Retraction, exp
 
@@ -37,7 +38,8 @@ def manifold_leaves(tree, what: str = "argument"):
                     f"{where} has dtype {dtype}; lieax differentiates groups and float arrays "
                     "only (pass integer data through a non-differentiated argument)."
                 )
-            leaf = jnp.asarray(leaf)
+            # a host array is transferred (`jnp.asarray` would compile a conversion)
+            leaf = to_device(leaf) if isinstance(leaf, np.ndarray) else jnp.asarray(leaf)
         leaves.append(leaf)
     return leaves, treedef
 

@@ -58,12 +58,12 @@ class BALProblem:
         """`(T_camera_world, intrinsics)`: the cameras as one batched `lieax.SE3` and `(n, 3)`
         intrinsics $(f, k_1, k_2)$ (see `lieax.ba.bal_to_camera`), in `dtype` (default: JAX's
         default float; enable x64 for bundle adjustment)."""
-        import jax.numpy as jnp
+        import jax
 
         from ._camera import bal_to_camera
 
-        cameras = jnp.asarray(self.cameras) if dtype is None else jnp.asarray(self.cameras, dtype)
-        return bal_to_camera(cameras)
+        dtype = jax.dtypes.canonicalize_dtype(float if dtype is None else dtype)
+        return bal_to_camera(np.asarray(self.cameras, dtype))
 
     def with_parameters(self, cameras, points) -> "BALProblem":
         """The same observations with other `(n, 9)` cameras and `(m, 3)` points."""

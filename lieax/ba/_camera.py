@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import broadcast_batch, check_last_axis
+from .._checks import broadcast_batch, check_last_axis, is_concrete, to_device
 from ..cameras._snavely import check_pose as _check_pose
 from ..groups._se3 import SE3
 from ..groups._so3 import SO3
@@ -25,6 +25,10 @@ def bal_to_camera(cameras):
     intrinsics $(f, k_1, k_2)$.
     """
     cameras = check_last_axis(cameras, 9, "BAL cameras", "rotation vector, t, f, k1, k2")
+    if is_concrete(cameras):  # sliced in NumPy: building a problem compiles nothing
+        cameras = np.asarray(cameras)
+        pose = SE3.from_rotation_and_translation(SO3.exp(cameras[..., :3]), cameras[..., 3:6])
+        return pose, to_device(cameras[..., 6:])
     pose = SE3.from_rotation_and_translation(SO3.exp(cameras[..., :3]), cameras[..., 3:6])
     return pose, cameras[..., 6:]
 

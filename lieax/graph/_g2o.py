@@ -36,9 +36,9 @@ import collections
 import os
 import warnings
 
-import jax.numpy as jnp
 import numpy as np
 
+from .._checks import to_device
 from ..groups._se2 import SE2
 from ..groups._se3 import SE3
 from ._graph import BetweenFactors, PoseGraph, square_root_information
@@ -250,7 +250,10 @@ def read_g2o(path, *, information="nearest", dtype=None) -> PoseGraph:
             )
     fixed = np.unique(np.asarray([lookup[v] for v, _ in fixed_ids], dtype=np.int64))
 
-    to_dtype = (lambda x: jnp.asarray(x)) if dtype is None else (lambda x: jnp.asarray(x, dtype))
+    # one transfer per array: `jnp.asarray` would compile a conversion per shape (issue 30)
+    to_dtype = (
+        (lambda x: to_device(x)) if dtype is None else (lambda x: to_device(np.asarray(x, dtype)))
+    )
     measured = group._wrap(to_dtype(measured))
     between = BetweenFactors(index[:, 0].copy(), index[:, 1].copy(), measured, to_dtype(root))
     if has_vertices:

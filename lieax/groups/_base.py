@@ -41,15 +41,18 @@ import sys
 from typing import ClassVar
 
 import jax
-import jax.numpy as jnp
+import numpy as np
 
 from .._checks import (
     broadcast_batch,
     check_last_axis,
     check_matrix,
     check_same_dtype,
+    is_concrete,
     match_dtype,
+    to_device,
 )
+from . import _host
 
 # The kernel namespace of a group: these names, bound to the class as `_exp`, `_log`, ...
 # (`to_local` as `_local_from_tangent`, `from_local` as `_tangent_from_local`).
@@ -144,6 +147,10 @@ class AbstractGroup(AbstractManifold):
 
     space_dim: ClassVar[int]
     matrix_dim: ClassVar[int]
+    # NumPy versions of `exp` and `from_matrix` for concrete inputs (`lieax.groups._host`), where a
+    # group has them: constructors then compile nothing.
+    _host_exp: ClassVar = None  # a staticmethod
+    _host_from_matrix: ClassVar = None  # a staticmethod
 
     __slots__ = ()
 
@@ -170,19 +177,24 @@ class AbstractGroup(AbstractManifold):
     @classmethod
     def identity(cls, batch_shape=(), dtype=None):
         """The identity element, repeated over `batch_shape`."""
-        params = cls._exp(jnp.zeros((*batch_shape, cls.tangent_dim), dtype=dtype))
-        return cls._wrap(params)
+        dtype = jax.dtypes.canonicalize_dtype(float if dtype is None else dtype)
+        params = _host.identity(cls.parameters_dim, tuple(batch_shape), dtype)
+        return cls._wrap(to_device(params))
 
     @classmethod
     def exp(cls, tangent):
         r"""$\mathrm{Exp}(\xi)$ for tangents of shape `(*batch, tangent_dim)`."""
         tangent = check_last_axis(tangent, cls.tangent_dim, f"{cls.__name__}.exp tangent")
+        if cls._host_exp is not None and is_concrete(tangent):  # no compilation
+            return cls._wrap(to_device(cls._host_exp(np.asarray(tangent))))
         return cls._wrap(cls._exp(tangent))
 
     @classmethod
     def from_matrix(cls, matrix):
         """The element nearest to a homogeneous matrix (rotations are re-orthogonalized)."""
         matrix = check_matrix(matrix, cls.matrix_dim, f"{cls.__name__}.from_matrix matrix")
+        if cls._host_from_matrix is not None and is_concrete(matrix):  # no compilation
+            return cls._wrap(to_device(cls._host_from_matrix(np.asarray(matrix))))
         return cls._wrap(cls._from_matrix(matrix))
 
     @classmethod

@@ -23,9 +23,18 @@ import sys
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-from .._checks import broadcast_batch, check_last_axis, common_float_arrays, match_dtype
-from . import _generic, _rules
+from .._checks import (
+    broadcast_batch,
+    check_last_axis,
+    common_float_arrays,
+    common_host_arrays,
+    is_concrete,
+    match_dtype,
+    to_device,
+)
+from . import _generic, _host, _rules
 from . import _so2 as so2
 from ._base import AbstractGroup
 from ._bearing_range import norm
@@ -279,6 +288,10 @@ class SE2(AbstractGroup):
     space_dim = 2
     matrix_dim = 3
     parameters_layout = "cos, sin, x, y"
+    _host_exp = staticmethod(_host.se2_exp)
+    _host_from_matrix = staticmethod(
+        lambda m: np.concatenate([_host.so2_nearest_rotation(m[..., :2, :2]), m[..., :2, 2]], -1)
+    )
 
     @classmethod
     def from_rotation_and_translation(cls, rotation: SO2, translation):
@@ -291,15 +304,24 @@ class SE2(AbstractGroup):
             )
         translation = match_dtype(translation, rotation.dtype, "SE2 translation", "the rotation")
         translation = check_last_axis(translation, 2, "SE2 translation", "x, y")
-        broadcast_batch(
+        batch = broadcast_batch(
             "SE2.from_rotation_and_translation", rotation.batch_shape, translation.shape[:-1]
         )
+        if is_concrete(rotation, translation):  # no compilation (`lieax.groups._host`)
+            parts = (np.asarray(rotation._params), np.asarray(translation))
+            return cls._wrap(to_device(_host.join(batch, *parts)))
         return cls._wrap(join(rotation._params, translation))
 
     @classmethod
     def from_xy_theta(cls, x, y, theta):
         """From positions and headings (radians), each of shape `(*batch,)`, broadcast together; the
         dtype is that of the arrays among them (Python and NumPy numbers take it)."""
+        if is_concrete(x, y, theta):  # no compilation (`lieax.groups._host`)
+            x, y, theta = common_host_arrays("SE2.from_xy_theta", x, y, theta)
+            batch = broadcast_batch("SE2.from_xy_theta", x.shape, y.shape, theta.shape)
+            x, y, theta = (np.broadcast_to(a, batch) for a in (x, y, theta))
+            rotation = _host.so2_exp(theta[..., None])
+            return cls._wrap(to_device(_host.join(batch, rotation, np.stack([x, y], axis=-1))))
         x, y, theta = common_float_arrays("SE2.from_xy_theta", x, y, theta)
         batch = broadcast_batch("SE2.from_xy_theta", x.shape, y.shape, theta.shape)
         x, y, theta = (jnp.broadcast_to(a, batch) for a in (x, y, theta))

@@ -19,8 +19,9 @@ import sys
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-from .._checks import broadcast_batch, check_last_axis, match_dtype
+from .._checks import broadcast_batch, check_last_axis, is_concrete, match_dtype, to_device
 from .._linalg import (
     cross,
     dot,
@@ -34,7 +35,7 @@ from .._linalg import (
     unskew,
 )
 from . import _bearing_range as bearing_range
-from . import _generic, _procrustes, _rules
+from . import _generic, _host, _procrustes, _rules
 from . import _so3 as so3
 from ._base import AbstractGroup
 from ._s2 import S2
@@ -335,6 +336,10 @@ class SE3(AbstractGroup):
     space_dim = 3
     matrix_dim = 4
     parameters_layout = "quaternion wxyz, then translation xyz"
+    _host_exp = staticmethod(_host.se3_exp)
+    _host_from_matrix = staticmethod(
+        lambda m: np.concatenate([_host.so3_from_matrix(m[..., :3, :3]), m[..., :3, 3]], -1)
+    )
 
     @property
     def wxyz_xyz(self) -> jax.Array:
@@ -351,12 +356,15 @@ class SE3(AbstractGroup):
             translation, rotation.dtype, f"{name} translation", "the rotation"
         )
         translation = check_last_axis(translation, 3, f"{name} translation")
-        broadcast_batch(name, rotation.batch_shape, translation.shape[:-1])
+        batch = broadcast_batch(name, rotation.batch_shape, translation.shape[:-1])
+        if is_concrete(rotation, translation):  # no compilation (`lieax.groups._host`)
+            parts = (np.asarray(rotation._params), np.asarray(translation))
+            return cls._wrap(to_device(_host.join(batch, *parts)))
         return cls._wrap(join(rotation._params, translation))
 
     @classmethod
     def from_rotation(cls, rotation: SO3):
-        return cls.from_rotation_and_translation(rotation, jnp.zeros(3, dtype=rotation.dtype))
+        return cls.from_rotation_and_translation(rotation, np.zeros(3, dtype=rotation.dtype))
 
     @classmethod
     def from_translation(cls, translation):

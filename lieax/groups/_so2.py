@@ -18,9 +18,10 @@ import sys
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-from .._checks import as_float_array, check_last_axis
-from . import _generic, _rules
+from .._checks import as_float_array, check_last_axis, is_concrete, to_device
+from . import _generic, _host, _rules
 from ._base import AbstractGroup
 from ._bearing_range import unit_and_length
 from ._series import g
@@ -237,11 +238,15 @@ class SO2(AbstractGroup):
     space_dim = 2
     matrix_dim = 2
     parameters_layout = "cos, sin"
+    _host_exp = staticmethod(_host.so2_exp)
+    _host_from_matrix = staticmethod(_host.so2_nearest_rotation)
 
     @classmethod
     def from_angle(cls, theta):
         """From angles of shape `(*batch,)` (radians, counter-clockwise)."""
         theta = as_float_array(theta, "SO2.from_angle theta")
+        if is_concrete(theta):  # no compilation (`lieax.groups._host`)
+            return cls._wrap(to_device(_host.so2_exp(np.asarray(theta)[..., None])))
         return cls._wrap(exp(theta[..., None]))
 
     @classmethod

@@ -21,8 +21,16 @@ import sys
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-from .._checks import broadcast_batch, check_last_axis, common_float_arrays
+from .._checks import (
+    broadcast_batch,
+    check_last_axis,
+    common_float_arrays,
+    common_host_arrays,
+    is_concrete,
+    to_device,
+)
 from .._linalg import (
     cross,
     dot,
@@ -34,7 +42,7 @@ from .._linalg import (
     skew,
     unskew,
 )
-from . import _generic, _rules
+from . import _generic, _host, _rules
 from ._base import AbstractGroup
 from ._series import g
 
@@ -493,6 +501,8 @@ class SO3(AbstractGroup):
     space_dim = 3
     matrix_dim = 3
     parameters_layout = "unit quaternion wxyz"
+    _host_exp = staticmethod(_host.so3_exp)
+    _host_from_matrix = staticmethod(_host.so3_from_matrix)
 
     @property
     def wxyz(self) -> jax.Array:
@@ -502,6 +512,8 @@ class SO3(AbstractGroup):
     def from_xyzw(cls, xyzw):
         """From scalar-last quaternions (SciPy, ROS, Eigen's `coeffs()`)."""
         xyzw = check_last_axis(xyzw, 4, "SO3.from_xyzw quaternion", "xyzw")
+        if is_concrete(xyzw):  # no compilation (`lieax.groups._host`)
+            return cls(np.roll(np.asarray(xyzw), 1, axis=-1))
         return cls(jnp.roll(xyzw, 1, axis=-1))
 
     def as_xyzw(self) -> jax.Array:
@@ -522,6 +534,13 @@ class SO3(AbstractGroup):
         r"""$R = R_z(\text{yaw})\,R_y(\text{pitch})\,R_x(\text{roll})$ (extrinsic x-y-z, as ROS), angles
         of shapes that broadcast; the dtype is that of the arrays among them (Python and NumPy
         numbers take it)."""
+        if is_concrete(roll, pitch, yaw):  # no compilation (`lieax.groups._host`)
+            roll, pitch, yaw = common_host_arrays("SO3.from_rpy", roll, pitch, yaw)
+            batch = broadcast_batch("SO3.from_rpy", roll.shape, pitch.shape, yaw.shape)
+            zero = np.zeros(batch, roll.dtype)
+            about = lambda a, b, c: _host.so3_exp(np.stack(np.broadcast_arrays(a, b, c), -1))  # noqa: E731
+            q = _host.quaternion_product(about(zero, zero, yaw), about(zero, pitch, zero))
+            return cls._wrap(to_device(_host.quaternion_product(q, about(roll, zero, zero))))
         roll, pitch, yaw = common_float_arrays("SO3.from_rpy", roll, pitch, yaw)
         batch = broadcast_batch("SO3.from_rpy", roll.shape, pitch.shape, yaw.shape)
         roll, pitch, yaw = (jnp.broadcast_to(a, batch) for a in (roll, pitch, yaw))

@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import as_float_array
+from .._checks import as_float_array, is_concrete, to_device
 from .._linalg import cross, dot, matvec, skew
 from ..groups import _so3 as so3
 from ..groups._se3 import SE3
@@ -73,10 +73,10 @@ class ImuParams(NamedTuple):
         integration sigma."""
         eye = np.eye(3)
         return cls(
-            jnp.asarray(accel_noise_density**2 * eye),
-            jnp.asarray(gyro_noise_density**2 * eye),
-            jnp.asarray(integration_sigma**2 * eye),
-            jnp.asarray([0.0, 0.0, -float(gravity)]),
+            to_device(accel_noise_density**2 * eye),  # transfers, no compiled conversion
+            to_device(gyro_noise_density**2 * eye),
+            to_device(integration_sigma**2 * eye),
+            to_device(np.array([0.0, 0.0, -float(gravity)])),
             body_P_sensor,
             None if omega_coriolis is None else jnp.asarray(omega_coriolis, dtype=float),
         )
@@ -206,40 +206,57 @@ def _check_samples(gyro, accel, dt, bias, params, mask=None):
         raise ImuError("an interval needs at least one sample.")
     dt = as_float_array(dt, "dt")
     if dt.ndim == 0:
-        dt = jnp.broadcast_to(dt, gyro.shape[:1])
+        dt = (
+            jnp.broadcast_to(dt, gyro.shape[:1])
+            if not is_concrete(dt)
+            else to_device(np.broadcast_to(np.asarray(dt), gyro.shape[:1]))
+        )
     if dt.shape != gyro.shape[:1]:
         raise ImuError(f"dt must be a scalar or have shape ({gyro.shape[0]},), got {dt.shape}.")
     bias = jnp.zeros(6, gyro.dtype) if bias is None else as_float_array(bias, "bias")
     if bias.shape != (6,):
         raise ImuError(f"bias must be (b_acc, b_gyro) of shape (6,), got {bias.shape}.")
     if mask is not None:
-        mask = jnp.asarray(mask)
+        mask = to_device(np.asarray(mask)) if is_concrete(mask) else jnp.asarray(mask)
         if mask.dtype != jnp.bool_ or mask.shape != gyro.shape[:1]:
             raise ImuError(
                 f"mask must be boolean of shape ({gyro.shape[0]},) (True for the samples to "
                 f"integrate), got {mask.dtype} {mask.shape}."
             )
-    finite = jnp.isfinite(gyro).all(-1) & jnp.isfinite(accel).all(-1) & jnp.isfinite(dt)
-    ok = finite & (dt > 0)
+    if not is_concrete(gyro, accel, dt, mask):
+        finite = jnp.isfinite(gyro).all(-1) & jnp.isfinite(accel).all(-1) & jnp.isfinite(dt)
+        ok = finite & (dt > 0)
+        if mask is not None:
+            ok = ok | ~mask
+        ok = ok.all() & jnp.isfinite(bias).all()
+        if mask is not None:
+            ok = ok & mask.any()
+            gyro = jnp.where(mask[:, None], gyro, 0.0)
+            accel = jnp.where(mask[:, None], accel, 0.0)
+            dt = jnp.where(mask, dt, 1.0)
+        return gyro, accel, dt, bias, mask, ok
+    # concrete samples: checked (and masked) in NumPy, which compiles nothing
+    gyro_np, accel_np, dt_np = np.asarray(gyro), np.asarray(accel), np.asarray(dt)
+    finite = np.isfinite(gyro_np).all(-1) & np.isfinite(accel_np).all(-1) & np.isfinite(dt_np)
+    ok = finite & (dt_np > 0)
     if mask is not None:
-        ok = ok | ~mask
-    if not isinstance(ok, jax.core.Tracer):
-        ok_np = np.asarray(ok)
-        if not ok_np.all():
-            k = int(np.flatnonzero(~ok_np)[0])
-            what = "non-finite gyro, accel or dt" if not np.asarray(finite)[k] else "dt <= 0"
-            raise ImuError(f"sample {k}: {what} (dt = {float(dt[k])}).")
-        if not bool(jnp.isfinite(bias).all()):
-            raise ImuError("bias has non-finite values.")
-        if mask is not None and not bool(np.asarray(mask).any()):
+        mask_np = np.asarray(mask)
+        ok = ok | ~mask_np
+    if not ok.all():
+        k = int(np.flatnonzero(~ok)[0])
+        what = "non-finite gyro, accel or dt" if not finite[k] else "dt <= 0"
+        raise ImuError(f"sample {k}: {what} (dt = {float(dt_np[k])}).")
+    if mask is not None:
+        if not mask_np.any():
             raise ImuError("an interval needs at least one sample (mask is all False).")
-    ok = ok.all() & jnp.isfinite(bias).all()
-    if mask is not None:
-        ok = ok & mask.any()
-        gyro = jnp.where(mask[:, None], gyro, 0.0)
-        accel = jnp.where(mask[:, None], accel, 0.0)
-        dt = jnp.where(mask, dt, 1.0)
-    return gyro, accel, dt, bias, mask, ok
+        gyro = to_device(np.where(mask_np[:, None], gyro_np, 0.0))
+        accel = to_device(np.where(mask_np[:, None], accel_np, 0.0))
+        dt = to_device(np.where(mask_np, dt_np, 1.0))
+    if is_concrete(bias):
+        if not np.isfinite(np.asarray(bias)).all():
+            raise ImuError("bias has non-finite values.")
+        return gyro, accel, dt, bias, mask, to_device(np.bool_(True))
+    return gyro, accel, dt, bias, mask, jnp.isfinite(bias).all()  # a traced bias: its status
 
 
 def _masked(step):
@@ -779,7 +796,10 @@ def preintegrate(params: ImuParams, bias=None, *, accel, gyro, dt, mask=None) ->
     gyro, accel, dt, bias, keep, ok = _check_samples(gyro, accel, dt, bias, params, mask)
     dtype = jnp.result_type(gyro, accel, dt, bias)
     gyro, accel, dt, bias = (a.astype(dtype) for a in (gyro, accel, dt, bias))
-    params = jax.tree.map(lambda a: jnp.asarray(a, dtype), params)
+    params = jax.tree.map(
+        lambda a: to_device(np.asarray(a, dtype)) if is_concrete(a) else jnp.asarray(a, dtype),
+        params,
+    )
     x, cov, jac = _scan(gyro, accel, dt, bias, params, keep)
     return _result(x, _delta_t(dt, keep), cov, jac, bias, ok)
 

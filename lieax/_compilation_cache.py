@@ -1,0 +1,62 @@
+"""`enable_compilation_cache`: JAX's persistent compilation cache, set for lieax's programs."""
+
+import os
+import pathlib
+
+import jax
+
+
+def default_cache_dir() -> pathlib.Path:
+    """`$XDG_CACHE_HOME/lieax/jax`, or `~/.cache/lieax/jax` where `XDG_CACHE_HOME` is unset."""
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return pathlib.Path(base) / "lieax" / "jax"
+
+
+def enable_compilation_cache(path=None) -> pathlib.Path:
+    """Turns on JAX's persistent compilation cache, so that a second process loads the programs
+    a first one compiled instead of compiling them again (XLA's compilation is most of a first
+    call: seconds on a CPU).
+
+    **Arguments:**
+    - `path`: the cache directory (created if missing); by default `$XDG_CACHE_HOME/lieax/jax`,
+      or `~/.cache/lieax/jax` where `XDG_CACHE_HOME` is unset.
+
+    **Returns:** the directory, as a `pathlib.Path`.
+
+    It sets JAX's options `jax_compilation_cache_dir` to `path`,
+    `jax_persistent_cache_min_compile_time_secs` to 0 and
+    `jax_persistent_cache_min_entry_size_bytes` to -1 (JAX's defaults skip programs that compile
+    in under a second, which is most of lieax's: a solver's loop, the groups' small programs), for
+    the whole process and every library in it, as setting them yourself would. Call it before the
+    first computation: a later call also works (JAX's cache is reset to the new directory), but
+    the programs this process compiled before it are not written (JAX keeps them in memory and
+    does not compile them again). The cache is trusted: do not point it at a directory others
+    may write to.
+
+    What JAX cannot cache: a program that contains a Python host callback. Such a program is
+    compiled in every process. In lieax today:
+    - `lieax.icp` on a CPU with the default `search` (the host k-d tree), and the normals and
+      GICP covariances found with `search="kdtree"` (the default on a CPU): the registrations of
+      `examples/icp_demo.py` and of the LiDAR pairs; `search="grid"` (and `"graph"` for the
+      normals) has no callback and is cached;
+    - `lieax.factorgraph` with `solver="cholesky"` (the host multifrontal Cholesky, which
+      `solver="auto"` picks for systems above 300–800 unknowns: a landmark graph of thousands of
+      poses, an IMU smoother of hundreds of keyframes) and `lieax.graph.optimize` (cholesky by
+      default): the solve loop; `"dense"` and `"cg"` are cached (the README's factor-graph
+      example, and bundle adjustment at Ladybug-49 size, whose reduced camera system is dense);
+    - a solver's `throw=True` inside your own `jit` (the error is raised from a callback in the
+      compiled program); outside `jit` the status is read after the program returns, which
+      keeps it cacheable, and `throw=False` never adds a callback;
+    - `verbose=True` (the progress is printed from a callback).
+    Every other program (groups, `lieax.jacobian`, `lstsq.least_squares`, IMU preintegration,
+    `factorgraph` with the dense or CG solvers) is cached.
+    """
+    path = pathlib.Path(default_cache_dir() if path is None else path).expanduser()
+    path.mkdir(parents=True, exist_ok=True)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    from jax.experimental.compilation_cache import compilation_cache
+
+    compilation_cache.reset_cache()  # a cache already opened (or found off) takes the new path
+    return path
