@@ -19,14 +19,16 @@ workflow, three processes:
 Workflows (`--only NAME[,NAME]`; `--quick` shrinks the large ones about tenfold):
 
 - `readme-first`: the README's first example (an SE3 acting on a point, its Jacobians);
-- `readme-graph`: the README's factor-graph example (build, solve, a marginal covariance);
+- `readme-graph`: the factor-graph example of docs/factor-graphs.md, formerly the README's (build,
+  solve, a marginal covariance);
 - `icp-demo`: `examples/icp_demo.py`'s registration (generated scene, 4000 points, float64);
 - `g2o`: `lieax.graph.optimize` on `intel.g2o` from the shared data (`--data`,
   `LIEAX_DATA_DIR`), else a generated 2D pose graph of the same size;
 - `ba`: bundle adjustment at Ladybug-49 size (`lieax.ba.synthetic_bal`: 49 cameras, 7,776
   points, 31,843 observations), as `examples/bundle_adjustment.py`, 20 iterations;
 - `imu`: `examples/inertial_navigation.py` with 501 keyframes (500 intervals of 100 samples):
-  `jit(vmap(preintegrate))`, the example's graph and its solve are the first call, the
+  `preintegrate_intervals` of a stream whose intervals lose 0-4 samples each, the example's
+  graph and its solve are the first call, the
   preintegration and the solve the warm call;
 - `landmarks`: a 2D landmark graph of 7,000 poses and 151 landmarks, odometry, a prior and a
   bearing-range residual written in plain `jax.numpy` as a user would;
@@ -316,24 +318,29 @@ def imu_setup(quick, data_dir):
 
 
 def imu_build(data):
-    """The IMU parameters and the example's `jit(vmap(preintegrate))`, made once (the example's
-    `preintegrate_all` and `build_graph` make new jitted functions on every call)."""
-    import jax
-
-    import lieax
+    """The IMU parameters, and the samples as a stream delivers them: each interval loses 0-4 of
+    its last samples (dropped samples), so the intervals hold different numbers of samples."""
+    import numpy as np
 
     example, simulated = data
-    run = jax.jit(jax.vmap(lieax.imu.preintegrate, in_axes=(0, 0, None, None, None)))
-    return {"example": example, "data": simulated, "params": example.params(), "run": run}
+    rng = np.random.default_rng(1)
+    counts = simulated["gyro"].shape[1] - rng.integers(0, 5, len(simulated["gyro"]))
+    stream = {
+        name: [samples[:count] for samples, count in zip(simulated[name], counts)]
+        for name in ("gyro", "accel")
+    }
+    return {"example": example, "data": simulated, "params": example.params(), **stream}
 
 
 def imu_call(problem):
-    """Preintegration, then (the first time) the example's graph, then its solve."""
-    import jax.numpy as jnp
+    """Preintegration of the stream in one call (`preintegrate_intervals`: padded, masked, one
+    program per bucket), then (the first time) the example's graph, then its solve."""
+    import lieax
 
     data, imu_params = problem["data"], problem["params"]
-    pim = problem["run"](jnp.asarray(data["gyro"]), jnp.asarray(data["accel"]), data["dt"],
-                         jnp.zeros(6), imu_params)  # fmt: skip
+    pim = lieax.imu.preintegrate_intervals(
+        imu_params, accel=problem["accel"], gyro=problem["gyro"], dt=data["dt"]
+    )
     if "graph" not in problem:
         problem["graph"], _ = problem["example"].build_graph(data, pim, imu_params)
     return _ready(problem["graph"].solve(max_iterations=50))
