@@ -19,6 +19,7 @@ App. C, rewritten with $J$ and the $g_n$ so that none divides by $\omega$.
 """
 
 import sys
+from typing import Self
 
 import jax
 import jax.numpy as jnp
@@ -258,7 +259,7 @@ class SE2(AbstractGroup):
     parameters_layout = "cos, sin, x, y"
 
     @classmethod
-    def from_rotation_and_translation(cls, rotation: SO2, translation):
+    def from_rotation_and_translation(cls, rotation: SO2, translation) -> Self:
         """$X = (R, t)$ from an `SO2` and translations of shape `(*batch, 2)`, broadcasting batch
         shapes."""
         if not isinstance(rotation, SO2):
@@ -274,7 +275,7 @@ class SE2(AbstractGroup):
         return cls._wrap(join(rotation._params, translation))
 
     @classmethod
-    def from_xy_theta(cls, x, y, theta):
+    def from_xy_theta(cls, x, y, theta) -> Self:
         """From positions and headings (radians), each of shape `(*batch,)`, broadcast together; the
         dtype is that of the arrays among them (Python and NumPy numbers take it)."""
         x, y, theta = common_float_arrays("SE2.from_xy_theta", x, y, theta)

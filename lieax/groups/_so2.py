@@ -14,6 +14,7 @@ App. A; the coefficients are the $g_n$ of `lieax.groups._series`.
 """
 
 import sys
+from typing import Self
 
 import jax
 import jax.numpy as jnp
@@ -218,7 +219,7 @@ class SO2(AbstractGroup):
     parameters_layout = "cos, sin"
 
     @classmethod
-    def from_angle(cls, theta):
+    def from_angle(cls, theta) -> Self:
         """From angles of shape `(*batch,)` (radians, counter-clockwise)."""
         theta = as_float_array(theta, "SO2.from_angle theta")
         return cls._wrap(exp(theta[..., None]))
