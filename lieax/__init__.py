@@ -7,7 +7,8 @@ Layers, bottom up: `groups` (the Lie groups and their kernels), `autodiff` (tang
 manifold-local Jacobians, implicit derivatives) and `retractions`, the solvers (`lstsq`, `optax`,
 `factorgraph`, `graph`), and the applications (`icp`, `ba`, `imu`, `align`, `io`, `conventions`).
 The solvers share one `Status` enum, one `SolverResult` base of their results and one `SolveError`
-base of their errors.
+base of their errors. `set_threads` / `threads` / `LIEAX_NUM_THREADS` choose the threads of lieax's
+host and LAPACK work (small work runs on one thread; see `lieax._threads`).
 """
 
 from importlib.metadata import version as _version
@@ -26,6 +27,7 @@ from . import (
     sharding,
 )
 from ._align import align
+from ._threads import get_threads, set_threads, threads
 from .autodiff import (
     flatten_tangents,
     grad,
@@ -66,6 +68,7 @@ __all__ = [
     "conventions",
     "factorgraph",
     "flatten_tangents",
+    "get_threads",
     "grad",
     "graph",
     "icp",
@@ -82,8 +85,10 @@ __all__ = [
     "optax",
     "rminus",
     "rplus",
+    "set_threads",
     "sharding",
     "tangent_dim",
+    "threads",
     "unflatten_tangents",
     "write_pcd",
     "write_ply",
