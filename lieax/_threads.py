@@ -27,6 +27,14 @@ before the factorization to one that runs after the solve (ordered by data depen
 `scoped_lapack`). While they hold, another thread of the same process that calls OpenBLAS shares
 the limit (OpenBLAS's thread count is one per library); OpenMP's is per calling thread.
 
+Known limit (2026-12-04, NumPy's OpenBLAS 0.3.31 and SciPy's 0.3.30): the pose graphs still slow
+down under load (smallGrid3D 14 ms idle, 0.2-0.75 s at load 4; NumPy's OpenBLAS worker thread
+burned 2 s of CPU over 10 calls), where `OPENBLAS_NUM_THREADS=1` in the environment keeps them at
+14 ms: counts set by `openblas_set_num_threads` from XLA's callback thread were not always the
+counts read there or on the main thread afterwards, so a worker is still woken somewhere.
+OpenBLAS's thread-local `openblas_set_num_threads_local` (exported by both libraries) is the
+next thing to try.
+
 The setting: `LIEAX_NUM_THREADS` in the environment (read when lieax is imported), or
 `lieax.set_threads(n)` / `with lieax.threads(n):`. `n` (a positive integer) caps the threads of
 the parallel work; `None` (the default) leaves the libraries' own setting for it
