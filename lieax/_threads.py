@@ -21,19 +21,18 @@ thread, and larger work on `get_threads()` threads; pykdtree's queries go parall
 the 7-9k point clouds of `benchmarks/neighbors.py`, above the default was 1.0-1.3x faster).
 Single-threaded calls wake no worker, so none is left spinning after them.
 
-The limits are `threadpoolctl`'s, set around lieax's own work only and restored after it: around
-the host work inside each callback, and for XLA's LAPACK calls from a host callback that runs
-before the factorization to one that runs after the solve (ordered by data dependencies, see
-`scoped_lapack`). While they hold, another thread of the same process that calls OpenBLAS shares
-the limit (OpenBLAS's thread count is one per library); OpenMP's is per calling thread.
+The limits are set through `threadpoolctl` around lieax's own work only and restored after it:
+around the host work inside each callback (`blas_limited`, `openmp_limited`: counts of the calling
+thread), and for XLA's LAPACK calls from a host callback that runs before the factorization to
+one that runs after the solve (`scoped_lapack`, ordered by data dependencies; the LAPACK call
+runs on a thread XLA picks, so this limit is process-wide while it holds: another thread of the
+process calling OpenBLAS meanwhile shares it).
 
-Known limit (2026-12-04, NumPy's OpenBLAS 0.3.31 and SciPy's 0.3.30): the pose graphs still slow
-down under load (smallGrid3D 14 ms idle, 0.2-0.75 s at load 4; NumPy's OpenBLAS worker thread
-burned 2 s of CPU over 10 calls), where `OPENBLAS_NUM_THREADS=1` in the environment keeps them at
-14 ms: counts set by `openblas_set_num_threads` from XLA's callback thread were not always the
-counts read there or on the main thread afterwards, so a worker is still woken somewhere.
-OpenBLAS's thread-local `openblas_set_num_threads_local` (exported by both libraries) is the
-next thing to try.
+Inside a host callback the count is OpenBLAS's thread-local one (`openblas_set_num_threads_local`,
+OpenBLAS 0.3.27 and later; both wheels bundle 0.3.30-0.3.31): it applies to the callback's thread
+only. The process-wide `openblas_set_num_threads`, called from XLA's callback thread, did not keep
+NumPy's worker asleep: smallGrid3D warm took 22 ms-2.1 s under a load of two spinning processes,
+against 14-34 ms with the thread-local count, as with `OPENBLAS_NUM_THREADS=1`.
 
 The setting: `LIEAX_NUM_THREADS` in the environment (read when lieax is imported), or
 `lieax.set_threads(n)` / `with lieax.threads(n):`. `n` (a positive integer) caps the threads of
@@ -44,6 +43,7 @@ threadpoolctl can limit is loaded, is an error naming the setting.
 """
 
 import contextlib
+import ctypes
 import os
 import sys
 import threading
@@ -170,23 +170,55 @@ def prepare():
 
 @contextlib.contextmanager
 def blas_limited(threads):
-    """Every loaded BLAS pool at `threads` threads inside the block (`None`: unchanged), the
-    previous counts restored when the last of the blocks open in the process closes."""
+    """BLAS calls made on the calling thread inside the block on `threads` threads (`None`:
+    unchanged). OpenBLAS pools by `openblas_set_num_threads_local`, which sets the count of the
+    calling thread only (the user's threads keep theirs), restored after the block; other BLAS
+    libraries by their process-wide count (`_enter_blas`), restored when the last of the blocks
+    open in the process closes.
+
+    (Measured under a load of two spinning processes on 2 cores, smallGrid3D warm: 14-34 ms with
+    the thread-local count, as with `OPENBLAS_NUM_THREADS=1`, against 22 ms-2.1 s with
+    `openblas_set_num_threads` called from XLA's callback thread, which did not keep NumPy's
+    worker asleep.)"""
     if threads is None:
         yield
         return
-    _enter_blas(threads)
+    local, shared = [], []
+    for pool in _pools("blas"):
+        setter = _local_setter(pool)
+        (shared if setter is None else local).append(setter)
+    previous = [setter(threads) for setter in local]
+    if shared:
+        _enter_blas(threads, only_shared=True)
     try:
         yield
     finally:
-        _exit_blas()
+        if shared:
+            _exit_blas()
+        for setter, count in zip(local, previous):
+            setter(count)
 
 
-def _enter_blas(threads):
+def _local_setter(pool):
+    """OpenBLAS's `openblas_set_num_threads_local` of `pool` (a ctypes function returning the
+    previous count), or None for another BLAS or an OpenBLAS without it (before 0.3.27)."""
+    if pool.internal_api != "openblas":
+        return None
+    setter = getattr(pool.dynlib, "openblas_set_num_threads_local", None)
+    if setter is not None:
+        setter.restype, setter.argtypes = ctypes.c_int, [ctypes.c_int]
+    return setter
+
+
+def _enter_blas(threads, only_shared=False):
+    """Every BLAS pool (`only_shared`: those without a thread-local count) at `threads` threads,
+    process-wide; counted, so that the last `_exit_blas` restores the counts before the first."""
     with _LOCK:
         pools = _pools("blas")
-        if _BLAS_SCOPE["depth"] == 0:
-            _BLAS_SCOPE["saved"] = [(pool, pool.get_num_threads()) for pool in pools]
+        if only_shared:
+            pools = [pool for pool in pools if _local_setter(pool) is None]
+        if _BLAS_SCOPE["depth"] == 0:  # (all of them: a later block may set the others)
+            _BLAS_SCOPE["saved"] = [(pool, pool.get_num_threads()) for pool in _pools("blas")]
         _BLAS_SCOPE["depth"] += 1
         for pool in pools:
             if pool.get_num_threads() != threads:
