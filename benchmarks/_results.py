@@ -46,7 +46,7 @@ def write(path, benchmark, tables, notes=""):
     record = {
         "benchmark": benchmark,
         "command": " ".join(["python", *sys.argv]),
-        "utc": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M"),
+        "utc": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M"),
         "machine": machine(),
         "notes": notes,
         "tables": tables,

@@ -529,13 +529,38 @@ def run_lieax(problem, iterations, loss, delta, damping="identity", lambda_updat
     $\lambda = 10^{-4}$; `"gtsam"`: GTSAM's, from $10^{-5}$) and the iteration cap, no gauge prior (`check_gauge=False`: the damping handles
     it, as for the others). `total` is a warm solve; the first one (structure analysis and XLA
     compilation) is in the note."""
-    try:
-        from lieax import factorgraph as fg
-    except ImportError:
-        print("lieax: not available (no lieax.factorgraph)")
-        return None
+    from lieax import lstsq
+
+    solve = lieax_solver(problem, iterations, loss, delta, damping, lambda_update)
+    start = time.perf_counter()
+    solve()
+    first = time.perf_counter() - start
+    start = time.perf_counter()
+    result = solve()
+    total = time.perf_counter() - start
+    (pose, intrinsics), solved = result.values
+    cameras_bal = np.asarray(ba.camera_to_bal(pose, intrinsics))
+    final = cost(problem, cameras_bal, np.asarray(solved), loss, delta)
+    initial = cost(problem, problem.cameras, problem.points, loss, delta)
+    return Run(
+        "lieax.factorgraph, Schur"
+        + (", diag damping" if damping == "marquardt" else "")
+        + (", Ceres' λ rule" if lambda_update == "nielsen" else ""),
+        total,
+        int(result.iterations),
+        initial,
+        final,
+        float(result.cost),
+        note=f"first call {format_seconds(first)}, {int(result.linear_solves)} linear solves, "
+        f"{lstsq.Status(int(result.status)).name}",
+    )
+
+
+def lieax_solver(problem, iterations, loss, delta, damping="marquardt", lambda_update="nielsen"):
+    """`solve()`: `run_lieax`'s solve from the problem's start (its result, waited for)."""
     import jax.numpy as jnp
 
+    from lieax import factorgraph as fg
     from lieax import lstsq
 
     pose, intrinsics = problem.camera_variables(jnp.float64)
@@ -564,28 +589,7 @@ def run_lieax(problem, iterations, loss, delta, damping="identity", lambda_updat
         )
         return jax.block_until_ready(result)
 
-    start = time.perf_counter()
-    solve()
-    first = time.perf_counter() - start
-    start = time.perf_counter()
-    result = solve()
-    total = time.perf_counter() - start
-    (pose, intrinsics), solved = result.values
-    cameras_bal = np.asarray(ba.camera_to_bal(pose, intrinsics))
-    final = cost(problem, cameras_bal, np.asarray(solved), loss, delta)
-    initial = cost(problem, problem.cameras, problem.points, loss, delta)
-    return Run(
-        "lieax.factorgraph, Schur"
-        + (", diag damping" if damping == "marquardt" else "")
-        + (", Ceres' λ rule" if lambda_update == "nielsen" else ""),
-        total,
-        int(result.iterations),
-        initial,
-        final,
-        float(result.cost),
-        note=f"first call {format_seconds(first)}, {int(result.linear_solves)} linear solves, "
-        f"{lstsq.Status(int(result.status)).name}",
-    )
+    return solve
 
 
 def _seconds_or_blank(seconds):

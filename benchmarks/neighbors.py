@@ -15,8 +15,18 @@ got their nearest one (or one at the same distance) in the warm-started step, ag
 cKDTree, and for the graph also after its exact check. The two host libraries are also timed bare
 (numpy in, numpy out) to choose between them.
 
+A third table, `--libraries`, chooses the host tree lieax depends on: SciPy's cKDTree
+(`balanced_tree=False`, as lieax builds it), pykdtree and small_gicp's `KdTree`, float64, built on
+the target and queried for k = 1 (the source at the converged pose: ICP's matching) and k = 10
+(the target against itself: normals and covariances), no distance bound (small_gicp has none),
+each with its default threads (cKDTree `workers=1`, pykdtree OpenMP's default: one per core,
+small_gicp `num_threads=1`) and with the other choice (one thread for pykdtree, by
+threadpoolctl; one per core for the other two), also on the raw
+25k-point LiDAR scans; medians of interleaved repeats.
+
 Run `LIEAX_DATA_DIR=../shared/data python benchmarks/neighbors.py` (needs the `bench` extra:
-open3d, pykdtree). `--quick`: fewer rounds, no brute force on large targets.
+open3d, small_gicp). `--quick`: fewer rounds, no brute force on large targets. `--libraries`:
+only the host trees' table.
 """
 
 import argparse
@@ -219,17 +229,102 @@ def host_libraries(label, source, target, radius, truth, repeats=7):
     return row
 
 
+# (library, threads): None is the library's default (cKDTree and small_gicp: one thread; pykdtree:
+# OpenMP's, one per core), a number that many threads
+HOST_TREES = (
+    ("cKDTree", None), ("cKDTree", os.cpu_count()), ("pykdtree", None), ("pykdtree", 1),
+    ("small_gicp", None), ("small_gicp", os.cpu_count()),
+)  # fmt: skip
+
+
+def host_tree_variants(target, queries, library, threads):
+    """`{what: zero-argument callable}` building `library`'s tree of `target` and querying it for
+    k = 1 (`queries`) and k = 10 (the target itself) on `threads` threads (None: its default;
+    pykdtree's OpenMP pool limited through one threadpoolctl controller made here, since a fresh
+    `threadpool_limits` lists the process's libraries at every call: about 1 ms)."""
+    import small_gicp
+    from pykdtree.kdtree import KDTree
+    from threadpoolctl import ThreadpoolController
+
+    if library == "cKDTree":
+        workers = 1 if threads is None else threads
+        build = lambda: cKDTree(target, balanced_tree=False)
+        query = lambda tree, q, k: tree.query(q, k, workers=workers)
+    elif library == "pykdtree":
+        build = lambda: KDTree(target)
+        query = lambda tree, q, k: tree.query(q, k)
+    else:
+        count = 1 if threads is None else threads
+        build = lambda: small_gicp.KdTree(target, num_threads=count)
+        query = lambda tree, q, k: tree.batch_knn_search(q, k, num_threads=count)
+    tree = build()
+    variants = {
+        "build": build,
+        "k=1": lambda: query(tree, queries, 1),
+        "k=10": lambda: query(tree, target, 10),
+    }
+    if library == "pykdtree" and threads is not None:
+        openmp = ThreadpoolController().select(user_api="openmp")
+
+        def limited(fn):
+            def run():
+                with openmp.limit(limits=threads):
+                    return fn()
+
+            return run
+
+        variants = {what: limited(fn) for what, fn in variants.items()}
+    return variants
+
+
+def host_tree_table(clouds, repeats):
+    """Rows (cloud, library, threads, build, k=1, k=10) of the host trees, timed interleaved:
+    every repeat runs every variant once, in an order rotated from repeat to repeat."""
+    rows = []
+    for label, (source, target, radius, truth) in clouds.items():
+        target = np.ascontiguousarray(target, np.float64)
+        queries = np.ascontiguousarray(aligned(source, target, radius, truth), np.float64)
+        variants = {}
+        for library, threads in HOST_TREES:
+            for what, fn in host_tree_variants(target, queries, library, threads).items():
+                variants[(library, threads, what)] = fn
+        samples = {key: [] for key in variants}
+        keys = list(variants)
+        for r in range(repeats):
+            shift = (r * 3) % len(keys)
+            for key in keys[shift:] + keys[:shift]:
+                start = time.perf_counter()
+                variants[key]()
+                samples[key].append(time.perf_counter() - start)
+        medians = {key: float(np.median(v)) for key, v in samples.items()}
+        fastest = {
+            what: min(t for (_, _, w), t in medians.items() if w == what)
+            for what in ("build", "k=1", "k=10")
+        }
+        for library, threads in dict.fromkeys((k[0], k[1]) for k in keys):
+            cells = []
+            for what in ("build", "k=1", "k=10"):
+                t = medians[(library, threads, what)]
+                cells.append(f"{format_seconds(t)} ({t / fastest[what]:.2f}×)")
+            rows.append([label, library, "default" if threads is None else threads, *cells])
+    return rows
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data-dir", default=os.environ.get("LIEAX_DATA_DIR"))
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--dtype", default="float32", choices=["float32", "float64"])
     parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--libraries", action="store_true", help="only the host trees' table")
     args = parser.parse_args()
     if args.data_dir is None:
         sys.exit("Set LIEAX_DATA_DIR (or --data-dir) to the shared data folder.")
     rounds, skip_brute_above = (2, 10_000) if args.quick else (args.rounds, 10**9)
     clouds = load_clouds(args.data_dir)
+    if args.libraries:
+        print_host_trees(args.data_dir, clouds, 5 if args.quick else 15)
+        return
     print(f"# Nearest-neighbour backends\n\n{machine_description()}, {os.cpu_count()} CPUs, "
           f"{args.dtype}; {time.strftime('%Y-%m-%d %H:%M')}\n")  # fmt: skip
     rows, sizes = [], []
@@ -250,6 +345,19 @@ def main():
         for what in ("cKDTree build", "query", "query 2 workers", "pykdtree build", "query")
     ]
     print(markdown_table(headers, [host_libraries(label, *c) for label, c in clouds.items()]))
+    print_host_trees(args.data_dir, clouds, 5 if args.quick else 15)
+
+
+def print_host_trees(data_dir, clouds, repeats):
+    scans = np.load(os.path.join(data_dir, "clouds", "lidar_scans_0_1_2", "scans.npz"))
+    clouds = {**clouds, "LiDAR raw 25k": (scans["scan1"], scans["scan0"], 1.0, None)}
+    sizes = ", ".join(f"{label} {len(c[0])}/{len(c[1])}" for label, c in clouds.items())
+    print(f"\n## Host k-d trees for lieax: cKDTree, pykdtree, small_gicp\n\n{os.cpu_count()} "
+          f"CPUs, float64, {repeats} interleaved repeats, median (× the fastest of the three); "
+          f"points (queries/target): {sizes}; {time.strftime('%Y-%m-%d %H:%M')}, load "
+          f"{os.getloadavg()[0]:.1f}\n")  # fmt: skip
+    headers = ["cloud", "library", "threads", "build", "query k=1", "query k=10 (self)"]
+    print(markdown_table(headers, host_tree_table(clouds, repeats)))
 
 
 if __name__ == "__main__":

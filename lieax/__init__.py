@@ -8,7 +8,8 @@ manifold-local Jacobians, implicit derivatives) and `retractions`, the solvers (
 `factorgraph`, `graph`), and the applications (`icp`, `cameras`, `ba`, `imu`, `align`, `io`,
 `conventions`).
 The solvers share one `Status` enum, one `SolverResult` base of their results and one `SolveError`
-base of their errors.
+base of their errors. `set_threads` / `threads` / `LIEAX_NUM_THREADS` choose the threads of lieax's
+host and LAPACK work (small work runs on one thread; see `lieax._threads`).
 """
 
 from importlib.metadata import version as _version
@@ -29,6 +30,7 @@ from . import (
 )
 from ._align import align
 from ._compilation_cache import enable_compilation_cache
+from ._threads import get_threads, set_threads, threads
 from .autodiff import (
     flatten_tangents,
     grad,
@@ -71,6 +73,7 @@ __all__ = [
     "enable_compilation_cache",
     "factorgraph",
     "flatten_tangents",
+    "get_threads",
     "grad",
     "graph",
     "icp",
@@ -87,8 +90,10 @@ __all__ = [
     "optax",
     "rminus",
     "rplus",
+    "set_threads",
     "sharding",
     "tangent_dim",
+    "threads",
     "unflatten_tangents",
     "write_pcd",
     "write_ply",

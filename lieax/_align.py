@@ -7,7 +7,7 @@ from .groups._se3 import SE3
 from .groups._sim3 import Sim3
 
 
-def align(points_a, points_b, weights=None, *, with_scale=False):
+def align(points_a, points_b, weights=None, *, with_scale: bool = False) -> SE3 | Sim3:
     r"""The least-squares alignment $T_{ab}$ of corresponding points, $a_i \approx T_{ab}\,b_i$.
 
     **Arguments:**

@@ -16,6 +16,8 @@ arrays; Jacobians are in their flattened coordinates (`jax.flatten_util.ravel_py
 shape `(size of y, size of x)`.
 """
 
+from collections.abc import Callable
+
 import jax
 import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
@@ -27,7 +29,7 @@ def _flat_function(function, example):
     return lambda flat: ravel_pytree(function(unravel(flat)))[0]
 
 
-def inverse_function_jacobian(f_inverse, y):
+def inverse_function_jacobian(f_inverse: Callable, y) -> jax.Array:
     r"""$Df(x) = (D f^{-1}(y))^{-1}$ at $x = f^{-1}(y)$: the Jacobian of a hard function $f$ at the
     point whose image is `y`, from its easy inverse.
 
@@ -42,7 +44,7 @@ def inverse_function_jacobian(f_inverse, y):
     return jnp.linalg.inv(jac_inverse)
 
 
-def implicit_jacobian(F, x, y):
+def implicit_jacobian(F: Callable, x, y) -> jax.Array:
     r"""$Dy(x) = -(D_y F(x, y))^{-1} D_x F(x, y)$ at a solution of $F(x, y) = 0$.
 
     **Arguments:**
@@ -62,7 +64,7 @@ def implicit_jacobian(F, x, y):
     return -jnp.linalg.solve(jac_y, jac_x)
 
 
-def with_inverse_derivative(f, f_inverse):
+def with_inverse_derivative(f: Callable, f_inverse: Callable) -> Callable:
     r"""`f` with the derivative of the inverse function theorem: $\dot y = (D f^{-1}(y))^{-1} \dot x$.
 
     `f` itself is never differentiated (it may be a `while_loop`, call the host, ...); `f_inverse`
@@ -87,7 +89,7 @@ def with_inverse_derivative(f, f_inverse):
     return wrapped
 
 
-def with_implicit_derivative(solve, F):
+def with_implicit_derivative(solve: Callable, F: Callable) -> Callable:
     r"""`solve` (returning $y$ with $F(x, y) = 0$) with the derivative of the implicit function
     theorem: $\dot y = -(D_y F)^{-1} (D_x F\,\dot x)$.
 

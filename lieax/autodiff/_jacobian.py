@@ -13,6 +13,7 @@ per output coordinate. `mode="auto"` takes the smaller count.
 """
 
 import math
+from collections.abc import Callable, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -29,7 +30,9 @@ from ._tangents import (
 _MODES = ("auto", "fwd", "rev")
 
 
-def value_and_jacobian(f, argnums=0, *, has_aux=False, mode="auto"):
+def value_and_jacobian(
+    f: Callable, argnums: int | Sequence[int] = 0, *, has_aux: bool = False, mode: str = "auto"
+) -> Callable:
     """Like `jacobian`, but the returned function gives `(value, J)`, or `((value, aux), J)` with
     `has_aux`."""
     if mode not in _MODES:
@@ -114,7 +117,9 @@ def value_and_jacobian(f, argnums=0, *, has_aux=False, mode="auto"):
     return evaluate
 
 
-def jacobian(f, argnums=0, *, has_aux=False, mode="auto"):
+def jacobian(
+    f: Callable, argnums: int | Sequence[int] = 0, *, has_aux: bool = False, mode: str = "auto"
+) -> Callable:
     r"""The manifold-local Jacobian of `f`: $f(X \oplus \delta) \ominus f(X) \approx J\,\delta$.
 
     **Arguments:**
@@ -137,7 +142,9 @@ def jacobian(f, argnums=0, *, has_aux=False, mode="auto"):
     return evaluate
 
 
-def value_and_grad(f, argnums=0, *, has_aux=False):
+def value_and_grad(
+    f: Callable, argnums: int | Sequence[int] = 0, *, has_aux: bool = False
+) -> Callable:
     """`(value, grad)` of a scalar function (`((value, aux), grad)` with `has_aux`)."""
 
     def scalar_f(*args):
@@ -153,7 +160,7 @@ def value_and_grad(f, argnums=0, *, has_aux=False):
     return value_and_jacobian(scalar_f, argnums, has_aux=has_aux, mode="rev")
 
 
-def grad(f, argnums=0, *, has_aux=False):
+def grad(f: Callable, argnums: int | Sequence[int] = 0, *, has_aux: bool = False) -> Callable:
     r"""The gradient of a scalar function in tangent coordinates: group leaves get tangent vectors
     $\nabla_\delta f(X \oplus \delta)|_{\delta=0}$, shape `(*batch, tangent_dim)`."""
     with_value = value_and_grad(f, argnums, has_aux=has_aux)

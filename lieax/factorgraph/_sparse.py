@@ -35,6 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from .. import _threads
 from .._host_call import host_call
 
 # ---- the pattern and assembly -------------------------------------------------------------------
@@ -611,7 +612,18 @@ def cholesky_solve(plan, diag, off, rhs):
     (not when it is traced: the analysis may still be running while the loop compiles)."""
     plan_of = plan if callable(plan) else lambda: plan
     result = jax.ShapeDtypeStruct(rhs.shape, rhs.dtype)
-    return host_call(lambda *system: plan_of().solve(*system), result, diag, off, rhs)
+    _threads.prepare()  # (the thread pools listed here, not in the callback)
+    return host_call(lambda *system: _host_solve(plan_of(), *system), result, diag, off, rhs)
+
+
+def _host_solve(plan, diag, off, rhs):
+    """`plan.solve` with the BLAS pools on one thread below `lieax._threads.PARALLEL_FLOPS`
+    multiply-adds per factorization (every pose graph: sphere2500's 2.4e8 ran 10-19x faster on
+    one thread than on two on a busy 2-core machine), else on lieax's thread setting; the
+    previous counts restored after it (`lieax._threads`)."""
+    threads = _threads.threads_for(plan.stats["flops"], _threads.PARALLEL_FLOPS)
+    with _threads.blas_limited(threads):
+        return plan.solve(diag, off, rhs)
 
 
 # Host linear algebra must not wake two OpenBLAS thread pools: SciPy's wheels bundle a second
@@ -839,9 +851,27 @@ def dense_solve(pattern, diag, off, rhs):
     n, d = pattern.num_blocks, pattern.block_size
     values = jnp.concatenate([diag.reshape(-1), off.reshape(-1), jnp.zeros(1, diag.dtype)])
     matrix = values[_dense_index(pattern)]
-    factor = jnp.linalg.cholesky(matrix)
-    x = jax.scipy.linalg.cho_solve((factor, True), rhs.reshape(n * d))
-    return x.reshape(n, d)
+
+    def solve(system):
+        matrix, b = system
+        factor = jnp.linalg.cholesky(matrix)
+        return jax.scipy.linalg.cho_solve((factor, True), b)
+
+    system = (matrix, rhs.reshape(n * d))
+    if n * d < _threads.SINGLE_THREAD_ORDER or not _on_cpu(matrix):
+        return solve(system).reshape(n, d)
+    # XLA's CPU backend factors through SciPy's OpenBLAS (LAPACK), whose idle threads busy-wait:
+    # one thread below lieax._threads.PARALLEL_FLOPS (order 441, Ladybug-49's cameras: 4 ms
+    # against 442 ms on two threads on a busy 2-core machine), set around this solve only
+    threads = _threads.threads_for((n * d) ** 3 / 3, _threads.PARALLEL_FLOPS)
+    return _threads.scoped_lapack(solve, system, threads).reshape(n, d)
+
+
+def _on_cpu(array):
+    """Whether `array` (traced or not) is computed on the host CPU."""
+    if isinstance(array, jax.core.Tracer) or not isinstance(array, jax.Array):
+        return jax.default_backend() == "cpu"
+    return {device.platform for device in array.devices()} == {"cpu"}
 
 
 def _dense_index(pattern):

@@ -38,7 +38,7 @@ on every one of them, and `to_local` / `from_local` ($B_p^\top \dot p$, $B_p \xi
 """
 
 import sys
-from typing import ClassVar
+from typing import ClassVar, Self
 
 import jax
 import numpy as np
@@ -128,11 +128,11 @@ class AbstractManifold:
     def dtype(self):
         return self._params.dtype
 
-    def __getitem__(self, index):
+    def __getitem__(self, index) -> Self:
         index = index if isinstance(index, tuple) else (index,)
         return self._wrap(self._params[(*index, slice(None))])
 
-    def rplus(self, tangent):
+    def rplus(self, tangent) -> Self:
         r"""$X \oplus \xi$ for tangents of shape `(*batch, tangent_dim)`."""
         raise NotImplementedError
 
@@ -175,14 +175,14 @@ class AbstractGroup(AbstractManifold):
 
     # ---- construction ------------------------------------------------------------------------
     @classmethod
-    def identity(cls, batch_shape=(), dtype=None):
+    def identity(cls, batch_shape=(), dtype=None) -> Self:
         """The identity element, repeated over `batch_shape`."""
         dtype = jax.dtypes.canonicalize_dtype(float if dtype is None else dtype)
         params = _host.identity(cls.parameters_dim, tuple(batch_shape), dtype)
         return cls._wrap(to_device(params))
 
     @classmethod
-    def exp(cls, tangent):
+    def exp(cls, tangent) -> Self:
         r"""$\mathrm{Exp}(\xi)$ for tangents of shape `(*batch, tangent_dim)`."""
         tangent = check_last_axis(tangent, cls.tangent_dim, f"{cls.__name__}.exp tangent")
         if cls._host_exp is not None and is_concrete(tangent):  # no compilation
@@ -190,7 +190,7 @@ class AbstractGroup(AbstractManifold):
         return cls._wrap(cls._exp(tangent))
 
     @classmethod
-    def from_matrix(cls, matrix):
+    def from_matrix(cls, matrix) -> Self:
         """The element nearest to a homogeneous matrix (rotations are re-orthogonalized)."""
         matrix = check_matrix(matrix, cls.matrix_dim, f"{cls.__name__}.from_matrix matrix")
         if cls._host_from_matrix is not None and is_concrete(matrix):  # no compilation
@@ -198,7 +198,7 @@ class AbstractGroup(AbstractManifold):
         return cls._wrap(cls._from_matrix(matrix))
 
     @classmethod
-    def sample_uniform(cls, key, batch_shape=(), dtype=None):
+    def sample_uniform(cls, key, batch_shape=(), dtype=None) -> Self:
         """Random elements: rotations uniform (Haar), translations uniform in [-1, 1]."""
         return cls._wrap(cls._sample_uniform(key, tuple(batch_shape), dtype))
 
@@ -207,11 +207,11 @@ class AbstractGroup(AbstractManifold):
         r"""$\mathrm{Log}(X)$, the tangent of shape `(*batch, tangent_dim)`."""
         return self._log(self._params)
 
-    def inverse(self):
+    def inverse(self) -> Self:
         """$X^{-1}$."""
         return self._wrap(self._inverse(self._params))
 
-    def compose(self, other):
+    def compose(self, other: Self) -> Self:
         r"""$X \cdot Y$, broadcasting batch shapes."""
         self._check_same_group(other, "compose")
         broadcast_batch(f"{type(self).__name__} compose", self.batch_shape, other.batch_shape)
@@ -231,7 +231,7 @@ class AbstractGroup(AbstractManifold):
             return self.compose(other)
         return self.act(other)
 
-    def between(self, other):
+    def between(self, other: Self) -> Self:
         """$X^{-1} Y$: `other` expressed in the frame of `self`."""
         return self.inverse().compose(other)
 
@@ -244,12 +244,12 @@ class AbstractGroup(AbstractManifold):
         """The homogeneous matrix, shape `(*batch, matrix_dim, matrix_dim)`."""
         return self._as_matrix(self._params)
 
-    def normalize(self):
+    def normalize(self) -> Self:
         """The nearest valid element (unit rotation parameters); parameters given to the
         constructor are used as given, so call this on data that may have drifted."""
         return self._wrap(self._normalize(self._params))
 
-    def rplus(self, tangent):
+    def rplus(self, tangent) -> Self:
         r"""$X \oplus \xi = X\,\mathrm{Exp}(\xi)$."""
         name = type(self).__name__
         tangent = match_dtype(tangent, self.dtype, f"{name}.rplus tangent", f"the {name}")
@@ -260,7 +260,7 @@ class AbstractGroup(AbstractManifold):
         self._check_same_group(other, "rminus")
         return other.between(self).log()
 
-    def interpolate(self, other, t):
+    def interpolate(self, other: Self, t) -> Self:
         r"""$X \oplus t\,(Y \ominus X)$: `self` at `t = 0`, `other` at `t = 1`, along the geodesic;
         `t` of shape `(*batch,)` broadcasts against both batch shapes (a Python or NumPy number
         takes the group's dtype)."""

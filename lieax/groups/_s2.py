@@ -45,6 +45,8 @@ operation is a few rational functions and square roots of $p$ (no trigonometry),
 differentiates them directly; rotations go through SO3's kernels and their closed-form rules.
 """
 
+from typing import Self
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -148,13 +150,13 @@ class S2(AbstractManifold):
     _tangent_from_local = staticmethod(from_local)
 
     @classmethod
-    def from_vector(cls, vector):
+    def from_vector(cls, vector) -> Self:
         """The direction of nonzero vectors of shape `(*batch, 3)` (normalized)."""
         vector = check_last_axis(vector, 3, "S2.from_vector vector", "3D vectors")
         return cls(_normalize(vector))
 
     @classmethod
-    def sample_uniform(cls, key, batch_shape=(), dtype=None):
+    def sample_uniform(cls, key, batch_shape=(), dtype=None) -> Self:
         """Directions uniform on the sphere (normalized standard normal vectors)."""
         return cls._wrap(_normalize(jax.random.normal(key, (*tuple(batch_shape), 3), dtype=dtype)))
 

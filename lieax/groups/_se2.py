@@ -20,6 +20,7 @@ App. C, rewritten with $J$ and the $g_n$ so that none divides by $\omega$.
 """
 
 import sys
+from typing import Self
 
 import jax
 import jax.numpy as jnp
@@ -294,7 +295,7 @@ class SE2(AbstractGroup):
     )
 
     @classmethod
-    def from_rotation_and_translation(cls, rotation: SO2, translation):
+    def from_rotation_and_translation(cls, rotation: SO2, translation) -> Self:
         """$X = (R, t)$ from an `SO2` and translations of shape `(*batch, 2)`, broadcasting batch
         shapes."""
         if not isinstance(rotation, SO2):
@@ -313,7 +314,7 @@ class SE2(AbstractGroup):
         return cls._wrap(join(rotation._params, translation))
 
     @classmethod
-    def from_xy_theta(cls, x, y, theta):
+    def from_xy_theta(cls, x, y, theta) -> Self:
         """From positions and headings (radians), each of shape `(*batch,)`, broadcast together; the
         dtype is that of the arrays among them (Python and NumPy numbers take it)."""
         if is_concrete(x, y, theta):  # no compilation (`lieax.groups._host`)

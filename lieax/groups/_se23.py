@@ -19,6 +19,7 @@ $\mathrm{Ad}$ is SE3's (`lieax.groups._se3`) on $(\rho_p, \omega)$ and on $(\rho
 """
 
 import sys
+from typing import Self
 
 import jax
 import jax.numpy as jnp
@@ -184,7 +185,7 @@ class SE23(AbstractGroup):
     parameters_layout = "quaternion wxyz, then position xyz, then velocity xyz"
 
     @classmethod
-    def from_pose_and_velocity(cls, pose: SE3, velocity):
+    def from_pose_and_velocity(cls, pose: SE3, velocity) -> Self:
         """$(R, p, v)$ from a pose $(R, p)$ and a velocity in the world frame."""
         name = "SE23.from_pose_and_velocity"
         if not isinstance(pose, SE3):

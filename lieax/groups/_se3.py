@@ -16,6 +16,7 @@ Robotics" (2017), eq. 7.86, with coefficients rewritten as the $g_n$ of `lieax.g
 """
 
 import sys
+from typing import Self
 
 import jax
 import jax.numpy as jnp
@@ -346,7 +347,7 @@ class SE3(AbstractGroup):
         return self.parameters()
 
     @classmethod
-    def from_rotation_and_translation(cls, rotation: SO3, translation):
+    def from_rotation_and_translation(cls, rotation: SO3, translation) -> Self:
         """$T = [R, t; 0, 1]$, broadcasting batch shapes (a translation that states no dtype takes
         the rotation's)."""
         name = "SE3.from_rotation_and_translation"
@@ -363,18 +364,18 @@ class SE3(AbstractGroup):
         return cls._wrap(join(rotation._params, translation))
 
     @classmethod
-    def from_rotation(cls, rotation: SO3):
+    def from_rotation(cls, rotation: SO3) -> Self:
         return cls.from_rotation_and_translation(rotation, np.zeros(3, dtype=rotation.dtype))
 
     @classmethod
-    def from_translation(cls, translation):
+    def from_translation(cls, translation) -> Self:
         translation = check_last_axis(translation, 3, "SE3 translation")
         return cls.from_rotation_and_translation(
             SO3.identity(translation.shape[:-1], dtype=translation.dtype), translation
         )
 
     @classmethod
-    def align(cls, points_a, points_b, weights=None, *, with_scale=False):
+    def align(cls, points_a, points_b, weights=None, *, with_scale=False) -> "SE3 | Sim3":
         r"""The least-squares $T_{ab}$ with $a_i \approx T_{ab} b_i$ (SVD of the correlation matrix,
         proper rotation; Umeyama scale and a `Sim3` result with `with_scale`), differentiable with
         respect to the points and weights; see `lieax.align` and `lieax.groups._procrustes`."""

@@ -44,6 +44,7 @@ Formulas.
 
 import math
 import sys
+from typing import Self
 
 import jax
 import jax.numpy as jnp
@@ -509,7 +510,7 @@ class Sim3(AbstractGroup):
         return self.parameters()
 
     @classmethod
-    def from_rotation_translation_scale(cls, rotation: SO3, translation, scale=1.0):
+    def from_rotation_translation_scale(cls, rotation: SO3, translation, scale=1.0) -> Self:
         r"""$T = [sR, t; 0, 1]$ from an `SO3`, a translation `(*batch, 3)` and a positive scale
         `(*batch)`, broadcasting batch shapes (stored as $\sigma = \log s$); a translation or scale
         that states no dtype (a Python or NumPy number) takes the rotation's.
@@ -530,12 +531,12 @@ class Sim3(AbstractGroup):
         return cls._wrap(join(rotation._params, translation, jnp.log(scale)[..., None]))
 
     @classmethod
-    def from_se3(cls, pose, scale=1.0):
+    def from_se3(cls, pose, scale=1.0) -> Self:
         """The similarity with the rotation and translation of an `SE3` and the given scale."""
         return cls.from_rotation_translation_scale(pose.rotation(), pose.translation(), scale)
 
     @classmethod
-    def from_scale(cls, scale):
+    def from_scale(cls, scale) -> Self:
         """A pure scaling about the origin by positive scales of shape `(*batch)` (checked as in
         `from_rotation_translation_scale`)."""
         scale = as_float_array(scale, "Sim3.from_scale scale")
@@ -547,7 +548,7 @@ class Sim3(AbstractGroup):
         )
 
     @classmethod
-    def align(cls, points_a, points_b, weights=None):
+    def align(cls, points_a, points_b, weights=None) -> Self:
         r"""The similarity $T_{ab}$ minimizing $\sum_i w_i |a_i - T_{ab} b_i|^2$ (Umeyama); see
         `lieax.align` and `lieax.groups._procrustes`."""
         q, t, sigma = _procrustes.solve(

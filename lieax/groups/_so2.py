@@ -15,6 +15,7 @@ App. A; the coefficients are the $g_n$ of `lieax.groups._series`.
 """
 
 import sys
+from typing import Self
 
 import jax
 import jax.numpy as jnp
@@ -242,7 +243,7 @@ class SO2(AbstractGroup):
     _host_from_matrix = staticmethod(_host.so2_nearest_rotation)
 
     @classmethod
-    def from_angle(cls, theta):
+    def from_angle(cls, theta) -> Self:
         """From angles of shape `(*batch,)` (radians, counter-clockwise)."""
         theta = as_float_array(theta, "SO2.from_angle theta")
         if is_concrete(theta):  # no compilation (`lieax.groups._host`)

@@ -18,6 +18,7 @@ Sec. IV-B and App. B; the coefficients are the $g_n$ of `lieax.groups._series`.
 
 import math
 import sys
+from typing import Self
 
 import jax
 import jax.numpy as jnp
@@ -509,7 +510,7 @@ class SO3(AbstractGroup):
         return self.parameters()
 
     @classmethod
-    def from_xyzw(cls, xyzw):
+    def from_xyzw(cls, xyzw) -> Self:
         """From scalar-last quaternions (SciPy, ROS, Eigen's `coeffs()`)."""
         xyzw = check_last_axis(xyzw, 4, "SO3.from_xyzw quaternion", "xyzw")
         if is_concrete(xyzw):  # no compilation (`lieax.groups._host`)
@@ -521,7 +522,7 @@ class SO3(AbstractGroup):
         return jnp.roll(self.parameters(), -1, axis=-1)
 
     @classmethod
-    def from_rotvec(cls, rotvec):
+    def from_rotvec(cls, rotvec) -> Self:
         """From axis times angle (the same as `exp`)."""
         return cls.exp(rotvec)
 
@@ -530,7 +531,7 @@ class SO3(AbstractGroup):
         return self.log()
 
     @classmethod
-    def from_rpy(cls, roll, pitch, yaw):
+    def from_rpy(cls, roll, pitch, yaw) -> Self:
         r"""$R = R_z(\text{yaw})\,R_y(\text{pitch})\,R_x(\text{roll})$ (extrinsic x-y-z, as ROS), angles
         of shapes that broadcast; the dtype is that of the arrays among them (Python and NumPy
         numbers take it)."""
@@ -549,7 +550,7 @@ class SO3(AbstractGroup):
         return about(zero, zero, yaw) @ about(zero, pitch, zero) @ about(roll, zero, zero)
 
     @classmethod
-    def exp_and_right_jacobian(cls, tangent):
+    def exp_and_right_jacobian(cls, tangent) -> tuple[Self, jax.Array]:
         r"""`(SO3.exp(tangent), SO3.right_jacobian(tangent))` from one set of coefficients
         (`exp_and_right_jacobian`)."""
         tangent = check_last_axis(tangent, 3, "SO3.exp_and_right_jacobian tangent")

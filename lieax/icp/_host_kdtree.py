@@ -41,6 +41,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _threads
 from .._host_call import host_call
 from ._coordinates import row_sums, squared_norms
 
@@ -99,6 +100,7 @@ def build_kdtree(points, mask=None, *, library=None) -> KDTreeIndex:
         raise ValueError(f"library must be one of {_LIBRARIES}, got {library!r}.")
     if library == "pykdtree":
         import pykdtree.kdtree  # noqa: F401  (fail here, at trace time, when it is missing)
+    _threads.prepare()  # (the thread pools listed here, not in the callbacks)
     points = jnp.asarray(points)
     check_on_host(points, "the target")
     n = points.shape[0]
@@ -142,6 +144,15 @@ def host_tree(points, library=None):
     return cKDTree(points, balanced_tree=False)
 
 
+def tree_query(tree, queries, k, **options):
+    """`tree.query(queries, k, **options)` on one OpenMP thread (pykdtree's) below
+    `lieax._threads.PARALLEL_NEIGHBOURS` neighbours asked for, else on lieax's thread setting
+    (`lieax.set_threads`), the calling thread's count restored after it."""
+    threads = _threads.threads_for(queries.shape[0] * k, _threads.PARALLEL_NEIGHBOURS)
+    with _threads.openmp_limited(threads):
+        return tree.query(queries, k, **options)
+
+
 def valid_row_neighbours(points, valid, k, library=None):
     """The valid rows of `points` `(n, 3)` and their neighbourhoods among themselves (NumPy, on
     the host; one `host_tree` (`library`) of the valid rows): `(rows, cloud, nearest)` with
@@ -154,7 +165,7 @@ def valid_row_neighbours(points, valid, k, library=None):
     count = min(k, rows.size)
     every = rows.size == points.shape[0]  # (no gather of the rows: the usual case)
     cloud = np.ascontiguousarray(points if every else points[rows])
-    _, nearest = host_tree(cloud, library).query(cloud, k=count)
+    _, nearest = tree_query(host_tree(cloud, library), cloud, count)
     return rows, cloud, np.asarray(nearest, np.intp).reshape(rows.size, count)
 
 
@@ -226,7 +237,7 @@ def _spacing(tree_id, points):
         if kept.size == 1:
             spacing[kept] = np.inf
         elif kept.size > 1:
-            d, _ = tree.query(np.ascontiguousarray(points[kept], dtype), 2)
+            d, _ = tree_query(tree, np.ascontiguousarray(points[kept], dtype), 2)
             spacing[kept] = d[:, 1]
         entry[4] = spacing
     return spacing
@@ -243,7 +254,9 @@ def _query(tree_id, queries, radius, active):
         return out
     # Both libraries test `d < bound`: widen the bound by rounding, filter `d <= radius` below.
     bound = float(radius) * (1 + 8 * np.finfo(queries.dtype).eps)
-    d, i = tree.query(np.ascontiguousarray(queries[rows], dtype), 1, distance_upper_bound=bound)
+    d, i = tree_query(
+        tree, np.ascontiguousarray(queries[rows], dtype), 1, distance_upper_bound=bound
+    )
     found = np.isfinite(d) & (d <= radius)
     hit = rows[found]
     out[hit, 0] = np.square(d[found], dtype=np.float64)
@@ -443,8 +456,8 @@ def _track_query(tree_id, queries, radius, active, pairs):
     # Both libraries test `d < bound`: widen the bound by rounding (the allowance caps at 2r).
     bound = reach * (1 + 8 * np.finfo(queries.dtype).eps)
     every = rows.size == m  # (no gather or scatter of the rows: the usual case early on)
-    d, i = tree.query(
-        np.ascontiguousarray(queries if every else queries[rows], dtype), count,
+    d, i = tree_query(
+        tree, np.ascontiguousarray(queries if every else queries[rows], dtype), count,
         distance_upper_bound=bound,
     )  # fmt: skip
     d = np.asarray(d, np.float64).reshape(rows.size, count)

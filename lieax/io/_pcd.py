@@ -267,7 +267,7 @@ def _read_compressed(data, offset, kinds, counts, n, path):
     return raw
 
 
-def write_pcd(path, points, normals=None, *, binary=True):
+def write_pcd(path, points, normals=None, *, binary: bool = True) -> None:
     """Write points (and optional normals) as a PCD v0.7 file of float32 fields, DATA binary (or
     ascii with `binary=False`)."""
     points = as_rows(points, "points")

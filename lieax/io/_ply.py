@@ -319,7 +319,7 @@ def _binary_short(path, offset, name, count, row):
     )  # fmt: skip
 
 
-def write_ply(path, points, normals=None, colors=None, *, binary=True):
+def write_ply(path, points, normals=None, colors=None, *, binary: bool = True) -> None:
     """Write points (and optional normals, colors in `[0, 1]`) as a PLY file: float32 x y z, nx ny
     nz, uchar red green blue; binary little endian, or ascii with `binary=False`."""
     points = as_rows(points, "points")

@@ -1,0 +1,307 @@
+"""lieax against its peers on a busy machine: every workflow timed idle and under a background load.
+
+A user's machine is rarely idle (a browser, a compiler, other jobs), and a library whose threads
+busy-wait, or ask for every core, slows down far more there than one that stays on few threads.
+This benchmark times each workflow twice, (a) as the machine is and (b) with a background load it
+starts itself: one busy Python process per core (spinning, each bounded to `--load-seconds` and
+stopped by the benchmark when the phase ends, on an exception and on Ctrl-C). lieax and its peer
+run interleaved in one process, each with its default settings (no pinning, no thread variables:
+unlike `pgo.py`, `ba.py` and `imu.py`, whose builders this reuses, and which pin themselves to one
+core when run as scripts); a sample is one warm call, the medians over `--rounds` are compared,
+and lieax's first call (compilation) is reported separately.
+
+Workflows (the peer in brackets):
+- pose graphs, `pgo.py`'s g2o sets, `lieax.graph.optimize` [GTSAM's LM];
+- bundle adjustment at Ladybug-49 size (`lieax.ba.SYNTHETIC_PRESETS`), 20 iterations at most,
+  `ba.lieax_solver` [Ceres' SPARSE_SCHUR with COLMAP's C++ cost, `ba.run_ceres_colmap`];
+- point-to-plane ICP on the LiDAR and Kinect pairs of `neighbors.load_clouds` (Open3D's target
+  normals for both, the host tree rebuilt in every call as Open3D's) [Open3D's `registration_icp`];
+- GICP on `gicp.py`'s LiDAR and Kinect pairs, each library's total (covariances, tree, registration)
+  [small_gicp's `align`];
+- the IMU smoother of `examples/inertial_navigation.py` (`imu.py`'s problem) [GTSAM's LM].
+
+    LIEAX_DATA_DIR=../shared/data python benchmarks/under_load.py [--quick] [--only pgo,ba,icp,
+        gicp,imu] [--rounds 5] [--json PATH]
+
+`--quick`: two pose-graph sets, 201 IMU keyframes, 3 rounds. Needs the `bench` extra.
+"""
+
+import os
+import sys
+
+# The peers' thread pools read their settings when their libraries load: load them all here, with
+# the user's environment, before the reused benchmark modules (which set one-thread variables and
+# pin themselves as scripts) are imported; then restore the environment.
+_ENVIRONMENT = dict(os.environ)
+
+import numpy as np  # noqa: F401  (NumPy's and SciPy's OpenBLAS pools at their defaults)
+import scipy.linalg  # noqa: F401
+
+try:
+    import gtsam  # noqa: F401
+    import open3d  # noqa: F401
+    import pyceres  # noqa: F401
+    import pycolmap  # noqa: F401
+    import small_gicp  # noqa: F401
+except ImportError as error:
+    sys.exit(f"benchmarks/under_load.py needs the bench extra: {error}")
+
+import jax
+
+os.environ["LIEAX_BENCH_PIN"] = "0"
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import ba
+import gicp
+import icp as icp_bench
+import imu as imu_bench
+import neighbors
+import pgo
+
+os.environ.clear()
+os.environ.update(_ENVIRONMENT)
+
+import argparse
+import contextlib
+import json
+import statistics
+import subprocess
+import time
+
+import jax.numpy as jnp
+from _timing import format_seconds, machine_description, markdown_table
+
+from lieax import graph as lg
+from lieax import icp, imu
+from lieax.icp import _host_kdtree
+
+WORKFLOWS = ("pgo", "ba", "icp", "gicp", "imu")
+PGO_SETS = ("smallGrid3D", "intel", "M3500", "parking-garage", "sphere2500")
+PGO_QUICK = ("smallGrid3D", "sphere2500")
+_SPIN = "import time\nend = time.monotonic() + {seconds}\nwhile time.monotonic() < end:\n    pass\n"
+
+
+# ---- the background load -------------------------------------------------------------------------
+
+
+@contextlib.contextmanager
+def background_load(processes, seconds):
+    """`processes` busy Python processes, each spinning for at most `seconds`, stopped on exit
+    (normal, exception or Ctrl-C); yields nothing. With 0 processes, does nothing."""
+    spinners = []
+    try:
+        for _ in range(processes):
+            spinners.append(subprocess.Popen([sys.executable, "-c", _SPIN.format(seconds=seconds)]))
+        time.sleep(0.5)  # let them reach the scheduler
+        yield
+    finally:
+        for spinner in spinners:
+            spinner.kill()
+        for spinner in spinners:
+            spinner.wait()
+
+
+def timed_call(fn):
+    """Seconds of one call of `fn` (a JAX result is waited for); `fn` may instead return its own
+    measured seconds as `("seconds", s)` (a peer that must rebuild its problem untimed)."""
+    start = time.perf_counter()
+    out = fn()
+    elapsed = time.perf_counter() - start
+    if isinstance(out, tuple) and len(out) == 2 and out[0] == "seconds":
+        return out[1]
+    jax.block_until_ready(out)
+    return elapsed
+
+
+def interleaved(variants, rounds):
+    """Median seconds of each variant (name -> callable, already warm) over `rounds`, one call each
+    per round in an order rotated from round to round; and the load average over the rounds."""
+    names, samples = list(variants), {name: [] for name in variants}
+    for r in range(rounds):
+        shift = r % len(names)
+        for name in names[shift:] + names[:shift]:
+            samples[name].append(timed_call(variants[name]))
+    return {name: statistics.median(v) for name, v in samples.items()}, os.getloadavg()[0]
+
+
+# ---- workflows: (label, lieax callable, peer name, peer callable, note) --------------------------
+
+
+def pose_graphs(data_dir, quick):
+    for name in PGO_QUICK if quick else PGO_SETS:
+        file, is3d = pgo.SETS[name]
+        path = os.path.join(data_dir, "g2o", file)
+        graph = lg.read_g2o(path)
+        gt_graph, gt_initial = pgo.gtsam_problem(path, is3d)
+        yield (
+            f"pose graph {name}",
+            lambda graph=graph: lg.optimize(graph).cost,
+            "GTSAM",
+            lambda g=gt_graph, v=gt_initial: pgo.run_gtsam(g, v)[0],
+        )
+
+
+def bundle_adjustment(data_dir, quick):
+    iterations = 20
+    _, problem = ba.load_problem("ladybug-49")
+    solve = ba.lieax_solver(problem, iterations, "trivial", 1.0)
+
+    def ceres():
+        run = ba.run_ceres_colmap(problem, iterations, "trivial", 1.0)  # built untimed
+        return ("seconds", run.total_s)
+
+    yield "bundle adjustment Ladybug-49 size", lambda: solve().cost, "Ceres", ceres
+
+
+def point_to_plane(data_dir, quick):
+    clouds = neighbors.load_clouds(data_dir)
+    o3d = icp_bench.o3d.pipelines.registration
+    for label in ("LiDAR", "Kinect"):
+        source, target, radius, _ = clouds[label]
+        normals = icp_bench.scan_normals(label, target)
+        source_cloud = icp_bench.open3d_cloud(source)
+        target_cloud = icp_bench.open3d_cloud(target, normals)
+        estimation = o3d.TransformationEstimationPointToPlane()
+        criteria = o3d.ICPConvergenceCriteria(1e-6, 1e-6, 30)
+        s, t, n = (jnp.asarray(x) for x in (source, target, normals))
+
+        def ours(s=s, t=t, n=n, radius=radius):
+            _host_kdtree._TREES.clear()  # the tree rebuilt in every call, as Open3D's
+            _host_kdtree._IDS.clear()
+            result = icp.point_to_plane(s, t, target_normals=n, max_correspondence_distance=radius)
+            return result.transform.parameters()
+
+        def theirs(a=source_cloud, b=target_cloud, radius=radius, e=estimation, c=criteria):
+            icp_bench.o3d.pipelines.registration.registration_icp(a, b, radius, np.eye(4), e, c)
+
+        yield f"point-to-plane {label} {len(source)}/{len(target)}", ours, "Open3D", theirs
+
+
+def generalized_icp(data_dir, quick):
+    for label, (source, target, _) in (
+        ("LiDAR", gicp.lidar(data_dir)),
+        ("Kinect", gicp.kinect(data_dir)),
+    ):
+        distance = 1.0 if label == "LiDAR" else 0.05
+        run = gicp.lieax_total(source, target, distance, jnp.float64)
+        yield (
+            f"GICP {label} {len(source)}/{len(target)}",
+            lambda run=run: run().transform.parameters(),
+            "small_gicp",
+            gicp.small_gicp_total(source, target, distance),
+        )
+
+
+def imu_smoother(data_dir, quick):
+    keyframes = 201 if quick else 1001
+    example = imu_bench.load_example()
+    data = example.simulate(keyframes, np.random.default_rng(0))
+    params = example.params()
+    preintegrate = jax.jit(jax.vmap(imu.preintegrate, in_axes=(0, 0, None, None, None)))
+    preintegrated = preintegrate(
+        jnp.asarray(data["gyro"]), jnp.asarray(data["accel"]), data["dt"], jnp.zeros(6), params
+    )
+    graph, _ = example.build_graph(data, preintegrated, params)
+    pims = imu_bench.gtsam_preintegrate(imu_bench.gtsam_params(example), data)
+    g_graph, g_initial = imu_bench.gtsam_problem(example, data, pims)
+    yield (
+        f"IMU smoother {keyframes} keyframes",
+        lambda: graph.solve(max_iterations=100).cost,
+        "GTSAM",
+        lambda: imu_bench.run_gtsam(g_graph, g_initial)[0],
+    )
+
+
+BUILDERS = {
+    "pgo": pose_graphs,
+    "ba": bundle_adjustment,
+    "icp": point_to_plane,
+    "gicp": generalized_icp,
+    "imu": imu_smoother,
+}
+
+
+# ---- the table -----------------------------------------------------------------------------------
+
+
+def measure(label, ours, peer, theirs, rounds, load_seconds):
+    start = time.perf_counter()
+    timed_call(ours)
+    first = time.perf_counter() - start
+    timed_call(theirs)
+    variants = {"lieax": ours, peer: theirs}
+    idle, idle_load = interleaved(variants, rounds)
+    with background_load(os.cpu_count(), load_seconds):
+        timed_call(ours)  # one call to settle under the load
+        timed_call(theirs)
+        busy, busy_load = interleaved(variants, rounds)
+    return {
+        "workflow": label,
+        "peer": peer,
+        "lieax_first_call_s": first,
+        "idle": {"lieax_s": idle["lieax"], "peer_s": idle[peer], "load_average": idle_load},
+        "loaded": {"lieax_s": busy["lieax"], "peer_s": busy[peer], "load_average": busy_load},
+    }
+
+
+def row(record):
+    idle, busy = record["idle"], record["loaded"]
+    idle_ratio = idle["lieax_s"] / idle["peer_s"]
+    busy_ratio = busy["lieax_s"] / busy["peer_s"]
+    return [
+        record["workflow"],
+        record["peer"],
+        format_seconds(idle["lieax_s"]),
+        format_seconds(idle["peer_s"]),
+        f"{idle_ratio:.2f}×",
+        format_seconds(busy["lieax_s"]),
+        format_seconds(busy["peer_s"]),
+        f"{busy_ratio:.2f}×",
+        f"{busy['lieax_s'] / idle['lieax_s']:.2f}×",
+        f"{busy['peer_s'] / idle['peer_s']:.2f}×",
+        f"{busy_ratio / idle_ratio:.2f}×",
+        f"{idle['load_average']:.1f} / {busy['load_average']:.1f}",
+        format_seconds(record["lieax_first_call_s"]),
+    ]
+
+
+HEADERS = [
+    "workflow", "peer", "lieax idle", "peer idle", "ratio idle", "lieax loaded", "peer loaded",
+    "ratio loaded", "lieax loaded / idle", "peer loaded / idle", "ratio loaded / ratio idle",
+    "load avg idle / loaded", "lieax first call",
+]  # fmt: skip
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data-dir", default=os.environ.get("LIEAX_DATA_DIR", "../shared/data"))
+    parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--only", default=",".join(WORKFLOWS), help="comma-separated workflows")
+    parser.add_argument("--rounds", type=int, default=None, help="default 5 (3 with --quick)")
+    parser.add_argument("--load-seconds", type=float, default=600.0,
+                        help="the longest a load process lives (each phase stops its own)")  # fmt: skip
+    parser.add_argument("--json", default=None, help="also write the records to this file")
+    args = parser.parse_args(argv)
+    only = [w for w in args.only.split(",") if w]
+    unknown = [w for w in only if w not in BUILDERS]
+    if unknown:
+        parser.error(f"--only: unknown workflows {unknown}; choose from {list(WORKFLOWS)}.")
+    rounds = args.rounds or (3 if args.quick else 5)
+    print(f"# lieax and its peers, idle and under load\n\n{machine_description()}, "
+          f"{os.cpu_count()} CPUs, load {os.getloadavg()[0]:.1f} at the start; background load: "
+          f"{os.cpu_count()} spinning processes; {rounds} rounds; "
+          f"{time.strftime('%Y-%m-%d %H:%M')}\n", flush=True)  # fmt: skip
+    records = []
+    for workflow in only:
+        for label, ours, peer, theirs in BUILDERS[workflow](args.data_dir, args.quick):
+            records.append(measure(label, ours, peer, theirs, rounds, args.load_seconds))
+            print("| " + " | ".join(str(c) for c in row(records[-1])) + " |", flush=True)
+    print()
+    print(markdown_table(HEADERS, [row(r) for r in records]))
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump({"machine": machine_description(), "rounds": rounds, "records": records},
+                      f, indent=1)  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,190 @@
+"""lieax's thread scopes (`lieax._threads`): the setting and its errors, the BLAS limit inside the
+host Cholesky's callback and around XLA's dense Cholesky, pykdtree's OpenMP limit, and the
+counts restored after every call."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import lieax
+from lieax import _threads
+from lieax.factorgraph import _sparse
+
+
+def blas_counts():
+    return [pool.get_num_threads() for pool in _threads._pools("blas")]
+
+
+@pytest.fixture
+def two_blas_threads():
+    """Every BLAS pool at 2 threads where it can have them (the user's setting to restore)."""
+    _threads.prepare()
+    pools = _threads._pools("blas")
+    saved = [pool.get_num_threads() for pool in pools]
+    for pool in pools:
+        pool.set_num_threads(2)
+    yield blas_counts()
+    for pool, count in zip(pools, saved):
+        pool.set_num_threads(count)
+
+
+@pytest.mark.parametrize("value", [0, -3])
+def test_set_threads_rejects_nonpositive(value):
+    with pytest.raises(ValueError, match=r"lieax\.set_threads\(n\) must be a positive integer"):
+        lieax.set_threads(value)
+    with pytest.raises(ValueError, match=r"lieax\.threads\(n\)"):
+        with lieax.threads(value):
+            pass
+
+
+@pytest.mark.parametrize("value", [1.5, True, "2"])
+def test_set_threads_rejects_non_integers(value):
+    with pytest.raises(TypeError, match=r"lieax\.set_threads\(n\)"):
+        lieax.set_threads(value)
+
+
+@pytest.mark.parametrize("text", ["0", "-1", "two", "1.5"])
+def test_environment_variable_is_checked(monkeypatch, text):
+    monkeypatch.setenv("LIEAX_NUM_THREADS", text)
+    with pytest.raises(ValueError, match="LIEAX_NUM_THREADS"):
+        _threads._from_environment()
+
+
+def test_environment_variable_values(monkeypatch):
+    for text, expected in (("", None), ("auto", None), (" 3 ", 3)):
+        monkeypatch.setenv("LIEAX_NUM_THREADS", text)
+        assert _threads._from_environment() == expected
+
+
+def test_unknown_blas_is_an_error_naming_the_setting(monkeypatch):
+    monkeypatch.setattr(_threads, "_pools", lambda user_api: [])
+    with pytest.raises(RuntimeError, match=r"lieax\.set_threads\(n\) cannot be honoured"):
+        lieax.set_threads(2)
+    lieax.set_threads(None)  # the libraries' own setting needs no BLAS
+
+
+def test_threads_context_restores_the_setting():
+    assert lieax.get_threads() is None
+    with lieax.threads(3):
+        assert lieax.get_threads() == 3
+        with lieax.threads(1):
+            assert lieax.get_threads() == 1
+        assert lieax.get_threads() == 3
+    assert lieax.get_threads() is None
+    with pytest.raises(KeyError), lieax.threads(2):
+        raise KeyError
+    assert lieax.get_threads() is None
+
+
+def test_threads_for_small_and_large_work():
+    assert _threads.threads_for(10, 100) == 1
+    assert _threads.threads_for(100, 100) is None
+    with lieax.threads(2):
+        assert _threads.threads_for(10, 100) == 1
+        assert _threads.threads_for(1000, 100) == 2
+
+
+def chain_system(n, d, seed=0):
+    """A positive definite block tridiagonal system: pattern, diag, off, rhs (NumPy)."""
+    rng = np.random.default_rng(seed)
+    pattern, _, _ = _sparse.BlockPattern.from_edges(n, d, np.arange(n - 1), np.arange(1, n))
+    off = 0.1 * rng.normal(size=(n - 1, d, d))
+    a = rng.normal(size=(n, d, d))
+    diag = a @ np.swapaxes(a, 1, 2) + 2 * d * np.eye(d)
+    return pattern, diag, off, rng.normal(size=(n, d))
+
+
+def test_host_cholesky_runs_on_one_blas_thread_and_restores(monkeypatch, two_blas_threads):
+    pattern, diag, off, rhs = chain_system(40, 6)
+    plan = _sparse.CholeskyPlan.analyze(pattern)
+    seen = []
+    solve = _sparse.CholeskyPlan.solve
+
+    def recording(self, *system):
+        seen.append(blas_counts())
+        return solve(self, *system)
+
+    monkeypatch.setattr(_sparse.CholeskyPlan, "solve", recording)
+    run = jax.jit(lambda d, o, r: _sparse.cholesky_solve(plan, d, o, r))
+    x = run(diag, off, rhs)
+    dense = _sparse.dense_matrix(pattern, diag, off)
+    np.testing.assert_allclose(x.reshape(-1), np.linalg.solve(dense, rhs.reshape(-1)), rtol=1e-10)
+    assert seen and all(counts == [1] * len(counts) for counts in seen)
+    assert blas_counts() == two_blas_threads
+    # a plan above the threshold keeps the user's counts (None), or lieax's setting
+    monkeypatch.setitem(plan.stats, "flops", 2 * _threads.PARALLEL_FLOPS)
+    seen.clear()
+    solve_again = jax.jit(lambda d, o, r: _sparse.cholesky_solve(plan, d, o, r))
+    solve_again(diag, off, rhs).block_until_ready()
+    assert seen == [two_blas_threads]
+
+
+def test_dense_cholesky_scope_brackets_the_lapack_call(monkeypatch, two_blas_threads):
+    """Orders from 64 (`SINGLE_THREAD_ORDER`): one entering and one exiting callback per solve
+    (neither dropped by XLA), the limit 1 inside, the counts restored after; same solution as
+    NumPy's; batched under vmap."""
+    pattern, diag, off, rhs = chain_system(12, 6)  # order 72
+    events = []
+    enter, exit_ = _threads._enter_host, _threads._exit_host
+
+    def recording_enter(threads, dtype):
+        out = enter(threads, dtype)
+        events.append(("enter", blas_counts()))
+        return out
+
+    def recording_exit(*args):
+        events.append(("exit", None))
+        return exit_(*args)
+
+    monkeypatch.setattr(_threads, "_enter_host", recording_enter)
+    monkeypatch.setattr(_threads, "_exit_host", recording_exit)
+    solve = jax.jit(lambda d, o, r: _sparse.dense_solve(pattern, d, o, r))
+    x = solve(diag, off, rhs).block_until_ready()
+    dense = _sparse.dense_matrix(pattern, diag, off)
+    np.testing.assert_allclose(x.reshape(-1), np.linalg.solve(dense, rhs.reshape(-1)), rtol=1e-10)
+    ones = [1] * len(two_blas_threads)
+    assert events == [("enter", ones), ("exit", None)]
+    assert blas_counts() == two_blas_threads and _threads._BLAS_SCOPE["depth"] == 0
+
+    events.clear()
+    batched = jax.jit(jax.vmap(lambda d, o, r: _sparse.dense_solve(pattern, d, o, r)))
+    xs = batched(jnp.stack([diag, 2 * diag]), jnp.stack([off, off]), jnp.stack([rhs, rhs]))
+    np.testing.assert_allclose(xs[0], x, rtol=1e-12)
+    assert sorted(kind for kind, _ in events) == ["enter", "enter", "exit", "exit"]
+    assert blas_counts() == two_blas_threads and _threads._BLAS_SCOPE["depth"] == 0
+
+
+def test_small_dense_cholesky_has_no_scope(monkeypatch):
+    pattern, diag, off, rhs = chain_system(4, 6)  # order 24: OpenBLAS stays on one thread
+    monkeypatch.setattr(_threads, "_enter_host", lambda *_: pytest.fail("scoped"))
+    x = jax.jit(lambda d, o, r: _sparse.dense_solve(pattern, d, o, r))(diag, off, rhs)
+    dense = _sparse.dense_matrix(pattern, diag, off)
+    np.testing.assert_allclose(x.reshape(-1), np.linalg.solve(dense, rhs.reshape(-1)), rtol=1e-10)
+
+
+def test_kdtree_queries_limit_openmp_by_size():
+    pytest.importorskip("pykdtree")
+    from lieax.icp import _host_kdtree
+
+    _threads.prepare()
+    if not _threads._pools("openmp"):
+        pytest.skip("no OpenMP runtime loaded")
+    openmp_counts = lambda: [pool.get_num_threads() for pool in _threads._pools("openmp")]
+    before = openmp_counts()
+
+    class Recording:
+        seen = []
+
+        def query(self, queries, k, **options):
+            self.seen.append(openmp_counts())
+            return np.zeros((len(queries), k)), np.zeros((len(queries), k), int)
+
+    tree = Recording()
+    _host_kdtree.tree_query(tree, np.zeros((10, 3)), 1)
+    _host_kdtree.tree_query(tree, np.zeros((_threads.PARALLEL_NEIGHBOURS, 3)), 1)
+    with lieax.threads(1):
+        _host_kdtree.tree_query(tree, np.zeros((_threads.PARALLEL_NEIGHBOURS, 3)), 1)
+    ones = [1] * len(before)
+    assert tree.seen == [ones, before, ones]
+    assert openmp_counts() == before
