@@ -1,7 +1,7 @@
 """lieax: Lie groups and manifolds for JAX, with closed-form Jacobians injected through custom_jvp.
 
 Conventions (right perturbation, wxyz quaternions, translation-first tangents) are listed in the
-README's "Conventions" section.
+docs/conventions.md section.
 
 Layers, bottom up: `groups` (the Lie groups and their kernels), `autodiff` (tangents of pytrees,
 manifold-local Jacobians, implicit derivatives) and `retractions`, the solvers (`lstsq`, `optax`,

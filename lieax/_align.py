@@ -11,6 +11,7 @@ def align(points_a, points_b, weights=None, *, with_scale: bool = False) -> SE3 
     r"""The least-squares alignment $T_{ab}$ of corresponding points, $a_i \approx T_{ab}\,b_i$.
 
     **Arguments:**
+
     - `points_a`, `points_b`: corresponding points, shape `(*batch, N, 3)` (batch shapes broadcast),
       finite, $N \ge 3$, not all on a line (the rotation is not unique otherwise); fewer than 3
       points is a `ValueError` naming the count.

@@ -18,6 +18,7 @@ def enable_compilation_cache(path=None) -> pathlib.Path:
     call: seconds on a CPU).
 
     **Arguments:**
+
     - `path`: the cache directory (created if missing); by default `$XDG_CACHE_HOME/lieax/jax`,
       or `~/.cache/lieax/jax` where `XDG_CACHE_HOME` is unset.
 
@@ -42,8 +43,8 @@ def enable_compilation_cache(path=None) -> pathlib.Path:
     - `lieax.factorgraph` with `solver="cholesky"` (the host multifrontal Cholesky, which
       `solver="auto"` picks for systems above 300–800 unknowns: a landmark graph of thousands of
       poses, an IMU smoother of hundreds of keyframes) and `lieax.graph.optimize` (cholesky by
-      default): the solve loop; `"dense"` and `"cg"` are cached (the README's factor-graph
-      example, and bundle adjustment at Ladybug-49 size, whose reduced camera system is dense);
+      default): the solve loop; `"dense"` and `"cg"` are cached (the factor-graph example of
+      docs/factor-graphs.md, and bundle adjustment at Ladybug-49 size, whose reduced camera system is dense);
     - a solver's `throw=True` inside your own `jit` (the error is raised from a callback in the
       compiled program); outside `jit` the status is read after the program returns, which
       keeps it cacheable, and `throw=False` never adds a callback;

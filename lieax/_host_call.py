@@ -44,6 +44,7 @@ def host_call(fn, result, *args, batched=None):
     """`fn(*args)` on the host, from traced code.
 
     **Arguments:**
+
     - `fn`: takes NumPy arrays and returns one NumPy array (a pure function of its inputs).
     - `result`: a `jax.ShapeDtypeStruct`, the shape and dtype of `fn`'s result.
     - `args`: JAX arrays.

@@ -28,6 +28,7 @@ def raise_if(status, failed, message):
     """`status`, after raising `message(code)` at run time when `failed(code)` holds.
 
     **Arguments:**
+
     - `status`: a scalar integer array (concrete or traced).
     - `failed`: `code -> bool` on the host, for the integer status code.
     - `message`: `code -> Exception` on the host: the error to raise.

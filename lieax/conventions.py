@@ -1,6 +1,6 @@
 r"""Converters between lieax's conventions and those of GTSAM, Ceres, ROS and SciPy.
 
-lieax (see the README's "Conventions"): right perturbation $X \oplus \xi = X\,\mathrm{Exp}(\xi)$;
+lieax (see docs/conventions.md): right perturbation $X \oplus \xi = X\,\mathrm{Exp}(\xi)$;
 quaternions wxyz; tangents translation first: SE3 $(v, \omega)$, Sim3 $(v, \omega, \sigma)$ with
 $T = [e^\sigma R, t; 0, 1]$; S2 tangents in the smooth basis of `lieax.S2.basis`.
 

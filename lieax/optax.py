@@ -74,6 +74,7 @@ def on_manifold(
     """Wraps an optax optimizer to act on pytrees of lieax groups and arrays.
 
     **Arguments:**
+
     - `optimizer`: any `optax.GradientTransformation` (`optax.adam(1e-2)`, a `chain`, ...).
     - `retraction`: the chart a `value_fn` is re-expressed in (`lieax.retractions.exp` by
       default); use the same one in `apply_updates`.
@@ -136,6 +137,7 @@ def minimize(
     `lax.scan`.
 
     **Arguments:**
+
     - `loss`: `loss(x, args)` returns a scalar; `x` is a pytree of lieax groups and arrays.
     - `x0`: the start.
     - `optimizer`: an optax optimizer (wrapped with `on_manifold` here; do not wrap it yourself).

@@ -27,7 +27,7 @@ Use them in `lieax.rplus` / `lieax.rminus`, `lieax.lstsq.least_squares` and `lie
 `retraction=lieax.retractions.cayley`. They work under `jit`, `vmap` and every differentiation
 mode: the Cayley kernels carry closed-form `custom_jvp` rules like the group kernels.
 
-Conventions: the README's "Conventions".
+Conventions: docs/conventions.md.
 """
 
 import dataclasses
@@ -52,6 +52,7 @@ class Retraction:
     by leaf to pytrees. Hashable, so solvers take it as a static argument.
 
     **Fields:**
+
     - `name`: a short name (`"exp"`, `"cayley"`, `"first_order"`).
     - `rplus`: `rplus(x, delta)` $= \mathcal{R}_x(\delta)$, `delta` of shape
       `(*batch, tangent_dim)` for a manifold element, `x.shape` for an array.

@@ -46,7 +46,7 @@ them with `jax.experimental.multihost_utils.process_allgather`. On CPUs across p
 `jax.config.update("jax_cpu_collectives_implementation", "gloo")` for the residual-axis
 all-reduce (the batch axis needs no collective).
 
-Conventions (right perturbation, tangent layouts) are the README's "Conventions".
+Conventions (right perturbation, tangent layouts) are docs/conventions.md.
 """
 
 import jax
@@ -96,6 +96,7 @@ def shard_batch(
     """Lays every array of `tree` out over `mesh`, its leading (batch) axis split evenly.
 
     **Arguments:**
+
     - `tree`: a pytree of arrays (and lieax groups) sharing the size `n` of their leading axis:
       a padded batch of clouds and masks, a batch of point pairs.
     - `mesh`: default `batch_mesh()`.
@@ -192,6 +193,7 @@ def batch_map(fn, mesh: Mesh | None = None, *, in_axes=0, axis_name=None):
     per device, each device stopping when its own problems are done.
 
     **Arguments:**
+
     - `fn`: the function of one problem (positional arguments), e.g.
       `lambda data: least_squares(residual, x0, data, throw=False)` or a call of
       `lieax.icp.point_to_plane(..., throw=False)`. Under `vmap` nothing can be raised: pass
@@ -248,6 +250,7 @@ def shard_residuals(residual_fn, mesh: Mesh | None = None, *, in_axes=0, axis_na
     ```
 
     **Arguments:**
+
     - `residual_fn`: `residual_fn(x, args)`, every output leaf of shape `(n, ...)` with `n` the
       leading size of the (batched) `args`.
     - `mesh`: default `batch_mesh()`.

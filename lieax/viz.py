@@ -6,7 +6,7 @@ inside each function, so `import lieax.viz` costs nothing without it. Every func
 the axes it is given (`ax=`), or into new axes of a new pyplot figure, and returns the axes.
 Arrays may be JAX or NumPy arrays; they are copied to the host.
 
-Frames follow lieax's conventions (the README's "Conventions"): a pose `T_world_body` is drawn at
+Frames follow lieax's conventions (docs/conventions.md): a pose `T_world_body` is drawn at
 its translation, with its rotation's columns (the body axes expressed in the world frame) as the
 x, y, z axes in red, green and blue.
 """
@@ -115,6 +115,7 @@ def plot_frames(
     triad of axes: x red, y green (and z blue in 3D), from the frame's origin.
 
     **Arguments:**
+
     - `frames`: a lieax group element of any batch shape (`T_world_frame`).
     - `ax`: matplotlib axes (3D axes for 3D groups); new axes when `None`.
     - `length`: axis length; default a tenth of the spread of the origins (1 for a single frame).
@@ -254,6 +255,7 @@ def plot_pose_graph(
     `|i - j| = 1`) and the other edges (loop closures) as segments.
 
     **Arguments:**
+
     - `graph`: a `lieax.graph.PoseGraph`, or a batch of `SE2` / `SE3` poses with `edges`.
     - `poses`: poses to draw in place of `graph.poses` (e.g. `optimize(graph).poses`).
     - `edges`: `(m, 2)` pose indices, when `graph` is a batch of poses (default: none).

@@ -34,6 +34,7 @@ def inverse_function_jacobian(f_inverse: Callable, y) -> jax.Array:
     point whose image is `y`, from its easy inverse.
 
     **Arguments:**
+
     - `f_inverse`: the inverse $g = f^{-1}$, differentiable by JAX.
     - `y`: the value $f(x)$ (array or pytree).
 
@@ -48,6 +49,7 @@ def implicit_jacobian(F: Callable, x, y) -> jax.Array:
     r"""$Dy(x) = -(D_y F(x, y))^{-1} D_x F(x, y)$ at a solution of $F(x, y) = 0$.
 
     **Arguments:**
+
     - `F`: the residual $F(x, y)$, with as many outputs as `y` has entries, differentiable by JAX.
     - `x`, `y`: a point with $F(x, y) = 0$ (arrays or pytrees).
 

@@ -123,6 +123,7 @@ def jacobian(
     r"""The manifold-local Jacobian of `f`: $f(X \oplus \delta) \ominus f(X) \approx J\,\delta$.
 
     **Arguments:**
+
     - `f`: a function whose arguments and result are groups, arrays or pytrees of them.
     - `argnums`: which arguments to differentiate (an int or a tuple of ints).
     - `has_aux`: `f` returns `(value, aux)`; the Jacobian function then returns `(J, aux)`.

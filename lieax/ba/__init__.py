@@ -14,7 +14,7 @@ camera as one `(pose, intrinsics)` variable with a 2×9 block, the form a factor
 takes (the camera lives in `lieax.cameras` as `snavely_*`; these are its old names, kept).
 `synthetic_bal` generates problems with a ground
 truth at any size (`SYNTHETIC_PRESETS`: Ladybug-49 and Trafalgar-138). Conventions: see the
-README's "Conventions" (right perturbations, translation-first tangents, `T_a_b` maps b into a).
+docs/conventions.md (right perturbations, translation-first tangents, `T_a_b` maps b into a).
 """
 
 from ..cameras._snavely import (

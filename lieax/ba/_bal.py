@@ -30,6 +30,7 @@ class BALProblem:
     """A bundle-adjustment problem as a BAL file holds it (NumPy arrays, float64).
 
     **Fields:**
+
     - `camera_indices`, `point_indices`: `(k,)` int64, the camera and point of each observation.
     - `observations`: `(k, 2)` observed pixels.
     - `cameras`: `(n, 9)` rotation vector, translation, $f$, $k_1$, $k_2$ per camera.
@@ -105,6 +106,7 @@ def read_bal(path) -> BALProblem:
     """Read a BAL problem file (`.bz2` files are decompressed on the fly).
 
     **Arguments:**
+
     - `path`: the file.
 
     **Returns:** a `BALProblem`.

@@ -19,6 +19,7 @@ def bal_to_camera(cameras):
     r"""`(T_camera_world, intrinsics)` from BAL's camera 9-vectors.
 
     **Arguments:**
+
     - `cameras`: `(*batch, 9)`: rotation vector $\omega$, translation $t$, $f$, $k_1$, $k_2$.
 
     **Returns:** the `SE3` $[\mathrm{Exp}(\omega), t]$ (world to camera) and the `(*batch, 3)`

@@ -24,6 +24,7 @@ class SyntheticBAL(typing.NamedTuple):
     """A generated problem.
 
     **Fields:**
+
     - `problem`: the `BALProblem` to solve: noisy observations, perturbed cameras and points.
     - `truth`: the same observations with the true cameras and points.
     - `outliers`: `(k,)` bool, the observations replaced by outliers.
@@ -149,6 +150,7 @@ def synthetic_bal(
     Intrinsics: $f$ within 10% of `focal_length`, $k_1 \in [-0.1, 0.1]$, $k_2 \in [-0.05, 0.05]$.
 
     **Arguments:**
+
     - `num_cameras`, `num_points`, `num_observations`: sizes, with
       `2 * num_points <= num_observations <= num_cameras * num_points` and `num_cameras >= 2`.
     - `noise`: standard deviation of the pixel noise on each coordinate.

@@ -166,6 +166,7 @@ def projection_factor(pose, point, measured, calibration, *, behind="zero", **op
     calibration).
 
     **Arguments:**
+
     - `pose`, `point`: `poses[i]`, `points[j]`: an SE3 `Var` ($T_{wc}$) and a `(n, 3)` `Var`.
     - `measured`: `(m, 2)` pixels, one per observation.
     - `calibration`: `(5,)` `Cal3_S2` or `(9,)` `Cal3DS2`, shared, or `(m, 5)` / `(m, 9)`.

@@ -47,6 +47,7 @@ def project(T_world_camera, calibration, point):
     `PinholeCamera::project`; module docstring).
 
     **Arguments:**
+
     - `T_world_camera`: `SE3`, camera to world.
     - `calibration`: `(*batch, 5)` `Cal3_S2` $(f_x, f_y, s, u_0, v_0)$ or `(*batch, 9)`
       `Cal3DS2` $(f_x, f_y, s, u_0, v_0, k_1, k_2, p_1, p_2)$.

@@ -59,6 +59,7 @@ def reprojection_residual(pose, intrinsics, point, observation):
     `SnavelyReprojectionError`).
 
     **Arguments:**
+
     - `pose`: `SE3` $T_{cw}$ mapping world points into the camera.
     - `intrinsics`: `(*batch, 3)` $(f, k_1, k_2)$.
     - `point`: `(*batch, 3)` world point $X$.

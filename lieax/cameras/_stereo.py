@@ -41,6 +41,7 @@ def stereo_project(T_world_camera, calibration, point):
     module docstring).
 
     **Arguments:**
+
     - `T_world_camera`: `SE3`, the left camera to world.
     - `calibration`: `(*batch, 6)` $(f_x, f_y, s, u_0, v_0, b)$.
     - `point`: `(*batch, 3)` world point.

@@ -14,8 +14,8 @@ with index arrays per argument (Dellaert and Kaess, "Factor graphs for robot per
 2017). `FactorGraph` analyses the structure once on the host; `solve` runs the whole
 Levenberg-Marquardt loop in one jitted `lax.while_loop` with the dense, sparse Cholesky
 (host multifrontal) or PCG solver, optionally eliminating a kind by the Schur complement
-(Triggs et al., "Bundle adjustment — a modern synthesis", 2000). Conventions: the README's
-"Conventions" (right perturbation, translation-first tangents).
+(Triggs et al., "Bundle adjustment — a modern synthesis", 2000). Conventions: docs/conventions.md
+(right perturbation, translation-first tangents).
 """
 
 from ._factors import Factor

@@ -28,6 +28,7 @@ class Factor:
     r"""One factor kind (see the module docstring).
 
     **Arguments:**
+
     - `residual`: `residual(x_a, x_b, ..., data) -> (k,)` for ONE instance (`data` is passed
       only when given); each `x` is one instance of its variable kind (a group, an array or a
       pytree of them).

@@ -52,6 +52,7 @@ class FactorGraph:
     `NonlinearFactorGraph` with its `Values`).
 
     **Arguments:**
+
     - `factors`: a sequence of `Factor`s (one per factor kind).
     - `variables`: the `Var`s, in the order of the solution's values (default: in the order the
       factors first name them).
@@ -235,6 +236,7 @@ class FactorGraph:
         r"""Minimize $\tfrac12 \sum \rho(\|R r\|^2)$ (see `_solve` for the semantics).
 
         **Arguments:**
+
         - `values`: starting values, a tuple in the order of `variables` (default the `Var`s').
         - `data`: per factor kind `(data, sqrt_information, loss)` or `None` to keep the
           factor's own (see `FactorGraph.data`); may be traced, batched under `vmap` and

@@ -20,6 +20,7 @@ def marginal_covariances(graph, values, var, indices=None, *, data=None, method=
     """The marginal covariances of instances `indices` (default all) of `var` at `values`.
 
     **Arguments:**
+
     - `graph`: the `FactorGraph`.
     - `values`: the values (a `SolveResult.values` tuple), in the order of `graph.variables`.
     - `var`: the `Var` whose instances are wanted.

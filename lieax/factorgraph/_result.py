@@ -22,6 +22,7 @@ class SolveResult(SolverResult, _SolveResultFields):
     `lieax.lstsq.SolverResult`.
 
     **Fields:**
+
     - `values`: the solution, a tuple in the order of the graph's `variables`.
     - `cost`: $\tfrac12 \sum \rho(\|R r\|^2)$ at `values`.
     - `iterations`: outer iterations (linearizations), as GTSAM counts them.

@@ -4,7 +4,7 @@ A `Var` holds the initial values of all its instances as one batched value (a gr
 `(n,)`, an array `(n, ...)`, or a pytree of those with the same leading `n`); factors refer to
 instances by integer index arrays, `poses[i]`. Each instance has a tangent of `tangent_dim`
 coordinates (the product of its leaves' tangents, right perturbation $X \oplus \delta$; see the
-README's "Conventions"). Instances listed in `fixed` are held constant (GTSAM's "constant
+docs/conventions.md). Instances listed in `fixed` are held constant (GTSAM's "constant
 values", Ceres' `SetParameterBlockConstant`); priors are ordinary unary factors.
 """
 
@@ -21,6 +21,7 @@ class Var:
     """One variable kind: `n` instances of the same type, batched along a leading axis.
 
     **Arguments:**
+
     - `value`: the initial values, a lieax group batched `(n,)` (e.g. `SE2` of parameters
       `(n, 4)`), a float array `(n, ...)`, or a pytree of such with one leading `n`.
     - `fixed`: indices (or a boolean mask `(n,)`) of instances held constant.

@@ -13,7 +13,7 @@ The linear solver by default is a multifrontal block Cholesky with a fixed symbo
 (`CholeskyPlan`: a minimum-degree ordering of the pose graph, supernodes and batched dense
 kernels, computed once per graph in numpy with SciPy, which JAX already depends on), called from
 the jitted loop on the host; `solver="cg"` keeps everything in JAX (block-Jacobi preconditioned
-conjugate gradients) for accelerators. Conventions: see the README's "Conventions" (right
+conjugate gradients) for accelerators. Conventions: see docs/conventions.md (right
 perturbations, translation-first tangents; g2o's SE3 information, ordered translation then
 rotation, is used as read). Plot a graph with `lieax.viz.plot_pose_graph(graph, poses)`.
 

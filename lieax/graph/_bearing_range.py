@@ -137,6 +137,7 @@ def bearing_range_factor(
     ```
 
     **Arguments:**
+
     - `pose`, `landmark`: `var[index]` references, index arrays `(m,)`: an `SE2` `Var` with
       landmarks `(n, 2)`, or an `SE3` `Var` with landmarks `(n, 3)`.
     - `bearings`: the measured bearings in the pose's frame, `(m,)`: an `SO2` or angles in

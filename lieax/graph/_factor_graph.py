@@ -52,6 +52,7 @@ def to_factor_graph(graph, *, closed_form=True, exact=True, fixed="auto", check_
     pose `Var`, to add factors of other kinds to, or to solve with other options.
 
     **Arguments:**
+
     - `graph`: the `PoseGraph`.
     - `closed_form`: give the factors their closed-form Jacobian blocks (default); `False` lets
       `lieax.jacobian` differentiate the residuals through the groups' `custom_jvp` rules.

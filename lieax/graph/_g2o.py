@@ -87,6 +87,7 @@ def read_g2o(path, *, information="nearest", dtype=None) -> PoseGraph:
     r"""Read a 2D or 3D g2o file into a `PoseGraph`.
 
     **Arguments:**
+
     - `path`: the file.
     - `information`: what to do with an edge whose information matrix $\Omega$ is not positive
       definite to working precision ($\lambda_{\min} \le 10^{-12}\lambda_{\max}$; public sets

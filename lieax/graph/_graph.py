@@ -1,6 +1,6 @@
 r"""The pose-graph container: poses, between factors, prior factors and fixed vertices.
 
-Conventions are lieax's (see the README's "Conventions"): right perturbation, translation-first
+Conventions are lieax's (see docs/conventions.md): right perturbation, translation-first
 tangents, so a residual's information matrix is ordered like the tangent, `(vx, vy, ω)` in 2D and
 `(vx, vy, vz, ωx, ωy, ωz)` in 3D. Factors keep the square root $R$ of their information
 $\Omega = R^\top R$ ($R$ upper triangular), and the cost of a residual $r$ is
@@ -26,6 +26,7 @@ class BetweenFactors:
     r"""Relative-pose factors $r = \mathrm{Log}(Z^{-1} X_i^{-1} X_j)$, one per edge.
 
     **Fields:**
+
     - `i`, `j`: numpy int arrays `(m,)`, indices into the graph's poses (not file ids).
     - `measured`: the measurements $Z = X_i^{-1} X_j$, a group batched `(m,)`.
     - `sqrt_information`: `(m, d, d)` upper-triangular $R$, $R^\top R = \Omega$.

@@ -36,6 +36,7 @@ class OptimizeResult(SolverResult):
     r"""What `optimize` returns (concrete NumPy and Python values); a `lieax.lstsq.SolverResult`.
 
     **Fields:**
+
     - `poses`: the optimized poses, in the order of `graph.vertex_ids`.
     - `cost`: $\tfrac12 \sum \rho(r^\top \Omega r)$ at `poses` (GTSAM's `graph.error`).
     - `iterations`: outer iterations (linearizations), as GTSAM counts them.
@@ -76,6 +77,7 @@ def optimize(
     r"""Levenberg-Marquardt on a `PoseGraph` (see the module docstring for the semantics).
 
     **Arguments:**
+
     - `graph`: the `PoseGraph`; its poses are the initial values.
     - `max_iterations`: outer iterations at most.
     - `solver`: `"cholesky"` (default): exact steps, so the iterates follow GTSAM's. Graphs of

@@ -119,6 +119,7 @@ class BearingRangeFactors:
     $\tfrac12\lVert R\,r\rVert^2$.
 
     **Fields:**
+
     - `pose`, `landmark`: numpy int64 `(m,)`: indices into the graph's poses and landmarks.
     - `bearing`: `(m,)` measured bearings $b$ (radians, in the pose's frame).
     - `range`: `(m,)` measured ranges $\rho$.
@@ -187,6 +188,7 @@ def read_toro(path, *, noise_format="auto", dtype=None) -> PoseGraph:
     noise models and initial values are in the module docstring).
 
     **Arguments:**
+
     - `path`: the file.
     - `noise_format`: how the six noise numbers of a 2D edge read: `"auto"` (GTSAM's default),
       `"graph"`, `"cov"`, `"toro"` or `"g2o"` (GTSAM's `NoiseFormat`s; see the module docstring).

@@ -1,6 +1,6 @@
 r"""The shared base of every lieax group: a frozen pytree around one parameter array.
 
-Conventions (fixed for the whole library, see the README's "Conventions"):
+Conventions (fixed for the whole library, see docs/conventions.md):
 right perturbation $X \oplus \xi = X\,\mathrm{Exp}(\xi)$, $X \ominus Y = \mathrm{Log}(Y^{-1} X)$,
 adjoint $X\,\mathrm{Exp}(\xi)\,X^{-1} = \mathrm{Exp}(\mathrm{Ad}_X \xi)$, and
 $\mathrm{Exp}(\xi + \delta) \approx \mathrm{Exp}(\xi)\,\mathrm{Exp}(J_r(\xi)\,\delta)$.

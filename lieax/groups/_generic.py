@@ -39,6 +39,7 @@ def local_rules(kernels, *, exp, log, compose, inverse, adjoint, as_matrix, from
     `from_parameters`) as `jax.custom_jvp` functions.
 
     **Arguments:**
+
     - `kernels`: the group's kernel namespace (see the module docstring).
     - `exp`, ..., `normalize`: the values of each operation, plain array functions, or
       `jax.custom_jvp` functions that keep their own rules (overrides).

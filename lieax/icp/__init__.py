@@ -15,7 +15,7 @@
 - `synthetic_scene`, `synthetic_pair`: generated clouds with known normals and motion.
 
 Conventions (right perturbation, translation-first tangents, `T_a_b` maps b into a) are the
-README's "Conventions".
+docs/conventions.md.
 """
 
 from ._batch import pad_clouds

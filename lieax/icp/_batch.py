@@ -24,6 +24,7 @@ def pad_clouds(clouds, size=None, *, dtype=None):
     ```
 
     **Arguments:**
+
     - `clouds`: a sequence of arrays of shape `(n_i, 3)`.
     - `size`: rows per cloud (default: the largest `n_i`); smaller than a cloud raises.
     - `dtype`: of the result (default: the clouds' common dtype).

@@ -12,6 +12,7 @@ def voxel_downsample(points, voxel_size, *, mask=None, size=None):
     """Replace the points in each voxel of side `voxel_size` by their centroid.
 
     **Arguments:**
+
     - `points`: shape `(n, 3)`.
     - `voxel_size`: side of the voxels (positive).
     - `mask`: `(n,)` bools, False for points to ignore (padding).

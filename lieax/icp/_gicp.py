@@ -8,7 +8,7 @@ same statuses, stopping rule and exact check), with this module's Gauss-Newton u
 small_gicp, a stop on the size of the step as well.
 
 Conventions (right perturbation, translation-first tangents, `T_a_b` maps b into a) are the
-README's "Conventions".
+docs/conventions.md.
 """
 
 import functools
@@ -51,6 +51,7 @@ def estimate_covariances(points, *, k=20, mask=None, search="auto"):
     (small_gicp's rule).
 
     **Arguments:**
+
     - `points`: shape `(n, 3)`.
     - `k`: neighbourhood size, the point itself included (small_gicp's default, 20).
     - `mask`: `(n,)` bools, False for padding; those rows get the identity.
@@ -351,6 +352,7 @@ def gicp(
     its `iterations` is the index of the last; `ICPResult.iterations` counts updates.)
 
     **Arguments:**
+
     - `source`, `target`: clouds of shape `(n, 3)` and `(m, 3)`, the same floating dtype.
     - `max_correspondence_distance`: pairs farther apart are rejected (masked).
     - `source_covariances`, `target_covariances`: `(n, 3, 3)`, `(m, 3, 3)` symmetric positive

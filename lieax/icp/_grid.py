@@ -42,6 +42,7 @@ class GridIndex(NamedTuple):
     `M = capacity` buckets.
 
     **Fields:**
+
     - `points`: `(N, 3)` the target points sorted by bucket; invalid points hold `inf`.
     - `order`: `(N,)` int32, the index in the original cloud of each slot.
     - `valid`: `(N,)` bool.
@@ -82,6 +83,7 @@ def build_grid(points, mask=None, *, cell_size, capacity=None) -> GridIndex:
     `jit` and `vmap` (`cell_size` may be traced).
 
     **Arguments:**
+
     - `points`: the target cloud. Rows where `mask` is False are ignored (padding).
     - `cell_size`: the side of a cell, positive: `nearest_in_grid` is exact within it.
     - `capacity`: buckets of the hash table, a power of two; default the power of two at or
@@ -121,6 +123,7 @@ def nearest_in_grid(index: GridIndex, queries, radius=None, *, mask=None, chunk=
     """The nearest target point within `radius` of each query (exact up to ties), or none.
 
     **Arguments:**
+
     - `index`: from `build_grid`.
     - `queries`: shape `(n, 3)`.
     - `radius`: the search radius, at most `index.cell_size` (the default); a larger one is

@@ -58,6 +58,7 @@ class KDTreeIndex(NamedTuple):
     """A target cloud whose k-d tree lives on the host (see the module docstring).
 
     **Fields:**
+
     - `points`: `(N, 3)` the target points in their original order; invalid points hold `inf`.
     - `order`: `(N,)` int32, `arange(N)` (slots are the original indices).
     - `valid`: `(N,)` bool.
@@ -88,6 +89,7 @@ def build_kdtree(points, mask=None, *, library=None) -> KDTreeIndex:
     `mask` is False ignored); runs under `jit` and `vmap`.
 
     **Arguments:**
+
     - `points`, `mask`: the target cloud and its valid rows.
     - `library`: `"scipy"` (`scipy.spatial.cKDTree`) or `"pykdtree"` (needs the package);
       default `default_library()` (see `host_tree`).
@@ -269,6 +271,7 @@ def nearest_in_kdtree(index: KDTreeIndex, queries, radius=jnp.inf, *, mask=None,
     ties), or none; one host call.
 
     **Arguments:**
+
     - `index`: from `build_kdtree`.
     - `queries`: shape `(m, 3)`.
     - `radius`: the search radius (`inf`: the nearest point).
@@ -309,6 +312,7 @@ class KDTreeWarmStart(NamedTuple):
     iterations).
 
     **Fields:**
+
     - `queries`: `(m, 3)` where each query was last sent to the tree.
     - `slot`: `(m,)` int32, its nearest valid target point there, `-1` for none within twice
       the radius.

@@ -40,6 +40,7 @@ def multi_scale(
     """Register `source` to `target` level by level, coarse to fine.
 
     **Arguments:**
+
     - `source`, `target`: clouds of shape `(n, 3)` and `(m, 3)`.
     - `voxel_sizes`: one voxel side per level, coarse first (decreasing); `None` for a level on
       the clouds as given.

@@ -52,6 +52,7 @@ class NeighborIndex(NamedTuple):
     Shapes: `N = leaves * B` slots, `D = degree`.
 
     **Fields:**
+
     - `points`: `(N, 3)` the target points in leaf order; invalid slots hold `inf`.
     - `order`: `(N,)` int32, the index in the original cloud of each slot (0 for invalid slots).
     - `valid`: `(N,)` bool.
@@ -99,6 +100,7 @@ class Neighbors(NamedTuple):
     """The nearest target point of each query.
 
     **Fields:**
+
     - `index`: `(n,)` int32, index of the nearest point in the original target cloud.
     - `slot`: `(n,)` int32, the same point's slot in the `NeighborIndex` (for warm starts).
     - `distance`: `(n,)` Euclidean distance to it (`inf` where the target has no valid point).
@@ -127,6 +129,7 @@ def build_index(
     """Prepare `points` (shape `(n, 3)`) for nearest-neighbour queries; runs under `jit` and `vmap`.
 
     **Arguments:**
+
     - `points`: the target cloud. Rows where `mask` is False are ignored (padding).
     - `leaf_size`: largest number of points per leaf of the tree.
     - `degree`: nearest neighbours per point in the descent graph.
@@ -640,6 +643,7 @@ def nearest(
     """The nearest target point of every query, exact within `radius` when `exact`.
 
     **Arguments:**
+
     - `index`: from `build_index`.
     - `queries`: shape `(n, 3)`.
     - `radius`: matches farther than this need not be exact (they are rejected by ICP anyway);

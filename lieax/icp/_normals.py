@@ -36,6 +36,7 @@ def estimate_normals(
     r"""Unit normals of a point cloud, shape `(n, 3)`.
 
     **Arguments:**
+
     - `points`: shape `(n, 3)`.
     - `k`: neighbourhood size, the point itself included.
     - `radius`: if given, only neighbours within this distance count.

@@ -2,7 +2,7 @@ r"""Point-to-point and point-to-plane ICP: one jitted loop, fixed shapes, batcha
 
 Conventions: `transform` is `T_target_source` (it maps source coordinates into the target frame),
 a `lieax.SE3` with right perturbation $T \oplus \xi = T\,\mathrm{Exp}(\xi)$, tangent
-$\xi = (v, \omega)$ translation first (the README's "Conventions").
+$\xi = (v, \omega)$ translation first (docs/conventions.md).
 
 The loop is Open3D's `registration_icp`: match every source point to its nearest target point,
 reject pairs farther than `max_correspondence_distance` (masked, never dropped), update the pose
@@ -106,6 +106,7 @@ class ICPResult(SolverResult, _ICPResultFields):
     `vmap`); a `lieax.lstsq.SolverResult`.
 
     **Fields:**
+
     - `transform`: `SE3`, `T_target_source`, mapping source coordinates into the target frame.
     - `fitness`: fraction of (valid) source points with a target point within
       `max_correspondence_distance` at `transform`.
@@ -171,6 +172,7 @@ def point_to_plane(
     $T$ = `T_target_source`, re-matching $d_i$ (nearest target point of $T s_i$) every iteration.
 
     **Arguments:**
+
     - `source`, `target`: clouds of shape `(n, 3)` and `(m, 3)`, the same floating dtype.
     - `max_correspondence_distance`: pairs farther apart are rejected (masked); positive and
       finite (a concrete one that is not raises `ICPInputError`; a traced one ends `INVALID`).

@@ -65,6 +65,7 @@ def build_index(points, mask=None, *, search="graph", max_distance=None, **optio
     `jit` and `vmap`.
 
     **Arguments:**
+
     - `points`, `mask`: the target cloud; rows where `mask` is False are ignored (padding).
     - `search`: the backend (see the module docstring).
     - `max_distance`: the largest query radius; needed by `"grid"` (its cell size).
@@ -173,6 +174,7 @@ def nearest(
     """The nearest target point of every query, exact within `radius`.
 
     **Arguments:**
+
     - `index`: from `build_index` (any backend).
     - `queries`: shape `(n, 3)`.
     - `radius`: the search radius. `"grid"` searches within its cell size at most; `"grid"`,

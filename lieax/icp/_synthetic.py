@@ -94,6 +94,7 @@ def synthetic_pair(
     """Two views of the scene related by a known motion.
 
     **Arguments:**
+
     - `n`: points per view.
     - `rotation_deg`, `translation`: size of the motion (random axis and direction).
     - `noise`: standard deviation of the noise along the normals, independent in each view.

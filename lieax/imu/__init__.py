@@ -2,7 +2,7 @@
 `PreintegratedImuMeasurements`), its bias-corrected prediction, and IMU and bias random-walk
 factors for `lieax.factorgraph`. `combined_imu_factor` joins the IMU factor and the bias random
 walk of one interval in one factor whitened by `preintegrate_combined`'s 15×15 covariance
-(GTSAM's `CombinedImuFactor`). Conventions: the README's "Conventions"; the mapping to GTSAM's
+(GTSAM's `CombinedImuFactor`). Conventions: docs/conventions.md; the mapping to GTSAM's
 is in `lieax.conventions`.
 
 The samples are keyword arguments in GTSAM's `integrateMeasurement(measuredAcc, measuredOmega,

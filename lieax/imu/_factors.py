@@ -24,7 +24,7 @@ the position and velocity rows differ by $(J_l^{-1}(c_\theta) - I)(c_p, c_v)$, s
 the residual (on GTSAM's KITTI example, issue 32 found 5.8e-6 relative in the final cost and
 0.12 mm in position between the two). The factor's Jacobian blocks are closed forms (`imu_jacobians`); `imu_residual` itself
 differentiates through the groups' rules (`lieax.value_and_jacobian`; the logmap residual through
-`SE23`), which the tests compare. Conventions: the README's "Conventions"; GTSAM's mapping in
+`SE23`), which the tests compare. Conventions: docs/conventions.md; GTSAM's mapping in
 `lieax.conventions`.
 """
 
@@ -282,6 +282,7 @@ def imu_factor(
     r"""A `Factor` kind of IMU factors, one per interval of the batched `pim` (`(m,)`).
 
     **Arguments:**
+
     - `pim`: a `Preintegrated` batched `(m,)` (e.g. `vmap(preintegrate)` over intervals).
     - `params`: the `ImuParams` they were integrated with (for gravity).
     - `pose_i`, `velocity_i`, `pose_j`, `velocity_j`, `bias_i`: `var[index]` references, index
@@ -432,6 +433,7 @@ def combined_imu_factor(
     them as independent). Between keyframes joined by it, no `bias_random_walk_factor`.
 
     **Arguments:**
+
     - `pim`, `covariance`: `vmap(preintegrate_combined)` over the intervals, a `Preintegrated`
       batched `(m,)` and its `(m, 15, 15)` covariance.
     - `params`: the `ImuParams` they were integrated with (for gravity).

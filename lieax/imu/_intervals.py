@@ -112,6 +112,7 @@ def preintegrate_intervals(
     `integrateMeasurement(accel[k][n], gyro[k][n], dt[k][n])` loop.
 
     **Arguments:**
+
     - `params`: an `ImuParams`; `bias`: `None` (zero), `(6,)` for every interval or `(m, 6)`.
     - `accel`, `gyro` (keyword-only): one `(N_k, 3)` array per interval (a list, or an
       `(m, N, 3)` array), m/s² and rad/s in the sensor frame.

@@ -12,7 +12,7 @@ bias Jacobians are in the same order (GTSAM's `preintMeasCov`, `preintegrated_H_
 `imuBias.ConstantBias.vector()` order. `preintegrate_combined` adds the 15×15 covariance with
 the biases' random walk of GTSAM's `PreintegratedCombinedMeasurements`; `predict` works in an
 inertial or, with `ImuParams.omega_coriolis`, a rotating navigation frame (GTSAM 4.3's
-`NavState::predictPIM`). Conventions: the README's "Conventions".
+`NavState::predictPIM`). Conventions: docs/conventions.md.
 """
 
 import functools
@@ -39,6 +39,7 @@ class ImuParams(NamedTuple):
     r"""Preintegration parameters (GTSAM's `PreintegrationParams`), a pytree.
 
     **Fields:**
+
     - `accelerometer_covariance`: $\Sigma_a$, `(3, 3)`, continuous time
       ((m/s²)²/Hz, the noise density squared; the discrete covariance is $\Sigma_a / \delta t$).
     - `gyroscope_covariance`: $\Sigma_g$, `(3, 3)`, (rad/s)²/Hz.
@@ -108,6 +109,7 @@ class Preintegrated(NamedTuple):
     r"""Preintegrated IMU measurements of one interval (or a batch of them), a pytree.
 
     **Fields:**
+
     - `theta`, `delta_p`, `delta_v`: the preintegrated vector $(\theta, \Delta p, \Delta v)$,
       each `(*batch, 3)`; $\Delta R = \mathrm{Exp}(\theta)$ (`delta_R`).
     - `delta_t`: $\Delta t_{ij}$, `(*batch,)`.
@@ -777,6 +779,7 @@ def preintegrate(params: ImuParams, bias=None, *, accel, gyro, dt, mask=None) ->
     the time (`_dispatch_batched`).
 
     **Arguments:**
+
     - `params`: an `ImuParams`.
     - `bias`: $\hat b = (b_a, b_g)$, `(6,)`, the bias the samples are corrected with
       (`None`: zero; GTSAM's `biasHat`).
@@ -809,6 +812,7 @@ class BiasRandomWalk(NamedTuple):
     `PreintegrationCombinedParams`), a pytree.
 
     **Fields:**
+
     - `accelerometer_bias_covariance`: `(3, 3)`, continuous time ((m/s³)²/Hz; `biasAccCovariance`).
     - `gyroscope_bias_covariance`: `(3, 3)`, (rad/s²)²/Hz (`biasOmegaCovariance`).
     """

@@ -10,6 +10,7 @@ class PointCloudData(NamedTuple):
     """A point cloud read from a file (NumPy arrays, one row per point).
 
     **Fields:**
+
     - `points`: `(n, 3)` float, x y z.
     - `normals`: `(n, 3)` float, or `None` when the file has none.
     - `colors`: `(n, 3)` float in `[0, 1]`, or `None`.

@@ -43,6 +43,7 @@ def lzf_decompress_python(data, size, path, offset) -> bytes:
     copy may overlap its own output, repeating its last $d$ bytes.
 
     **Arguments:**
+
     - `data`: the compressed bytes.
     - `size`: the uncompressed size the file declares.
     - `path`, `offset`: the file and the byte where `data` starts in it, for the error message.

@@ -27,6 +27,7 @@ def read_pcd(path, *, dtype=np.float64) -> PointCloudData:
     """Read a PCD file (v0.5 to v0.7).
 
     **Arguments:**
+
     - `path`: the file (DATA ascii, binary or binary_compressed; LF or CRLF header lines).
     - `dtype`: of `points`, `normals` and `colors`.
 

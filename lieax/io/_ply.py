@@ -29,6 +29,7 @@ def read_ply(path, *, dtype=np.float64) -> PointCloudData:
     """Read the `vertex` element of a PLY file.
 
     **Arguments:**
+
     - `path`: the file (ascii, binary_little_endian or binary_big_endian; LF or CRLF lines).
     - `dtype`: of `points`, `normals` and `colors`.
 

@@ -18,6 +18,7 @@ def read_point_cloud(path, *, key=None, dtype=np.float64) -> PointCloudData:
     """Read a `.ply`, `.pcd`, `.npy` or `.npz` file, choosing the format by the extension.
 
     **Arguments:**
+
     - `path`: the file.
     - `key`: for `.npz`, the array to read (default `points`, or the only array in the file).
       An `.npy`/`.npz` array of shape `(n, 3)` holds points; `(n, 6)` points then normals.

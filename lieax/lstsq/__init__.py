@@ -2,7 +2,7 @@ r"""Nonlinear least squares on manifolds: Gauss-Newton and Levenberg-Marquardt o
 mix lieax groups and arrays, robust losses, solves that batch under `vmap`, and implicit
 derivatives of a solution.
 
-Conventions (right perturbation $x \oplus \delta$, tangent layouts): the README's "Conventions".
+Conventions (right perturbation $x \oplus \delta$, tangent layouts): docs/conventions.md.
 """
 
 from ._least_squares import least_squares

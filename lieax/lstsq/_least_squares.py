@@ -72,6 +72,7 @@ def least_squares(
     ($x \leftarrow \mathcal{R}_x(\delta)$ with another `retraction`).
 
     **Arguments:**
+
     - `residual_fn`: `residual_fn(x, args)` returns an array or a pytree of arrays (typically one
       residual per data element, built with `jax.vmap` over the data). A leaf of shape
       `(*batch, k)` holds `k`-dimensional blocks; a leaf with fewer than two axes holds scalar

@@ -80,6 +80,7 @@ class SolverResult:
     (the pytree ones are `NamedTuple`s, so they batch under `vmap`).
 
     **Every result has:**
+
     - `status`: an integer `Status` code, why the solver stopped (one enum for all solvers).
     - `iterations`: the iterations run, as the solver counts them (its result's docstring says
       how).
@@ -149,6 +150,7 @@ class Solution(SolverResult, _SolutionFields):
     `SolverResult`.
 
     **Fields:**
+
     - `value`: the solution, the same pytree as `x0` (groups and arrays mixed).
     - `cost`: $\tfrac12 \sum_i \rho(\|r_i\|^2)$ at `value` ($\tfrac12\|r\|^2$ without a
       loss).

@@ -85,6 +85,7 @@ class GaussNewton(AbstractSolver):
     The stopping rules see unscaled variables (`scale` is all ones).
 
     **Arguments:**
+
     - `divergence_factor`: stop with `Status.DIVERGED` when the cost exceeds this multiple of the
       initial cost.
     """
@@ -171,6 +172,7 @@ class LevenbergMarquardt(AbstractSolver):
     would. Use them on residuals of order one.
 
     **Arguments:**
+
     - `initial_damping`: $\mu$ at the first iteration (Ceres' initial trust radius $10^4$ is
       $\mu = 10^{-4}$).
     - `min_gain_ratio`: the smallest gain ratio of an accepted step.
