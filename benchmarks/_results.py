@@ -32,10 +32,10 @@ def machine():
     )
 
 
-def write(path, benchmark, tables, notes=""):
+def write(path, benchmark, tables, notes="", raw=None):
     """Write `tables` (a list of dicts with `title`, `columns`, `rows` and optional `notes`) of the
-    benchmark named `benchmark` to `path` as JSON, with the command line, the UTC time and
-    `machine()`."""
+    benchmark named `benchmark` to `path` as JSON, with the command line, the UTC time,
+    `machine()` and, under `raw`, the unformatted measurements (any JSON value)."""
     for table in tables:
         widths = {len(row) for row in table["rows"]}
         if widths - {len(table["columns"])}:
@@ -50,6 +50,7 @@ def write(path, benchmark, tables, notes=""):
         "machine": machine(),
         "notes": notes,
         "tables": tables,
+        "raw": raw,
     }
     with open(path, "w", encoding="utf-8") as file:
         json.dump(record, file, indent=1, ensure_ascii=False)

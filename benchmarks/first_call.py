@@ -50,6 +50,8 @@ import sys
 import tempfile
 import time
 
+import _results
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 MARK = "FIRST_CALL_JSON "
@@ -522,16 +524,19 @@ def _measure_workflow(name, quick, data_dir):
     return {"cold": cold, "cache_first_process": writer, "cache_second_process": reader}
 
 
-def table(results):
-    headers = [
+HEADERS = [
         "workflow", "import lieax", "build", "compiles (build)", "compiles (1st call)",
         "XLA s (1st call)", "cold 1st call", "2nd process, cache: build + 1st call",
-        "not cached (compiled in 2nd)", "warm call",
-    ]  # fmt: skip
-    lines = ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
+    "not cached (compiled in 2nd)", "warm call",
+]  # fmt: skip
+
+
+def table_rows(results):
+    """One row of formatted cells per workflow, under `HEADERS`."""
+    rows = []
     for name, result in results.items():
         if "skipped" in result:
-            lines.append(f"| {name} | skipped: {result['skipped']} |" + " |" * (len(headers) - 2))
+            rows.append([name, f"skipped: {result['skipped']}"] + [""] * (len(HEADERS) - 2))
             continue
         cold, second = result["cold"], result["cache_second_process"]
         cells = [
@@ -547,8 +552,19 @@ def table(results):
             f"{sum(second[p]['compilations'] + second[p]['cache_hits'] for p in ('build', 'first'))}",
             f"{cold['warm_s']:.3f} s",
         ]
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+        rows.append(cells)
+    return rows
+
+
+def write_record(path, results, quick):
+    """The table in the format of the documentation's benchmarks page (`_results.write`)."""
+    title = "First call, fresh processes" + (" (--quick sizes)" if quick else "")
+    notes = (
+        "Compilations and XLA seconds from JAX's monitoring events; the second process runs with "
+        "`lieax.enable_compilation_cache` on the directory the first filled."
+    )
+    tables = [{"title": title, "columns": HEADERS, "rows": table_rows(results)}]
+    _results.write(path, "first_call", tables, notes=notes, raw=results)
 
 
 def main(argv=None):
@@ -571,9 +587,8 @@ def main(argv=None):
         results[name] = measure_workflow(name, args.quick, args.data)
         print(f"{name} done", file=sys.stderr, flush=True)
         if args.json:  # after each workflow, so that an interrupted run keeps what it measured
-            with open(args.json, "w") as file:
-                json.dump({"quick": args.quick, "results": results}, file, indent=1)
-    print(table(results))
+            write_record(args.json, results, args.quick)
+    print(_results.markdown_table(HEADERS, table_rows(results)))
     return results
 
 

@@ -62,11 +62,11 @@ os.environ.update(_ENVIRONMENT)
 
 import argparse
 import contextlib
-import json
 import statistics
 import subprocess
 import time
 
+import _results
 import jax.numpy as jnp
 from _timing import format_seconds, machine_description, markdown_table
 
@@ -298,9 +298,15 @@ def main(argv=None):
     print()
     print(markdown_table(HEADERS, [row(r) for r in records]))
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump({"machine": machine_description(), "rounds": rounds, "records": records},
-                      f, indent=1)  # fmt: skip
+        title = f"Warm times idle and under load, {rounds} rounds" + (
+            " (--quick)" if args.quick else ""
+        )
+        notes = (
+            f"Background load: {os.cpu_count()} spinning processes, started and stopped by the "
+            "benchmark; lieax and its peer interleaved in one process, default settings on both."
+        )
+        tables = [{"title": title, "columns": HEADERS, "rows": [row(r) for r in records]}]
+        _results.write(args.json, "under_load", tables, notes=notes, raw=records)
 
 
 if __name__ == "__main__":
