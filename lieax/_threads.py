@@ -254,41 +254,22 @@ def openmp_limited(threads):
                 pool.set_num_threads(count)
 
 
-def scoped_lapack(fn, operands, threads):
-    """`fn(operands)` (traced, on a CPU; `operands` a pytree of float arrays, the result an array)
-    with every BLAS pool at `threads` threads while it runs: a host callback before it sets the
-    limit and one after it restores it (`blas_limited`'s counting, so concurrent programs restore
-    the user's counts last). Both are `io_callback`s (side effects: XLA keeps them), ordered by
-    data: the first returns a zero that is added to every operand (XLA does not fold `x + 0.0`,
-    which is exact here), and the second reads an entry of the result. (An
-    `optimization_barrier` did not order them: XLA turned it into nothing that its CPU runtime
-    follows, and the Cholesky's input did not depend on the first callback.) `threads` `None`
-    calls `fn` alone."""
-    import jax
-    from jax import lax
-    from jax.experimental import io_callback
-
+@contextlib.contextmanager
+def lapack_limited(threads):
+    """Every BLAS pool at `threads` threads, process-wide, inside the block (`None`: unchanged),
+    restored when the last such block of the process closes (`_enter_blas`'s counting): the scope
+    of a compiled program whose LAPACK calls (XLA's CPU Cholesky calls SciPy's OpenBLAS) run on
+    XLA's threads, not the caller's, so the calling thread's own count would not reach them. The
+    block must wait for the program's results. It is set around the compiled call, not inside
+    the program: host callbacks in the program would keep JAX's persistent cache from storing it
+    and are refused under `vmap` of a `cond` (IO effects). Under the caller's own `jit` the scope
+    is not applied (the caller owns the threads of its program)."""
     if threads is None:
-        return fn(operands)
+        yield
+        return
     prepare()
-    leaves = jax.tree_util.tree_leaves(operands)
-    zero = io_callback(
-        lambda _: _enter_host(threads, leaves[0].dtype),
-        jax.ShapeDtypeStruct((), leaves[0].dtype),
-        lax.stop_gradient(leaves[0].reshape(-1)[:1]),  # (no tangent: callbacks have no JVP)
-    )
-    operands = jax.tree_util.tree_map(lambda a: a + zero.astype(a.dtype), operands)
-    result = fn(operands)
-    seed = lax.stop_gradient(result.reshape(-1)[:1])
-    io_callback(_exit_host, jax.ShapeDtypeStruct((), np.int32), seed)
-    return result
-
-
-def _enter_host(threads, dtype):
     _enter_blas(threads)
-    return np.zeros((), dtype)
-
-
-def _exit_host(_):
-    _exit_blas()
-    return np.int32(0)
+    try:
+        yield
+    finally:
+        _exit_blas()

@@ -88,6 +88,7 @@ def test_intervals_compile_once_per_bucket():
     streams = [stream(20 + k, samples=n) for k, n in enumerate(range(9, 13))]
     calls = ([0, 1, 2], [3, 0, 0], [1, 3, 2])
     counts = []
+    programs = imu._intervals._batched._cache_size()  # (other files' streams share the worker)
     for picks in calls:
         before = len(compiles)
         intervals = [streams[k] for k in picks]
@@ -105,7 +106,7 @@ def test_intervals_compile_once_per_bucket():
             expected = sequential(PARAMS, BIAS, accel=a, gyro=g, dt=d, mask=keep)
             assert_same(jax.tree.map(lambda x, k=k: x[k], pims), expected, rtol=1e-12)
     assert counts[1:] == [0, 0], counts
-    assert imu._intervals._batched._cache_size() == 1
+    assert imu._intervals._batched._cache_size() - programs <= 1
     poses, vectors, biases = Var(SE3.identity((4,))), Var(np.zeros((4, 3))), Var(np.zeros((4, 6)))
     i, j = np.arange(3), np.arange(1, 4)
     factor = imu.imu_factor(pims, PARAMS, poses[i], vectors[i], poses[j], vectors[j], biases[i])

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 import lieax
-from lieax import _threads
-from lieax.factorgraph import _sparse
+from lieax import SE2, _threads
+from lieax.factorgraph import Factor, FactorGraph, Var, _sparse
 
 
 def blas_counts():
@@ -120,47 +120,50 @@ def test_host_cholesky_runs_on_one_blas_thread_and_restores(monkeypatch, two_bla
     assert seen == [two_blas_threads]
 
 
-def test_dense_cholesky_scope_brackets_the_lapack_call(monkeypatch, two_blas_threads):
-    """Orders from 64 (`SINGLE_THREAD_ORDER`): one entering and one exiting callback per solve
-    (neither dropped by XLA), the limit 1 inside, the counts restored after; same solution as
-    NumPy's; batched under vmap."""
-    pattern, diag, off, rhs = chain_system(12, 6)  # order 72
-    events = []
-    enter, exit_ = _threads._enter_host, _threads._exit_host
+def dense_chain_graph(n):
+    """A factor graph whose `solver="dense"` system has order `3 n`: a chain of `n` SE2 poses
+    with a prior on the first."""
+    rng = np.random.default_rng(0)
+    truth = SE2.exp(rng.normal(size=(n, 3)))
+    poses = Var(truth.rplus(0.05 * rng.normal(size=(n, 3))), name="poses")
+    i, j = np.arange(n - 1), np.arange(1, n)
+    between = lambda a, b, z: z.between(a.between(b)).log()
+    prior = lambda x, z: z.between(x).log()
+    return FactorGraph(
+        [
+            Factor(between, (poses[i], poses[j]), truth[i].between(truth[j])),
+            Factor(prior, (poses[np.array([0])],), truth[:1]),
+        ]
+    )
 
-    def recording_enter(threads, dtype):
-        out = enter(threads, dtype)
-        events.append(("enter", blas_counts()))
-        return out
 
-    def recording_exit(*args):
-        events.append(("exit", None))
-        return exit_(*args)
+def test_dense_cholesky_runs_on_one_blas_thread_around_the_compiled_call(
+    monkeypatch, two_blas_threads
+):
+    """Orders from 64 (`SINGLE_THREAD_ORDER`): the BLAS pools at 1 thread while the compiled
+    solve runs (set around the call, so the program holds no host callback: JAX's persistent
+    cache can keep it, and `vmap` of it works), the counts restored after; none below."""
+    graph = dense_chain_graph(30)  # order 90
+    assert _sparse.dense_threads(graph.layout.pattern) == 1
+    seen = []
+    enter = _threads._enter_blas
 
-    monkeypatch.setattr(_threads, "_enter_host", recording_enter)
-    monkeypatch.setattr(_threads, "_exit_host", recording_exit)
-    solve = jax.jit(lambda d, o, r: _sparse.dense_solve(pattern, d, o, r))
-    x = solve(diag, off, rhs).block_until_ready()
-    dense = _sparse.dense_matrix(pattern, diag, off)
-    np.testing.assert_allclose(x.reshape(-1), np.linalg.solve(dense, rhs.reshape(-1)), rtol=1e-10)
+    def recording(threads, only_shared=False):
+        enter(threads, only_shared)
+        seen.append(blas_counts())
+
+    monkeypatch.setattr(_threads, "_enter_blas", recording)
+    result = graph.solve(solver="dense")
+    assert result.converged
     ones = [1] * len(two_blas_threads)
-    assert events == [("enter", ones), ("exit", None)]
+    assert seen == [ones]
     assert blas_counts() == two_blas_threads and _threads._BLAS_SCOPE["depth"] == 0
-
-    events.clear()
-    batched = jax.jit(jax.vmap(lambda d, o, r: _sparse.dense_solve(pattern, d, o, r)))
-    xs = batched(jnp.stack([diag, 2 * diag]), jnp.stack([off, off]), jnp.stack([rhs, rhs]))
-    np.testing.assert_allclose(xs[0], x, rtol=1e-12)
-    assert sorted(kind for kind, _ in events) == ["enter", "enter", "exit", "exit"]
-    assert blas_counts() == two_blas_threads and _threads._BLAS_SCOPE["depth"] == 0
-
-
-def test_small_dense_cholesky_has_no_scope(monkeypatch):
-    pattern, diag, off, rhs = chain_system(4, 6)  # order 24: OpenBLAS stays on one thread
-    monkeypatch.setattr(_threads, "_enter_host", lambda *_: pytest.fail("scoped"))
-    x = jax.jit(lambda d, o, r: _sparse.dense_solve(pattern, d, o, r))(diag, off, rhs)
-    dense = _sparse.dense_matrix(pattern, diag, off)
-    np.testing.assert_allclose(x.reshape(-1), np.linalg.solve(dense, rhs.reshape(-1)), rtol=1e-10)
+    # the same program batched: no callback in it, so vmap of its loop's cond works
+    values = jax.tree_util.tree_map(lambda x: jnp.stack([x, x]), graph.initial_values)
+    batched = jax.vmap(lambda v: graph.solve(v, solver="dense", throw=False).cost)(values)
+    np.testing.assert_allclose(batched, float(result.cost), rtol=1e-12)
+    small = dense_chain_graph(4)  # order 12: OpenBLAS stays on the calling thread
+    assert _sparse.dense_threads(small.layout.pattern) is None
 
 
 def test_kdtree_queries_limit_openmp_by_size():

@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._runtime_error import raise_if
+from .._threads import lapack_limited
 from ..autodiff._tangents import check_retraction, manifold_leaves
 from ..lstsq import NonFiniteStartError, SolveError, Status
 from ..lstsq._solution import is_failure
@@ -28,6 +29,7 @@ from ._elimination import (
 from ._factors import Factor, linearize_one, residual_one, variables_dtype
 from ._implicit import solve_implicit
 from ._solve import PARAMETERS, make_loop
+from ._sparse import dense_threads
 from ._structure import analyze, digest, schur_layout
 from ._variables import Var, instance
 
@@ -278,7 +280,7 @@ class FactorGraph:
         **Returns:** a `SolveResult`.
         """
         self._check_x64()
-        loop = self._loop(
+        loop, layout, method = self._loop(
             solver, eliminate, max_iterations, algorithm, damping, lambda_update, retraction,
             verbose, cg_max_iterations,
         )  # fmt: skip
@@ -308,8 +310,11 @@ class FactorGraph:
         if traced:  # under a transformation: the solve with its implicit derivatives
             result = _result(*solve_implicit(self, loop, values, data, params))
         else:  # one dispatch, one transfer of the scalars: they come back as NumPy values
-            solution, summary = loop(values, data, params)
-            result = _result(solution, np.asarray(summary))
+            threads = dense_threads(layout.pattern) if method == "dense" else None
+            with lapack_limited(threads):  # waits for the program (`np.asarray`) inside
+                solution, summary = loop(values, data, params)
+                summary = np.asarray(summary)
+            result = _result(solution, summary)
         if throw and isinstance(result.status, jax.core.Tracer):
             result = result._replace(status=raise_if(result.status, is_failure, _traced_error))
         elif throw:
@@ -334,8 +339,9 @@ class FactorGraph:
         self, solver, eliminate, max_iterations, algorithm, damping, lambda_update, retraction,
         verbose, cg_max_iterations,
     ):  # fmt: skip
-        """The compiled `run(values, data, params) -> (values, summary)` of `solve`'s options
-        (`_solve.make_loop`), kept by the options: a repeated call skips their checks."""
+        """`(loop, layout, method)`: the compiled `run(values, data, params) -> (values, summary)`
+        of `solve`'s options (`_solve.make_loop`), the layout its linear solver works on and that
+        solver, kept by the options: a repeated call skips their checks."""
         try:
             key = (solver, eliminate, type(max_iterations), max_iterations, algorithm, damping,
                    lambda_update, retraction, verbose, type(cg_max_iterations), cg_max_iterations)  # fmt: skip
@@ -350,7 +356,7 @@ class FactorGraph:
             )  # fmt: skip
             if key is not None:
                 self._prepared[key] = prepared
-        return prepared[0]
+        return prepared
 
     def _prepare(
         self, solver, eliminate, max_iterations, algorithm, damping, lambda_update, retraction,

@@ -857,21 +857,20 @@ def dense_solve(pattern, diag, off, rhs):
         factor = jnp.linalg.cholesky(matrix)
         return jax.scipy.linalg.cho_solve((factor, True), b)
 
-    system = (matrix, rhs.reshape(n * d))
-    if n * d < _threads.SINGLE_THREAD_ORDER or not _on_cpu(matrix):
-        return solve(system).reshape(n, d)
-    # XLA's CPU backend factors through SciPy's OpenBLAS (LAPACK), whose idle threads busy-wait:
-    # one thread below lieax._threads.PARALLEL_FLOPS (order 441, Ladybug-49's cameras: 4 ms
-    # against 442 ms on two threads on a busy 2-core machine), set around this solve only
-    threads = _threads.threads_for((n * d) ** 3 / 3, _threads.PARALLEL_FLOPS)
-    return _threads.scoped_lapack(solve, system, threads).reshape(n, d)
+    return solve((matrix, rhs.reshape(n * d))).reshape(n, d)
 
 
-def _on_cpu(array):
-    """Whether `array` (traced or not) is computed on the host CPU."""
-    if isinstance(array, jax.core.Tracer) or not isinstance(array, jax.Array):
-        return jax.default_backend() == "cpu"
-    return {device.platform for device in array.devices()} == {"cpu"}
+def dense_threads(pattern):
+    """The BLAS threads for `dense_solve`'s factorization of `pattern` on a CPU, to be set around
+    the compiled call (`lieax._threads.lapack_limited`), or `None` (no scope): XLA's CPU backend
+    factors through SciPy's OpenBLAS, whose idle threads busy-wait, so one thread below
+    `lieax._threads.PARALLEL_FLOPS` (order 441, Ladybug-49's cameras: 4 ms against 442 ms on two
+    threads on a busy 2-core machine); below order `SINGLE_THREAD_ORDER` OpenBLAS stays on the
+    calling thread anyway."""
+    order = pattern.num_blocks * pattern.block_size
+    if order < _threads.SINGLE_THREAD_ORDER or jax.default_backend() != "cpu":
+        return None
+    return _threads.threads_for(order**3 / 3, _threads.PARALLEL_FLOPS)
 
 
 def _dense_index(pattern):
@@ -904,6 +903,7 @@ __all__ = [
     "CholeskyPlan",
     "block_matvec",
     "cholesky_solve",
+    "dense_threads",
     "dense_matrix",
     "dense_solve",
     "minimum_degree_order",

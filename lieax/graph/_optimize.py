@@ -23,7 +23,9 @@ import jax
 import numpy as np
 
 from .. import retractions
+from .._threads import lapack_limited
 from ..factorgraph._graph import parameters
+from ..factorgraph._sparse import dense_threads
 from ..lstsq import Status
 from ..lstsq._solution import SolverResult
 from ._factor_graph import refuse_sightings, to_factor_graph
@@ -126,7 +128,7 @@ def optimize(
     # values and data hold by construction here: the poses are the structure's, the data
     # `factor_data`'s), a third of the host time of a call on tinyGrid3D
     factor_graph = _factor_graph(graph, jacobian == "exact")
-    loop = factor_graph._loop(
+    loop, layout, method = factor_graph._loop(
         "auto" if solver == "cholesky" else "cg", None, max_iterations, "levenberg_marquardt",
         "identity", "gtsam", retraction, verbose, cg_max_iterations,
     )  # fmt: skip
@@ -143,8 +145,10 @@ def optimize(
         diagonal_min=1e-6,  # unused with damping="identity"
         diagonal_max=1e32,
     )
-    solution, summary = loop((graph.poses,), factor_data(graph), params)
-    summary = np.asarray(summary)  # `[cost, lambda, iterations, solves, status, *history]`
+    threads = dense_threads(layout.pattern) if method == "dense" else None
+    with lapack_limited(threads):  # waits for the program (`np.asarray`) inside
+        solution, summary = loop((graph.poses,), factor_data(graph), params)
+        summary = np.asarray(summary)  # `[cost, lambda, iterations, solves, status, *history]`
     iterations = int(summary[2])
     return OptimizeResult(
         poses=solution[0],
