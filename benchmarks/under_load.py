@@ -71,7 +71,7 @@ import jax.numpy as jnp
 from _timing import format_seconds, machine_description, markdown_table
 
 from lieax import graph as lg
-from lieax import icp, imu
+from lieax import icp
 from lieax.icp import _host_kdtree
 
 WORKFLOWS = ("pgo", "ba", "icp", "gicp", "imu")
@@ -196,10 +196,7 @@ def imu_smoother(data_dir, quick):
     example = imu_bench.load_example()
     data = example.simulate(keyframes, np.random.default_rng(0))
     params = example.params()
-    preintegrate = jax.jit(jax.vmap(imu.preintegrate, in_axes=(0, 0, None, None, None)))
-    preintegrated = preintegrate(
-        jnp.asarray(data["gyro"]), jnp.asarray(data["accel"]), data["dt"], jnp.zeros(6), params
-    )
+    preintegrated = example.preintegrate_all(data, params)
     graph, _ = example.build_graph(data, preintegrated, params)
     pims = imu_bench.gtsam_preintegrate(imu_bench.gtsam_params(example), data)
     g_graph, g_initial = imu_bench.gtsam_problem(example, data, pims)
