@@ -197,19 +197,16 @@ def read_bal(path) -> BALProblem:
     )
 
 
-def write_bal(path, problem: BALProblem) -> None:
-    """Write `problem` as a BAL file (bz2-compressed when `path` ends with `.bz2`), every number
-    with `%.16e` (exact for float64), cameras and points one value per line as the dataset does.
-
-    **Raises:** `ValueError` for arrays of the wrong shape, indices out of range or non-finite
-    values (the reader would reject the file).
-    """
-    path = os.fspath(path)
+def checked_arrays(problem):
+    """`(cameras, points, observations, camera_indices, point_indices)` of a `BALProblem` as
+    NumPy arrays (float64, int64), checked as a file writer needs them: `ValueError` for arrays
+    of the wrong shape, non-finite values or indices out of range (a reader would reject the
+    file)."""
     cameras = np.asarray(problem.cameras, dtype=np.float64)
     points = np.asarray(problem.points, dtype=np.float64)
     observations = np.asarray(problem.observations, dtype=np.float64)
-    camera_indices = np.asarray(problem.camera_indices)
-    point_indices = np.asarray(problem.point_indices)
+    camera_indices = np.asarray(problem.camera_indices, np.int64)
+    point_indices = np.asarray(problem.point_indices, np.int64)
     k = observations.shape[0]
     if (
         cameras.ndim != 2
@@ -233,6 +230,19 @@ def write_bal(path, problem: BALProblem) -> None:
     ):
         if k and (index.min() < 0 or index.max() >= count):
             raise ValueError(f"{name} indices must lie in [0, {count}).")
+    return cameras, points, observations, camera_indices, point_indices
+
+
+def write_bal(path, problem: BALProblem) -> None:
+    """Write `problem` as a BAL file (bz2-compressed when `path` ends with `.bz2`), every number
+    with `%.16e` (exact for float64), cameras and points one value per line as the dataset does.
+
+    **Raises:** `ValueError` for arrays of the wrong shape, indices out of range or non-finite
+    values (the reader would reject the file).
+    """
+    path = os.fspath(path)
+    cameras, points, observations, camera_indices, point_indices = checked_arrays(problem)
+    k = observations.shape[0]
     table = np.column_stack([camera_indices, point_indices]).astype(np.int64)
     lines = [f"{cameras.shape[0]} {points.shape[0]} {k}"]
     lines += [

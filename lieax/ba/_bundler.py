@@ -28,7 +28,7 @@ import os
 
 import numpy as np
 
-from ._bal import BALError, BALProblem
+from ._bal import BALError, BALProblem, checked_arrays
 from ._synthetic import _rotation_matrices, _rotvecs
 
 _HEADER = "# Bundle file v0.3"
@@ -192,34 +192,8 @@ def write_bundler(path, problem: BALProblem) -> None:
     **Raises:** `ValueError` as `write_bal` for arrays of the wrong shape, indices out of range
     or non-finite values.
     """
-    cameras = np.asarray(problem.cameras, dtype=np.float64)
-    points = np.asarray(problem.points, dtype=np.float64)
-    observations = np.asarray(problem.observations, dtype=np.float64)
-    camera_indices = np.asarray(problem.camera_indices, np.int64)
-    point_indices = np.asarray(problem.point_indices, np.int64)
+    cameras, points, observations, camera_indices, point_indices = checked_arrays(problem)
     k = observations.shape[0]
-    if (
-        cameras.ndim != 2
-        or cameras.shape[1] != 9
-        or points.ndim != 2
-        or points.shape[1] != 3
-        or observations.shape != (k, 2)
-        or camera_indices.shape != (k,)
-        or point_indices.shape != (k,)
-    ):
-        raise ValueError(
-            "a BAL problem needs cameras (n, 9), points (m, 3), observations (k, 2) and (k,) "
-            f"indices, got {cameras.shape}, {points.shape}, {observations.shape}, "
-            f"{camera_indices.shape} and {point_indices.shape}."
-        )
-    if not all(np.all(np.isfinite(a)) for a in (cameras, points, observations)):
-        raise ValueError("a BAL problem's cameras, points and observations must be finite.")
-    for name, index, count in (
-        ("camera", camera_indices, len(cameras)),
-        ("point", point_indices, len(points)),
-    ):
-        if k and (index.min() < 0 or index.max() >= count):
-            raise ValueError(f"{name} indices must lie in [0, {count}).")
     colors = getattr(problem, "colors", None)
     colors = np.full((len(points), 3), 255) if colors is None else np.asarray(colors)
     keys = getattr(problem, "keypoint_indices", None)
