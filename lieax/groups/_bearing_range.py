@@ -21,12 +21,16 @@ writes the Jacobian $(1, 1)$ there, and `norm3` and `Unit3` divide by zero. The 
 $d$ is divided by its largest magnitude $m = \max_i |d_i|$ before it is squared (no underflow or
 overflow at any scale, float32 included), and where $m = 0$ every division sees the x axis
 instead, so values and derivatives of any order stay finite.
+
+`target_points` checks the targets of `SE2` and `SE3`'s bearing and range, in one place.
 """
 
 import jax
 import jax.numpy as jnp
 
+from .._checks import broadcast_batch, check_last_axis, match_dtype
 from .._linalg import dot
+from ._base import AbstractGroup
 
 
 def unit_and_length(d):
@@ -70,3 +74,19 @@ def _direction_jvp(primals, tangents):
     u, length, nonzero = unit_and_length(d)
     moved = (d_dot - u * dot(u, d_dot)[..., None]) / length
     return u, jnp.where(nonzero, moved, 0)
+
+
+def target_points(pose, target, operation, dim):
+    """The positions `pose.bearing` / `pose.range` (`operation`) are taken to: another pose's
+    translation (of `pose`'s group) or points `(*batch, dim)` in `pose`'s dtype, whose batch
+    broadcasts with `pose`'s; errors name the group and the operation."""
+    group = type(pose).__name__
+    if isinstance(target, AbstractGroup):
+        pose._check_same_group(target, operation)
+        points = target.translation()
+    else:
+        name = f"{group}.{operation} target"
+        points = match_dtype(target, pose.dtype, name, f"the {group}")
+        points = check_last_axis(points, dim, name, f"{dim}D points or an {group}")
+    broadcast_batch(f"{group}.{operation}", pose.batch_shape, points.shape[:-1])
+    return points

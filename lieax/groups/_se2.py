@@ -38,7 +38,7 @@ from .._checks import (
 from . import _generic, _host, _rules
 from . import _so2 as so2
 from ._base import AbstractGroup
-from ._bearing_range import norm
+from ._bearing_range import norm, target_points
 from ._series import g
 from ._so2 import SO2, perp, rotate, unrotate
 from ._so3 import jr_inverse_coefficient
@@ -345,7 +345,7 @@ class SE2(AbstractGroup):
         $\partial\theta / \partial p = (J d)^\top R^\top / |d|^2$, and for a pose target
         $(\partial\theta / \partial p)\,[R_Y, 0]$. At $d = 0$ (the point at the pose's origin):
         the identity (heading along the pose's x axis), derivatives 0."""
-        points = self._target_points(target, "bearing")
+        points = target_points(self, target, "bearing", 2)
         return SO2._wrap(so2.relative_bearing(transform_to(self._params, points)))
 
     def range(self, target) -> jax.Array:
@@ -354,20 +354,8 @@ class SE2(AbstractGroup):
         (right-local): $\partial r / \partial X = (-u^\top R, 0)$, $\partial r / \partial p = u^\top$
         with $u = (p - t) / r$ (and $u^\top R_Y$ on a pose target's translation); at $r = 0$ the
         range is 0 with derivatives 0 (`lieax.groups._bearing_range`)."""
-        points = self._target_points(target, "range")
+        points = target_points(self, target, "range", 2)
         return norm(points - self.translation())
-
-    def _target_points(self, target, operation):
-        """The positions a bearing or range is taken to: an `SE2`'s translation or 2D points."""
-        if isinstance(target, AbstractGroup):
-            self._check_same_group(target, operation)
-            points = target.translation()
-        else:
-            name = f"SE2.{operation} target"
-            points = match_dtype(target, self.dtype, name, "the SE2")
-            points = check_last_axis(points, 2, name, "2D points or an SE2")
-        broadcast_batch(f"SE2.{operation}", self.batch_shape, points.shape[:-1])
-        return points
 
     def rotation(self) -> SO2:
         """$R$, an `SO2` of the same batch shape."""

@@ -395,7 +395,7 @@ class SE3(AbstractGroup):
         $\dot b = P\,(-v - \omega \times d + R^\top \dot p)$, so in S2's tangent $B_b$ the blocks are
         $B_b^\top P\,[-I,\ [d]_\times]$ and $B_b^\top P R^\top$ (and $\cdot\,[R_Y, 0]$ for a pose
         target). At $d = 0$: the x axis $(1, 0, 0)$, derivatives 0."""
-        points = self._target_points(target, "bearing")
+        points = bearing_range.target_points(self, target, "bearing", 3)
         return S2._wrap(bearing_range.direction(transform_to(self._params, points)))
 
     def range(self, target) -> jax.Array:
@@ -404,20 +404,8 @@ class SE3(AbstractGroup):
         (right-local): $\partial r / \partial T = (-u^\top R, 0)$, $\partial r / \partial p = u^\top$
         with $u = (p - t) / r$ (and $u^\top R_Y$ on a pose target's translation); at $r = 0$ the
         range is 0 with derivatives 0 (`lieax.groups._bearing_range`)."""
-        points = self._target_points(target, "range")
+        points = bearing_range.target_points(self, target, "range", 3)
         return bearing_range.norm(points - self.translation())
-
-    def _target_points(self, target, operation):
-        """The positions a bearing or range is taken to: an `SE3`'s translation or 3D points."""
-        if isinstance(target, AbstractGroup):
-            self._check_same_group(target, operation)
-            points = target.translation()
-        else:
-            name = f"SE3.{operation} target"
-            points = match_dtype(target, self.dtype, name, "the SE3")
-            points = check_last_axis(points, 3, name, "3D points or an SE3")
-        broadcast_batch(f"SE3.{operation}", self.batch_shape, points.shape[:-1])
-        return points
 
     def rotation(self) -> SO3:
         return SO3._wrap(self._params[..., :4])
