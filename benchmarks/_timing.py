@@ -16,6 +16,7 @@ import statistics
 import time
 
 import jax
+from _results import markdown_table  # noqa: F401  (the benchmarks import it from here)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -108,16 +109,6 @@ def format_seconds(seconds):
 
 def format_ratio(numerator, denominator):
     return f"{numerator / denominator:.2f}×"
-
-
-def markdown_table(headers, rows):
-    """A GitHub markdown table: the first column left-aligned, the others right-aligned."""
-    lines = [
-        "| " + " | ".join(headers) + " |",
-        "|" + "|".join(["---"] + ["---:"] * (len(headers) - 1)) + "|",
-    ]
-    lines += ["| " + " | ".join(str(cell) for cell in row) + " |" for row in rows]
-    return "\n".join(lines)
 
 
 def machine_description():
