@@ -23,10 +23,12 @@ Single-threaded calls wake no worker, so none is left spinning after them.
 
 The limits are set through `threadpoolctl` around lieax's own work only and restored after it:
 around the host work inside each callback (`blas_limited`, `openmp_limited`: counts of the calling
-thread), and for XLA's LAPACK calls from a host callback that runs before the factorization to
-one that runs after the solve (`scoped_lapack`, ordered by data dependencies; the LAPACK call
-runs on a thread XLA picks, so this limit is process-wide while it holds: another thread of the
-process calling OpenBLAS meanwhile shares it).
+thread), and for XLA's LAPACK calls around the compiled solve that makes them
+(`lapack_limited`, set by `FactorGraph.solve` and `lieax.graph.optimize` from
+`lieax.factorgraph._sparse.dense_threads`, not inside the program, which then keeps no host
+callback: JAX's persistent cache can store it, and `vmap` of its loop's `cond` works; the LAPACK
+call runs on a thread XLA picks, so this limit is process-wide while it holds: another thread of
+the process calling OpenBLAS meanwhile shares it; under the caller's own `jit` it is not set).
 
 Inside a host callback the count is OpenBLAS's thread-local one (`openblas_set_num_threads_local`,
 OpenBLAS 0.3.27 and later; both wheels bundle 0.3.30-0.3.31): it applies to the callback's thread

@@ -1,5 +1,5 @@
 """lieax's thread scopes (`lieax._threads`): the setting and its errors, the BLAS limit inside the
-host Cholesky's callback and around XLA's dense Cholesky, pykdtree's OpenMP limit, and the
+host Cholesky's callback and around the compiled call of XLA's dense Cholesky, pykdtree's OpenMP limit, and the
 counts restored after every call."""
 
 import jax
