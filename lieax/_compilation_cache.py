@@ -36,6 +36,7 @@ def enable_compilation_cache(path=None) -> pathlib.Path:
 
     What JAX cannot cache: a program that contains a Python host callback. Such a program is
     compiled in every process. In lieax today:
+
     - `lieax.icp` on a CPU with the default `search` (the host k-d tree), and the normals and
       GICP covariances found with `search="kdtree"` (the default on a CPU): the registrations of
       `examples/icp_demo.py` and of the LiDAR pairs; `search="grid"` (and `"graph"` for the
@@ -44,11 +45,13 @@ def enable_compilation_cache(path=None) -> pathlib.Path:
       `solver="auto"` picks for systems above 300–800 unknowns: a landmark graph of thousands of
       poses, an IMU smoother of hundreds of keyframes) and `lieax.graph.optimize` (cholesky by
       default): the solve loop; `"dense"` and `"cg"` are cached (the factor-graph example of
-      docs/factor-graphs.md, and bundle adjustment at Ladybug-49 size, whose reduced camera system is dense);
+      docs/factor-graphs.md, and bundle adjustment at Ladybug-49 size, whose reduced camera
+      system is dense);
     - a solver's `throw=True` inside your own `jit` (the error is raised from a callback in the
       compiled program); outside `jit` the status is read after the program returns, which
       keeps it cacheable, and `throw=False` never adds a callback;
     - `verbose=True` (the progress is printed from a callback).
+
     Every other program (groups, `lieax.jacobian`, `lstsq.least_squares`, IMU preintegration,
     `factorgraph` with the dense or CG solvers) is cached.
     """

@@ -28,10 +28,11 @@ def bal_to_camera(cameras):
     cameras = check_last_axis(cameras, 9, "BAL cameras", "rotation vector, t, f, k1, k2")
     if is_concrete(cameras):  # sliced in NumPy: building a problem compiles nothing
         cameras = np.asarray(cameras)
-        pose = SE3.from_rotation_and_translation(SO3.exp(cameras[..., :3]), cameras[..., 3:6])
-        return pose, to_device(cameras[..., 6:])
+        intrinsics = to_device(cameras[..., 6:])
+    else:
+        intrinsics = cameras[..., 6:]
     pose = SE3.from_rotation_and_translation(SO3.exp(cameras[..., :3]), cameras[..., 3:6])
-    return pose, cameras[..., 6:]
+    return pose, intrinsics
 
 
 def camera_to_bal(pose, intrinsics):

@@ -7,6 +7,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._checks import to_device
+
 
 def pad_clouds(clouds, size=None, *, dtype=None):
     """Stack clouds of different sizes into `(points (b, size, 3), mask (b, size))`.
@@ -73,7 +75,7 @@ def pad_to_bucket(points, mask, *rows):
         widths = [(0, extra)] + [(0, 0)] * (array.ndim - 1)
         if isinstance(array, jax.core.Tracer):
             return jnp.pad(array, widths)
-        return jnp.asarray(np.pad(np.asarray(array), widths))
+        return to_device(np.pad(np.asarray(array), widths))
 
     return (pad(points), pad(mask), *(pad(r) for r in rows))
 

@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import as_float_array
+from .._checks import as_float_array, to_device
 from ..lstsq._solution import SolveError
 
 
@@ -38,8 +38,8 @@ def check_cloud(points, what: str) -> jnp.ndarray:
 def check_mask(mask, points, what: str) -> jnp.ndarray:
     """A boolean mask of shape `(n,)` for `points` (all True when `mask` is None)."""
     if mask is None:
-        return jnp.asarray(np.ones(points.shape[:1], bool))  # a host array: no device dispatch
-    mask = jnp.asarray(mask)
+        return to_device(np.ones(points.shape[:1], bool))  # a transfer: nothing to compile
+    mask = to_device(mask)
     if mask.shape != points.shape[:1]:
         raise ValueError(
             f"{what} must have shape {tuple(points.shape[:1])} (one entry per point), "

@@ -59,6 +59,7 @@ import numpy as np
 from jax.scipy.linalg import cho_solve
 
 from .. import _cpu_emitters as cpu_emitters
+from .._checks import to_device
 from .._linalg import quat_to_matrix
 from .._runtime_error import raise_if
 from ..groups._se3 import SE3
@@ -407,7 +408,7 @@ def _first_rows(array, n):
         return array
     if isinstance(array, jax.core.Tracer):
         return array[:n]
-    return jnp.asarray(np.asarray(array)[:n])
+    return to_device(np.asarray(array)[:n])
 
 
 def _count(flags):
