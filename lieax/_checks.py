@@ -118,27 +118,28 @@ def match_dtype(x, dtype, what: str, owner: str) -> jnp.ndarray:
     )
 
 
-def common_float_dtype(what: str, *values):
-    """The dtype of `common_float_arrays(what, *values)` (and its `TypeError`s)."""
-    stated = sorted({str(as_float_array(v, what).dtype) for v in values if states_dtype(v)})
+def _common_float(what: str, values):
+    """`(arrays, dtype)`: `values` as float arrays (each checked once by `as_float_array`) and the
+    dtype of those that state one (`states_dtype`; they must agree, else a `TypeError` naming the
+    dtypes), the default float when none does."""
+    arrays = [as_float_array(v, what) for v in values]
+    stated = sorted({str(a.dtype) for a, v in zip(arrays, values) if states_dtype(v)})
     if len(stated) > 1:
         raise TypeError(f"{what}: arguments of different dtypes {' and '.join(stated)}.")
-    for v in values:  # the floating-dtype check of every value
-        as_float_array(v, what)
-    return np.dtype(stated[0] if stated else jnp.result_type(float))
+    return arrays, np.dtype(stated[0] if stated else jnp.result_type(float))
 
 
 def common_float_arrays(what: str, *values) -> list:
     """`values` as float arrays of one dtype: that of the arguments that state a dtype
     (`states_dtype`; they must agree, else a `TypeError` naming the dtypes), the others taking it;
     the default float when none does."""
-    dtype = common_float_dtype(what, *values)
-    return [as_float_array(v, what).astype(dtype) for v in values]
+    arrays, dtype = _common_float(what, values)
+    return [a.astype(dtype) for a in arrays]
 
 
 def common_host_arrays(what: str, *values) -> list:
     """`common_float_arrays` for concrete values, as NumPy arrays (no compilation)."""
-    dtype = common_float_dtype(what, *values)
+    _, dtype = _common_float(what, values)
     return [np.asarray(v).astype(dtype) for v in values]
 
 
