@@ -65,7 +65,8 @@ def solve_system(layout, method, diag, off, rhs, *, cg_tolerance=1e-8, cg_max_it
     if method == "dense":
         x = dense_solve(layout.pattern, d, o, r)
     elif method == "cholesky":
-        x = cholesky_solve(layout.plan, d, o, r)  # `Layout.start_plan` may still be analysing
+        # `Layout.start_plan` may still be analysing
+        x = cholesky_solve(layout.plan, d, o, r, pattern=layout.pattern)
     else:
         x, _ = pcg(
             layout.pattern, d, o, r, tolerance=cg_tolerance, max_iterations=cg_max_iterations

@@ -37,6 +37,7 @@ from jax import lax
 
 from .. import _threads
 from .._host_call import host_call
+from . import _native_cholesky
 
 # ---- the pattern and assembly -------------------------------------------------------------------
 
@@ -292,6 +293,9 @@ class _Symbolic:
         return len(self.batches) * _BATCH_SECONDS / self.seconds
 
 
+# `CholeskyPlan.analyze`'s options by default: `(order, max_pivots, zero_fraction)`
+_DEFAULT_ANALYSIS = (None, (2, 8, 32), (0.5, 0.1))
+
 # work arrays a plan keeps, one per thread that factors with it (`CholeskyPlan._work`)
 _MAX_BUFFERS = 4
 
@@ -370,6 +374,7 @@ class CholeskyPlan:
         and nested dissection's plan is faster by the cost model `_batch_seconds`),
         amalgamation limits `max_pivots` (blocks) and `zero_fraction` (see `_amalgamate`)."""
         n, rows, cols = pattern.num_blocks, pattern.rows, pattern.cols
+        given = None if order is None else np.asarray(order).tolist()
         ordering = "given"
         if order is None:
             ordering = "minimum degree"
@@ -386,7 +391,12 @@ class CholeskyPlan:
             if order.shape != (n,) or np.any(np.sort(order) != np.arange(n)):
                 raise ValueError("order must be a permutation of the blocks.")
             symbolic = _Symbolic.of_order(pattern, order, max_pivots, zero_fraction)
-        return cls._numeric_plan(pattern, symbolic, ordering)
+        plan = cls._numeric_plan(pattern, symbolic, ordering)
+        plan.key = _native_cholesky.analysis_key(pattern, (given, max_pivots, zero_fraction))
+        if _native_cholesky.available():
+            single = _threads.threads_for(plan.stats["flops"], _threads.PARALLEL_FLOPS) == 1
+            _native_cholesky.register(plan, plan.key, symbolic, single)
+        return plan
 
     @classmethod
     def _numeric_plan(cls, pattern, symbolic, ordering):
@@ -605,12 +615,36 @@ class CholeskyPlan:
         return self.solve_factored(factors, np.asarray(rhs))
 
 
-def cholesky_solve(plan, diag, off, rhs):
-    """`plan.solve` from inside JAX (`jit`, `lax.while_loop`): a host callback (`host_call`), so
-    on an accelerator the blocks travel to the host and back. NaN when $H$ is not positive
-    definite. `plan` is a `CholeskyPlan`, or a function returning one, called when the solve runs
-    (not when it is traced: the analysis may still be running while the loop compiles)."""
-    plan_of = plan if callable(plan) else lambda: plan
+def cholesky_solve(plan, diag, off, rhs, *, pattern=None):
+    """`plan.solve` from inside JAX (`jit`, `lax.while_loop`, `vmap`); NaN when $H$ is not
+    positive definite. `plan` is a `CholeskyPlan`, or a function returning the default analysis
+    of `pattern` (`CholeskyPlan.analyze(pattern)`), called when the solve runs, not when it is
+    traced: the analysis may still be running while the loop compiles (`Layout.start_plan`).
+
+    With the native library (`lieax._native.available()`) the numeric phase is the C++ custom
+    call of `_native_cholesky`, named by the plan's key, which JAX's persistent compilation cache
+    can keep; without it, `plan.solve` in a host callback (`host_call`; on an accelerator the
+    blocks travel to the host and back), which it cannot."""
+    if not callable(plan) and not isinstance(plan, CholeskyPlan):
+        raise TypeError(f"plan must be a CholeskyPlan or a function returning one, got {plan!r}.")
+    if isinstance(plan, CholeskyPlan):
+        pattern = plan.pattern
+    elif pattern is None:
+        raise ValueError("cholesky_solve needs the pattern of a plan given as a function.")
+    expected = (pattern.num_blocks, pattern.block_size)
+    if rhs.shape[-2:] != expected or diag.shape[-3:] != (*expected, pattern.block_size):
+        raise ValueError(
+            f"cholesky_solve: diag {diag.shape} and rhs {rhs.shape} do not match the pattern's "
+            f"{pattern.num_blocks} blocks of size {pattern.block_size}."
+        )
+    if _native_cholesky.available():
+        if isinstance(plan, CholeskyPlan):
+            key = plan.key
+        else:
+            key = _native_cholesky.analysis_key(pattern, _DEFAULT_ANALYSIS)
+            _native_cholesky.expect(key, plan)
+        return _native_cholesky.solve(key, diag, off, rhs)
+    plan_of = plan if callable(plan) and not isinstance(plan, CholeskyPlan) else lambda: plan
     result = jax.ShapeDtypeStruct(rhs.shape, rhs.dtype)
     _threads.prepare()  # (the thread pools listed here, not in the callback)
     return host_call(lambda *system: _host_solve(plan_of(), *system), result, diag, off, rhs)
