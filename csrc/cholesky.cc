@@ -92,7 +92,7 @@ SetLocalThreads* find_local_thread_setter(void* function) {
 }
 
 // Dense work (multiply-adds) of a front below which it runs in the plain loops below.
-constexpr double kBlasFromWork = 24.0 * 24.0 * 24.0;
+constexpr double kBlasFromWork = 12.0 * 12.0 * 12.0;
 
 // ---- small dense kernels (column-major, lower triangles) ----------------------------------------
 

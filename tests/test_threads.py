@@ -9,7 +9,7 @@ import pytest
 
 import lieax
 from lieax import SE2, _threads
-from lieax.factorgraph import Factor, FactorGraph, Var, _sparse
+from lieax.factorgraph import Factor, FactorGraph, Var, _native_cholesky, _sparse
 
 
 def blas_counts():
@@ -96,6 +96,8 @@ def chain_system(n, d, seed=0):
 
 
 def test_host_cholesky_runs_on_one_blas_thread_and_restores(monkeypatch, two_blas_threads):
+    """The NumPy path (without the native library: the host callback)."""
+    monkeypatch.setattr(_native_cholesky, "available", lambda: False)
     pattern, diag, off, rhs = chain_system(40, 6)
     plan = _sparse.CholeskyPlan.analyze(pattern)
     seen = []
