@@ -23,6 +23,7 @@
 #include <dlfcn.h>
 
 #include <algorithm>
+#include <atomic>
 #include <chrono>
 #include <cmath>
 #include <condition_variable>
@@ -231,13 +232,16 @@ ffi::Error lookup(int64_t key, std::shared_ptr<Plan>* plan) {
 
 // ---- numeric phase ------------------------------------------------------------------------------
 
-// Sets OpenBLAS's thread-local count for the calling thread to 1 while it lives (when asked).
-class OneBlasThread {
+// lieax's thread setting for plans of parallel size (`lieax.set_threads`; 0: the library's own).
+std::atomic<int> parallel_threads{0};
+
+// Sets OpenBLAS's thread-local count for the calling thread while it lives (0: unchanged).
+class BlasThreads {
  public:
-  explicit OneBlasThread(bool active) : active_(active && set_local_threads) {
-    if (active_) previous_ = set_local_threads(1);
+  explicit BlasThreads(int threads) : active_(threads > 0 && set_local_threads) {
+    if (active_) previous_ = set_local_threads(threads);
   }
-  ~OneBlasThread() {
+  ~BlasThreads() {
     if (active_) set_local_threads(previous_);
   }
 
@@ -574,7 +578,7 @@ ffi::Error solve_all(const Plan& plan, const ffi::AnyBuffer& diag, const ffi::An
   auto work = const_cast<Plan&>(plan).acquire();
   {
     Numeric<T> numeric(plan, *work);
-    OneBlasThread scope(plan.single_thread);
+    BlasThreads scope(plan.single_thread ? 1 : parallel_threads.load());
     const int64_t n = plan.n, d = plan.d, p = plan.p;
     const T* diag_data = static_cast<const T*>(diag.untyped_data());
     const T* off_data = static_cast<const T*>(off.untyped_data());
@@ -654,6 +658,9 @@ LIEAX_EXPORT void LieaxCholeskyInit(void* const* double_functions, void* const* 
   set(blas_s, float_functions);
   set_local_threads = find_local_thread_setter(double_functions[0]);
 }
+
+// lieax's thread setting (`lieax.set_threads`), for plans above lieax's PARALLEL_FLOPS.
+LIEAX_EXPORT void LieaxCholeskySetThreads(int threads) { parallel_threads = threads; }
 
 // Whether OpenBLAS's thread-local count was found (the single-threaded scope of small plans).
 LIEAX_EXPORT int LieaxCholeskyScopesThreads() { return set_local_threads != nullptr; }

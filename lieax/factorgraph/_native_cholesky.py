@@ -20,8 +20,8 @@ the analysis' own message when it failed). A key that was never announced nor re
 plan was collected, or never analysed in this process) is an error naming the key, not a crash.
 """
 
-import ctypes
 import concurrent.futures
+import ctypes
 import functools
 import hashlib
 import weakref
@@ -29,7 +29,7 @@ import weakref
 import jax
 import numpy as np
 
-from .. import _native
+from .. import _native, _threads
 
 TARGET = "lieax_cholesky_solve"
 # SciPy's BLAS and LAPACK functions handed to the library, in its order (see `csrc/cholesky.cc`)
@@ -60,12 +60,14 @@ def _initialized():
     }
     lib.LieaxCholeskyInit(pointers["d"], pointers["s"])
     int64_p = ctypes.POINTER(ctypes.c_int64)
-    lib.LieaxCholeskyRegister.argtypes = [ctypes.c_int64] * 4 + [int64_p] * 3 + [
-        ctypes.c_int64, *[int64_p] * 6, ctypes.c_int
-    ]
+    lib.LieaxCholeskyRegister.argtypes = (
+        [ctypes.c_int64] * 4 + [int64_p] * 3 + [ctypes.c_int64, *[int64_p] * 6, ctypes.c_int]
+    )
     for name in ("Release", "Expect", "References"):
         getattr(lib, "LieaxCholesky" + name).argtypes = [ctypes.c_int64]
     lib.LieaxCholeskyFail.argtypes = [ctypes.c_int64, ctypes.c_char_p]
+    lib.LieaxCholeskySetThreads.argtypes = [ctypes.c_int]
+    _threads.on_change(lambda threads: lib.LieaxCholeskySetThreads(threads or 0))
     return lib
 
 
@@ -89,7 +91,9 @@ def analysis_key(pattern, options):
 
 def register(plan, key, symbolic, single_thread):
     """Registers `symbolic` (a `_sparse._Symbolic`) of `plan` under `key` for as long as `plan`
-    lives; `single_thread`: the library keeps its BLAS calls on the calling thread."""
+    lives. `single_thread`: the library's BLAS calls for it run on the calling thread (OpenBLAS's
+    thread-local count, set and restored around each call), else on lieax's setting
+    (`lieax.set_threads`; `None`: the library's own), as `_sparse._host_solve` does."""
     lib = _initialized()
     pattern = plan.pattern
 
@@ -121,6 +125,12 @@ def register(plan, key, symbolic, single_thread):
 def references(key):
     """The live plan objects registered under `key` (tests)."""
     return int(_initialized().LieaxCholeskyReferences(key))
+
+
+def scopes_threads():
+    """Whether the library found OpenBLAS's thread-local count next to SciPy's BLAS (else the
+    BLAS's own setting holds for its calls)."""
+    return bool(_initialized().LieaxCholeskyScopesThreads())
 
 
 # analyses a traced solve waits for when nothing else has started them
