@@ -336,19 +336,44 @@ class CholeskyPlan:
     for `_cholesky_solve`. The update products are written in place into the work array, which
     is kept between factorizations.
 
-    **Attributes:** `order` (the elimination order of the blocks), `stats` (the ordering, fronts,
+    With the native library the numeric phase is `_native_cholesky`'s (registered by
+    `analyze` under the plan's `key`), and the NumPy path's batches and assembly matrices, most
+    of the analysis' time, are built only when `factor` or `solve` first needs them
+    (`lieax.factorgraph.marginal_covariances`, tests).
+
+    **Attributes:** `order` (the elimination order of the blocks), `key` (the native registry's
+    key of the pattern and the analysis options), `stats` (the ordering, fronts,
     batches, tree height, multiply-adds of one factorization with and without padding, stored
     blocks of $L$).
     """
 
-    def __init__(self, pattern, order, batches, work_rows, stats):
+    def __init__(self, pattern, symbolic, ordering):
         self.pattern = pattern
-        self.order = order
-        self.batches = batches
-        self.work_rows = work_rows
-        self.stats = stats
+        self.order = symbolic.order
+        self.stats = _plan_stats(pattern, symbolic, ordering)
+        self._symbolic = symbolic
+        self._numpy = None  # `(batches, work_rows)`, built on first use (`_numpy_structures`)
+        self._numpy_lock = threading.Lock()
         self._buffers = {}  # thread id -> work array (see `_work`)
         self._buffers_lock = threading.Lock()
+
+    def _numpy_structures(self):
+        """The NumPy path's batches and work array size (`_numpy_batches`), built on first use:
+        most of the analysis' time, which the native path does not need."""
+        with self._numpy_lock:
+            if self._numpy is None:
+                self._numpy = _numpy_batches(self.pattern, self._symbolic)
+        return self._numpy
+
+    @property
+    def batches(self):
+        """The NumPy path's batches of fronts (`_Batch`)."""
+        return self._numpy_structures()[0]
+
+    @property
+    def work_rows(self):
+        """The rows of the NumPy path's work array."""
+        return self._numpy_structures()[1]
 
     def _work(self, dtype):
         """The work array, kept between factorizations (one per thread): a fresh one would cost
@@ -396,152 +421,14 @@ class CholeskyPlan:
             if order.shape != (n,) or np.any(np.sort(order) != np.arange(n)):
                 raise ValueError("order must be a permutation of the blocks.")
             symbolic = _Symbolic.of_order(pattern, order, max_pivots, zero_fraction)
-        plan = cls._numeric_plan(pattern, symbolic, ordering)
+        plan = cls(pattern, symbolic, ordering)
         plan.key = _native_cholesky.analysis_key(pattern, (given, max_pivots, zero_fraction))
         if _native_cholesky.available():
             single = _threads.threads_for(plan.stats["flops"], _threads.PARALLEL_FLOPS) == 1
             _native_cholesky.register(plan, plan.key, symbolic, single)
+        else:  # the NumPy path's structures, here where the analysis overlaps the compilation
+            plan._numpy_structures()
         return plan
-
-    @classmethod
-    def _numeric_plan(cls, pattern, symbolic, ordering):
-        """The plan's assembly matrices and batches for the fronts of `symbolic`."""
-        from scipy.sparse import csr_matrix
-
-        n, d, p = pattern.num_blocks, pattern.block_size, pattern.num_pairs
-        rows, cols = pattern.rows, pattern.cols
-        order, position = symbolic.order, symbolic.position
-        piv, upd = symbolic.pivots, symbolic.updates
-        members_of = symbolic.batches
-        num_fronts = len(piv)
-        work = np.array([_front_work(len(a), len(b)) for a, b in zip(piv, upd)])
-
-        where = np.empty((num_fronts, 2), dtype=np.int64)  # front -> (batch, position)
-        shapes = []
-        work_rows = (n + 2 * p + 1) * d  # H's blocks, the identity (padding), update products
-        offsets = []
-        for g, members in enumerate(members_of):
-            where[members, 0] = g
-            where[members, 1] = np.arange(len(members))
-            bp = max(len(piv[k]) for k in members)
-            bu = max(len(upd[k]) for k in members)
-            shapes.append((len(members), bp, bu))
-            offsets.append(work_rows)
-            work_rows += len(members) * bu * d * bu
-        front_of = np.empty(n, dtype=np.int64)  # elimination position -> front
-        for k, a in enumerate(piv):
-            front_of[a] = k
-
-        def slots(k, positions):
-            """Rows of elimination positions in front k's layout [pivots (padded) | updates]."""
-            bp = shapes[where[k, 0]][1]
-            in_pivots = np.searchsorted(piv[k], positions)
-            in_pivots_clipped = np.minimum(in_pivots, len(piv[k]) - 1)
-            is_pivot = piv[k][in_pivots_clipped] == positions
-            return np.where(is_pivot, in_pivots, bp + np.searchsorted(upd[k], positions))
-
-        # every block is d segments (rows of d scalars) of the work array, at base + r * stride
-        dst = [[] for _ in members_of]
-        src = [[] for _ in members_of]
-        sign = [[] for _ in members_of]
-
-        def add(k, r, c, source_base, source_stride, value=1.0):
-            """Blocks (r, c) of front k from the work array, times `value`; only the lower block
-            triangle (r >= c) of the pivot columns (c < pivots) is assembled: the factorization
-            reads no other block."""
-            g, b = where[k]
-            s, bp = shapes[g][1] + shapes[g][2], shapes[g][1]
-            r, c = np.broadcast_arrays(np.asarray(r), np.asarray(c))
-            source = np.broadcast_to(np.asarray(source_base), r.shape)
-            lower = r >= c
-            r, c, source = r[lower], c[lower], source[lower]
-            base = ((b * s + r) * d) * bp + c
-            t = np.arange(d)
-            stride = np.broadcast_to(np.asarray(source_stride), lower.shape)[lower]
-            dst[g].append((base[..., None] + t * bp).ravel())
-            src[g].append((source[..., None] + t * stride[..., None]).ravel())
-            sign[g].append(np.full(dst[g][-1].shape, value))
-
-        # diagonal blocks of H, and the identity on padded pivots
-        for k in range(num_fronts):
-            s_piv = np.arange(len(piv[k]))
-            add(k, s_piv, s_piv, order[piv[k]] * d, 1)
-            s_pad = np.arange(len(piv[k]), shapes[where[k, 0]][1])
-            add(k, s_pad, s_pad, (n + 2 * p) * d, 1)
-        # off-diagonal blocks: in the front where the earlier of the two is a pivot
-        pa, pb = position[rows], position[cols]
-        owner = front_of[np.minimum(pa, pb)]
-        for k in np.unique(owner):
-            q = np.flatnonzero(owner == k)
-            sa, sb = slots(k, pa[q]), slots(k, pb[q])
-            add(k, sa, sb, (n + q) * d, 1)  # H[r, c]
-            add(k, sb, sa, (n + p + q) * d, 1)  # H[c, r] = H[r, c]^T
-        # the fronts' update products L21 L21^T, each block subtracted in the front where its
-        # column is a pivot (a descendant's update is never copied through the fronts between)
-        entries = []  # per front: (row position, column position, source row, stride)
-        for c in range(num_fronts):
-            u = upd[c]
-            if len(u):
-                gc, bc = where[c]
-                cu = shapes[gc][2]
-                t1, t2 = np.tril_indices(len(u))
-                source = offsets[gc] + (bc * cu + t1) * d * cu + t2
-                entries.append((u[t1], u[t2], source, np.full(len(t1), cu)))
-        if entries:
-            row_pos, col_pos, source, stride = map(np.concatenate, zip(*entries))
-            target = front_of[col_pos]
-            by_target = np.argsort(target, kind="stable")
-            bounds = np.searchsorted(target[by_target], np.arange(num_fronts + 1))
-            for k in range(num_fronts):
-                q = by_target[bounds[k] : bounds[k + 1]]
-                if len(q):
-                    add(k, slots(k, row_pos[q]), slots(k, col_pos[q]), source[q], stride[q], -1.0)
-
-        batches, flops = [], 0.0
-        for g, members in enumerate(members_of):
-            bsize, bp, bu = shapes[g]
-            s = bp + bu
-            pivot_index = np.full((bsize, bp), n, dtype=np.int64)
-            update_index = np.full((bsize, bu), n, dtype=np.int64)
-            for b, k in enumerate(members):
-                pivot_index[b, : len(piv[k])] = order[piv[k]]
-                update_index[b, : len(upd[k])] = order[upd[k]]
-            d_all, s_all = np.concatenate(dst[g]), np.concatenate(src[g])
-            assembly = csr_matrix(
-                (np.concatenate(sign[g]), (d_all, s_all)), shape=(bsize * s * d * bp, work_rows)
-            )
-            assembly.sum_duplicates()
-            slot = np.flatnonzero(update_index.ravel() < n)
-            targets, target = np.unique(update_index.ravel()[slot], return_inverse=True)
-            scatter = None
-            if len(targets) < len(slot):
-                scatter = csr_matrix(
-                    (np.ones(len(slot)), (target.ravel(), slot)),
-                    shape=(len(targets), update_index.size),
-                )
-            batches.append(
-                _Batch(
-                    pivot_index,
-                    update_index,
-                    assembly,
-                    offsets[g],
-                    targets,
-                    scatter,
-                )
-            )
-            flops += bsize * _front_work(bp, bu) * d**3
-        stats = {
-            "ordering": ordering,
-            "fronts": num_fronts,
-            "batches": len(batches),
-            "height": int(symbolic.height.max()) + 1,
-            "flops": flops,
-            "flops_unpadded": float(work.sum() * d**3),
-            "nnz_blocks": int(
-                sum(len(a) * (len(a) + 1) // 2 + len(a) * len(b) for a, b in zip(piv, upd))
-            ),
-        }
-        return cls(pattern, order, batches, work_rows, stats)
 
     # ---- numeric phase (numpy) -------------------------------------------------------------------
     def factor(self, diag, off):
@@ -618,6 +505,156 @@ class CholeskyPlan:
         except np.linalg.LinAlgError:
             return np.full(np.shape(rhs), np.nan, dtype=np.asarray(rhs).dtype)
         return self.solve_factored(factors, np.asarray(rhs))
+
+
+def _numpy_batches(pattern, symbolic):
+    """`(batches, work_rows)`: the NumPy path's batches of the fronts of `symbolic`, with their
+    assembly matrices, and the rows of its work array (see `CholeskyPlan`)."""
+    from scipy.sparse import csr_matrix
+
+    n, d, p = pattern.num_blocks, pattern.block_size, pattern.num_pairs
+    rows, cols = pattern.rows, pattern.cols
+    order, position = symbolic.order, symbolic.position
+    piv, upd = symbolic.pivots, symbolic.updates
+    members_of = symbolic.batches
+    num_fronts = len(piv)
+
+    where = np.empty((num_fronts, 2), dtype=np.int64)  # front -> (batch, position)
+    shapes = []
+    work_rows = (n + 2 * p + 1) * d  # H's blocks, the identity (padding), update products
+    offsets = []
+    for g, members in enumerate(members_of):
+        where[members, 0] = g
+        where[members, 1] = np.arange(len(members))
+        bp = max(len(piv[k]) for k in members)
+        bu = max(len(upd[k]) for k in members)
+        shapes.append((len(members), bp, bu))
+        offsets.append(work_rows)
+        work_rows += len(members) * bu * d * bu
+    front_of = np.empty(n, dtype=np.int64)  # elimination position -> front
+    for k, a in enumerate(piv):
+        front_of[a] = k
+
+    def slots(k, positions):
+        """Rows of elimination positions in front k's layout [pivots (padded) | updates]."""
+        bp = shapes[where[k, 0]][1]
+        in_pivots = np.searchsorted(piv[k], positions)
+        in_pivots_clipped = np.minimum(in_pivots, len(piv[k]) - 1)
+        is_pivot = piv[k][in_pivots_clipped] == positions
+        return np.where(is_pivot, in_pivots, bp + np.searchsorted(upd[k], positions))
+
+    # every block is d segments (rows of d scalars) of the work array, at base + r * stride
+    dst = [[] for _ in members_of]
+    src = [[] for _ in members_of]
+    sign = [[] for _ in members_of]
+
+    def add(k, r, c, source_base, source_stride, value=1.0):
+        """Blocks (r, c) of front k from the work array, times `value`; only the lower block
+        triangle (r >= c) of the pivot columns (c < pivots) is assembled: the factorization
+        reads no other block."""
+        g, b = where[k]
+        s, bp = shapes[g][1] + shapes[g][2], shapes[g][1]
+        r, c = np.broadcast_arrays(np.asarray(r), np.asarray(c))
+        source = np.broadcast_to(np.asarray(source_base), r.shape)
+        lower = r >= c
+        r, c, source = r[lower], c[lower], source[lower]
+        base = ((b * s + r) * d) * bp + c
+        t = np.arange(d)
+        stride = np.broadcast_to(np.asarray(source_stride), lower.shape)[lower]
+        dst[g].append((base[..., None] + t * bp).ravel())
+        src[g].append((source[..., None] + t * stride[..., None]).ravel())
+        sign[g].append(np.full(dst[g][-1].shape, value))
+
+    # diagonal blocks of H, and the identity on padded pivots
+    for k in range(num_fronts):
+        s_piv = np.arange(len(piv[k]))
+        add(k, s_piv, s_piv, order[piv[k]] * d, 1)
+        s_pad = np.arange(len(piv[k]), shapes[where[k, 0]][1])
+        add(k, s_pad, s_pad, (n + 2 * p) * d, 1)
+    # off-diagonal blocks: in the front where the earlier of the two is a pivot
+    pa, pb = position[rows], position[cols]
+    owner = front_of[np.minimum(pa, pb)]
+    for k in np.unique(owner):
+        q = np.flatnonzero(owner == k)
+        sa, sb = slots(k, pa[q]), slots(k, pb[q])
+        add(k, sa, sb, (n + q) * d, 1)  # H[r, c]
+        add(k, sb, sa, (n + p + q) * d, 1)  # H[c, r] = H[r, c]^T
+    # the fronts' update products L21 L21^T, each block subtracted in the front where its
+    # column is a pivot (a descendant's update is never copied through the fronts between)
+    entries = []  # per front: (row position, column position, source row, stride)
+    for c in range(num_fronts):
+        u = upd[c]
+        if len(u):
+            gc, bc = where[c]
+            cu = shapes[gc][2]
+            t1, t2 = np.tril_indices(len(u))
+            source = offsets[gc] + (bc * cu + t1) * d * cu + t2
+            entries.append((u[t1], u[t2], source, np.full(len(t1), cu)))
+    if entries:
+        row_pos, col_pos, source, stride = map(np.concatenate, zip(*entries))
+        target = front_of[col_pos]
+        by_target = np.argsort(target, kind="stable")
+        bounds = np.searchsorted(target[by_target], np.arange(num_fronts + 1))
+        for k in range(num_fronts):
+            q = by_target[bounds[k] : bounds[k + 1]]
+            if len(q):
+                add(k, slots(k, row_pos[q]), slots(k, col_pos[q]), source[q], stride[q], -1.0)
+
+    batches = []
+    for g, members in enumerate(members_of):
+        bsize, bp, bu = shapes[g]
+        s = bp + bu
+        pivot_index = np.full((bsize, bp), n, dtype=np.int64)
+        update_index = np.full((bsize, bu), n, dtype=np.int64)
+        for b, k in enumerate(members):
+            pivot_index[b, : len(piv[k])] = order[piv[k]]
+            update_index[b, : len(upd[k])] = order[upd[k]]
+        d_all, s_all = np.concatenate(dst[g]), np.concatenate(src[g])
+        assembly = csr_matrix(
+            (np.concatenate(sign[g]), (d_all, s_all)), shape=(bsize * s * d * bp, work_rows)
+        )
+        assembly.sum_duplicates()
+        slot = np.flatnonzero(update_index.ravel() < n)
+        targets, target = np.unique(update_index.ravel()[slot], return_inverse=True)
+        scatter = None
+        if len(targets) < len(slot):
+            scatter = csr_matrix(
+                (np.ones(len(slot)), (target.ravel(), slot)),
+                shape=(len(targets), update_index.size),
+            )
+        batches.append(
+            _Batch(
+                pivot_index,
+                update_index,
+                assembly,
+                offsets[g],
+                targets,
+                scatter,
+            )
+        )
+    return batches, work_rows
+
+
+def _plan_stats(pattern, symbolic, ordering):
+    """`CholeskyPlan.stats`: the ordering, fronts, batches, tree height, multiply-adds of one
+    factorization with and without the batches' padding, stored blocks of $L$."""
+    d, piv, upd = pattern.block_size, symbolic.pivots, symbolic.updates
+    padded = sum(
+        len(m) * _front_work(max(len(piv[k]) for k in m), max(len(upd[k]) for k in m))
+        for m in symbolic.batches
+    )
+    work = sum(_front_work(len(a), len(b)) for a, b in zip(piv, upd))
+    return {
+        "ordering": ordering,
+        "fronts": len(piv),
+        "batches": len(symbolic.batches),
+        "height": int(symbolic.height.max()) + 1,
+        "flops": float(padded * d**3),
+        "flops_unpadded": float(work * d**3),
+        "nnz_blocks": int(
+            sum(len(a) * (len(a) + 1) // 2 + len(a) * len(b) for a, b in zip(piv, upd))
+        ),
+    }
 
 
 def cholesky_solve(plan, diag, off, rhs, *, pattern=None):
