@@ -484,6 +484,8 @@ std::shared_ptr<Plan> build_plan(int64_t n, int64_t d, int64_t p, const int64_t*
       if (children[c] < 0 || children[c] >= f || parent[children[c]] >= 0) return nullptr;
       parent[children[c]] = f;
     }
+  for (int64_t f = 0; f < fronts; ++f)  // a root's update rows would go nowhere
+    if (parent[f] < 0 && update_start[f + 1] > update_start[f]) return nullptr;
   std::vector<int64_t> post;
   post.reserve(fronts);
   std::vector<std::pair<int64_t, int64_t>> stack;  // (front, next child)
@@ -509,6 +511,17 @@ std::shared_ptr<Plan> build_plan(int64_t n, int64_t d, int64_t p, const int64_t*
   plan->update_start.push_back(0);
   plan->child_start.push_back(0);
   for (int64_t f : post) {
+    // a front's rows in elimination order, its pivots before its updates (the assembly writes
+    // lower triangles by slot)
+    int64_t last = -1;
+    for (int64_t s = pivot_start[f]; s < pivot_start[f + 1]; ++s) {
+      if (pivots[s] <= last) return nullptr;
+      last = pivots[s];
+    }
+    for (int64_t s = update_start[f]; s < update_start[f + 1]; ++s) {
+      if (updates[s] <= last) return nullptr;
+      last = updates[s];
+    }
     for (int64_t s = pivot_start[f]; s < pivot_start[f + 1]; ++s) {
       const int64_t at = pivots[s];
       if (at < 0 || at >= n || front_of[at] >= 0) return nullptr;
@@ -573,9 +586,9 @@ std::shared_ptr<Plan> build_plan(int64_t n, int64_t d, int64_t p, const int64_t*
 // ---- the handler --------------------------------------------------------------------------------
 
 template <typename T>
-ffi::Error solve_all(const Plan& plan, const ffi::AnyBuffer& diag, const ffi::AnyBuffer& off,
+ffi::Error solve_all(Plan& plan, const ffi::AnyBuffer& diag, const ffi::AnyBuffer& off,
                      const ffi::AnyBuffer& rhs, ffi::AnyBuffer& out, int64_t batch) {
-  auto work = const_cast<Plan&>(plan).acquire();
+  auto work = plan.acquire();
   {
     Numeric<T> numeric(plan, *work);
     BlasThreads scope(plan.single_thread ? 1 : parallel_threads.load());
@@ -594,7 +607,7 @@ ffi::Error solve_all(const Plan& plan, const ffi::AnyBuffer& diag, const ffi::An
       }
     }
   }
-  const_cast<Plan&>(plan).give_back(std::move(work));
+  plan.give_back(std::move(work));
   return ffi::Error::Success();
 }
 
@@ -617,7 +630,7 @@ ffi::Error SolveImpl(int64_t key, ffi::AnyBuffer diag, ffi::AnyBuffer off, ffi::
                      ffi::Result<ffi::AnyBuffer> out) {
   std::shared_ptr<Plan> found;
   if (ffi::Error error = lookup(key, &found); error.failure()) return error;
-  const Plan& plan = *found;
+  Plan& plan = *found;
   int64_t batch = -1;
   if (!has_shape(rhs, {plan.n, plan.d}, &batch) ||
       !has_shape(diag, {plan.n, plan.d, plan.d}, &batch) ||

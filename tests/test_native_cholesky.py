@@ -5,6 +5,7 @@ grids, one block and random patterns of block sizes 1, 3 and 6; NaN when not pos
 and a second process that loads `graph.optimize`'s and `FactorGraph.solve`'s programs from the
 persistent compilation cache without compiling any."""
 
+import dataclasses
 import gc
 import os
 import subprocess
@@ -133,6 +134,28 @@ def test_unknown_and_collected_keys_are_clear_errors():
     assert _native_cholesky.references(key) == 0
     with pytest.raises(Exception, match=f"no plan is registered under key {key}"):
         np.asarray(_native_cholesky.solve(key, diag, off, rhs))
+
+
+def test_an_inconsistent_analysis_is_refused():
+    """The library checks what it is handed (rows in range and in elimination order, every entry
+    and child update inside its front) before it registers anything."""
+    pattern, *_ = system("grid", 30, 3, seed=11)
+    plan = _sparse.CholeskyPlan.analyze(pattern)
+    symbolic = plan._symbolic
+    front = next(k for k, p in enumerate(symbolic.pivots) if len(p) > 1)
+    pivots = list(symbolic.pivots)
+    pivots[front] = pivots[front][::-1]
+    child = next(k for k, c in enumerate(symbolic.children) if c)
+    children = [list(c) for c in symbolic.children]
+    children[child] = []  # an orphan subtree: its updates go nowhere
+    for bad in (
+        dataclasses.replace(symbolic, pivots=pivots),
+        dataclasses.replace(symbolic, children=children),
+        dataclasses.replace(symbolic, order=symbolic.order[::-1].copy()),
+    ):
+        with pytest.raises(RuntimeError, match="refused the analysis"):
+            _native_cholesky.register(plan, 77, bad, True)
+    assert _native_cholesky.references(77) == 0
 
 
 def test_a_solve_waits_for_an_analysis_in_the_background():
