@@ -663,10 +663,11 @@ def cholesky_solve(plan, diag, off, rhs, *, pattern=None):
     of `pattern` (`CholeskyPlan.analyze(pattern)`), called when the solve runs, not when it is
     traced: the analysis may still be running while the loop compiles (`Layout.start_plan`).
 
-    With the native library (`lieax._native.available()`) the numeric phase is the C++ custom
-    call of `_native_cholesky`, named by the plan's key, which JAX's persistent compilation cache
-    can keep; without it, `plan.solve` in a host callback (`host_call`; on an accelerator the
-    blocks travel to the host and back), which it cannot."""
+    With the native library (`lieax._native.available()`) and JAX on the CPU, the numeric phase
+    is the C++ custom call of `_native_cholesky`, named by the plan's key, which JAX's
+    persistent compilation cache can keep; otherwise `plan.solve` in a host callback
+    (`host_call`; on an accelerator the blocks travel to the host and back), which it cannot
+    (the custom call is registered for the CPU only)."""
     if not callable(plan) and not isinstance(plan, CholeskyPlan):
         raise TypeError(f"plan must be a CholeskyPlan or a function returning one, got {plan!r}.")
     if isinstance(plan, CholeskyPlan):
@@ -679,7 +680,7 @@ def cholesky_solve(plan, diag, off, rhs, *, pattern=None):
             f"cholesky_solve: diag {diag.shape} and rhs {rhs.shape} do not match the pattern's "
             f"{pattern.num_blocks} blocks of size {pattern.block_size}."
         )
-    if _native_cholesky.available():
+    if _native_cholesky.available() and jax.default_backend() == "cpu":
         if isinstance(plan, CholeskyPlan):
             key = plan.key
         else:
