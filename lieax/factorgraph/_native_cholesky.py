@@ -33,8 +33,7 @@ from .. import _native, _threads
 
 TARGET = "lieax_cholesky_solve"
 # SciPy's BLAS and LAPACK functions handed to the library, in its order (see `csrc/cholesky.cc`)
-_FUNCTIONS = (("lapack", "potrf"), ("blas", "trsm"), ("blas", "syrk"), ("blas", "gemv"),
-              ("blas", "trsv"))  # fmt: skip
+_FUNCTIONS = (("lapack", "potrf"), ("blas", "trsm"), ("blas", "syrk"), ("blas", "trsv"))
 
 
 def available() -> bool:
