@@ -24,6 +24,7 @@ import concurrent.futures
 import ctypes
 import functools
 import hashlib
+import threading
 import weakref
 
 import jax
@@ -41,10 +42,18 @@ def available() -> bool:
     return _initialized() is not None
 
 
-@functools.cache
+_INIT_LOCK = threading.Lock()  # the analysis thread and the caller's may both come first
+
+
 def _initialized():
     """The library after `LieaxCholeskyInit` (the BLAS and LAPACK function pointers that SciPy's
-    `cython_blas` / `cython_lapack` export, as jaxlib takes its own), or None."""
+    `cython_blas` / `cython_lapack` export, as jaxlib takes its own), or None; once."""
+    with _INIT_LOCK:
+        return _initialize()
+
+
+@functools.cache
+def _initialize():
     lib = _native.library()
     if lib is None:
         return None
