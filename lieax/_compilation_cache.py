@@ -41,8 +41,8 @@ def enable_compilation_cache(path=None) -> pathlib.Path:
       GICP covariances found with `search="kdtree"` (the default on a CPU): the registrations of
       `examples/icp_demo.py` and of the LiDAR pairs; `search="grid"` (and `"graph"` for the
       normals) has no callback and is cached;
-    - `lieax.factorgraph` with `solver="cholesky"` (the host multifrontal Cholesky, which
-      `solver="auto"` picks for systems above 300–800 unknowns: a landmark graph of thousands of
+    - `lieax.factorgraph` with `linear_solver="cholesky"` (the host multifrontal Cholesky, which
+      `linear_solver="auto"` picks for systems above 300–800 unknowns: a landmark graph of thousands of
       poses, an IMU smoother of hundreds of keyframes) and `lieax.graph.optimize` (cholesky by
       default): the solve loop; `"dense"` and `"cg"` are cached (the factor-graph example of
       docs/factor-graphs.md, and bundle adjustment at Ladybug-49 size, whose reduced camera

@@ -4,7 +4,7 @@ A system is `(diag, off, rhs)`: per variable kind `diag[k]` `(n_k, d_k, d_k)` an
 `(n_k, d_k)`, per pair of kinds (in the order of `layout.pairs`) `off[j]` `(p, d_a, d_b)`.
 
 - `"dense"`: the dense matrix and its Cholesky factor inside JAX (small problems).
-- `"cholesky"`: `lieax.graph`'s multifrontal block Cholesky on the host (`CholeskyPlan`,
+- `"cholesky"`: the multifrontal block Cholesky on the host (`_sparse.CholeskyPlan`,
   through `host_call`), on the blocks padded to one size (see `_structure`).
 - `"cg"`: conjugate gradients preconditioned by the inverse diagonal blocks, in JAX (the
   accelerator path; inexact steps).
