@@ -17,7 +17,7 @@ from .._runtime_error import raise_if
 from .._threads import lapack_limited
 from ..autodiff._tangents import check_retraction, manifold_leaves
 from ..lstsq import LevenbergMarquardt, NonFiniteStartError, SolveError, Status
-from ..lstsq._solution import is_failure
+from ..lstsq._solution import is_failure, nonfinite_leaves
 from ..retractions import exp
 from ._elimination import (
     candidates,
@@ -550,20 +550,10 @@ def _raise_on_failure(graph, result, values, data):
 
 def _nonfinite_inputs(graph, values, data):
     """The values and factor data with NaN or infinite entries, named by variable and factor
-    kind (concrete floating leaves only; computed when a solve has failed)."""
-    found = []
+    kind (`nonfinite_leaves`: concrete floating leaves only; computed when a solve has failed)."""
     named = [(f"values[{v.name!r}]", value) for v, value in zip(graph.variables, values)]
     named += [(f"data of factor {f.name!r}", d) for f, d in zip(graph.factors, data)]
-    for name, tree in named:
-        for leaf in jax.tree_util.tree_leaves(tree):
-            array = getattr(leaf, "_params", leaf)
-            if isinstance(array, jax.core.Tracer) or not hasattr(array, "dtype"):
-                continue
-            array = np.asarray(array)
-            if np.issubdtype(array.dtype, np.inexact) and not np.all(np.isfinite(array)):
-                found.append(f"{name} has NaN or infinite entries")
-                break
-    return found
+    return [f"{name} has NaN or infinite entries" for name, tree in named if nonfinite_leaves(tree)]
 
 
 def _kinds(leaves):

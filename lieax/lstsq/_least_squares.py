@@ -40,7 +40,14 @@ from . import _trust_region as trust_region
 from ._implicit import with_implicit_derivatives
 from ._losses import AbstractLoss
 from ._problem import linearize
-from ._solution import NonFiniteStartError, Solution, SolveError, Status, is_failure
+from ._solution import (
+    NonFiniteStartError,
+    Solution,
+    SolveError,
+    Status,
+    is_failure,
+    nonfinite_leaves,
+)
 from ._solvers import AbstractSolver, LevenbergMarquardt
 
 _DEFAULT_TOLERANCES = {  # (function, gradient, parameter) by dtype
@@ -493,22 +500,13 @@ def _raise_on_failure(solution: Solution, x0, args, loss) -> Solution:
 
 def _nonfinite_inputs(x0, args, loss) -> list:
     """What makes a start non-finite, each named by its pytree path: NaN or infinite entries of
-    `x0` or `args`, loss scales that are not positive and finite (concrete values only)."""
-    found = []
-    is_group = lambda node: isinstance(node, AbstractManifold)  # noqa: E731
-    for name, tree in (("x0", x0), ("args", args)):
-        for path, leaf in jax.tree_util.tree_flatten_with_path(tree, is_leaf=is_group)[0]:
-            kind = f" ({type(leaf).__name__})" if is_group(leaf) else ""
-            leaf = leaf_array(leaf) if is_group(leaf) else leaf
-            if isinstance(leaf, jax.core.Tracer) or not hasattr(leaf, "dtype"):
-                continue
-            array = np.asarray(leaf)
-            if np.issubdtype(array.dtype, np.inexact) and not np.all(np.isfinite(array)):
-                bad = int(array.size - np.count_nonzero(np.isfinite(array)))
-                found.append(
-                    f"{name}{jax.tree_util.keystr(path)}{kind} has NaN or infinite entries "
-                    f"({bad} of {array.size})"
-                )
+    `x0` or `args` (`nonfinite_leaves`), loss scales that are not positive and finite (concrete
+    values only)."""
+    found = [
+        f"{name}{path}{kind} has NaN or infinite entries ({bad} of {size})"
+        for name, tree in (("x0", x0), ("args", args))
+        for path, kind, bad, size in nonfinite_leaves(tree)
+    ]
     is_leaf = lambda node: node is None or isinstance(node, AbstractLoss)  # noqa: E731
     for path, leaf in jax.tree_util.tree_flatten_with_path(loss, is_leaf=is_leaf)[0]:
         if isinstance(leaf, AbstractLoss) and not isinstance(leaf.scale, jax.core.Tracer):

@@ -7,6 +7,8 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
+from ..groups._base import AbstractManifold
+
 
 class Status(enum.IntEnum):
     """Why a solver stopped, one enum for every lieax solver: the `status` of a `Solution`
@@ -60,6 +62,25 @@ def is_failure(code) -> bool:
     """Whether a status code is one that `throw=True` raises for, in every solver: `DIVERGED`,
     `NONFINITE`, `DEGENERATE`, `INVALID` (not `MAX_ITERATIONS`: that result is usable)."""
     return code in (Status.DIVERGED, Status.NONFINITE, Status.DEGENERATE, Status.INVALID)
+
+
+def nonfinite_leaves(tree):
+    """`(path, kind, bad, size)` of each concrete floating leaf of `tree` with NaN or infinite
+    entries (`kind` is `" (SE3)"` for a group leaf, `""` for an array; `bad` of its `size`
+    entries are not finite): the one report of a non-finite start, which `least_squares` and
+    `FactorGraph.solve` word (traced leaves are skipped: their values are not known)."""
+    found = []
+    is_group = lambda node: isinstance(node, AbstractManifold)  # noqa: E731
+    for path, leaf in jax.tree_util.tree_flatten_with_path(tree, is_leaf=is_group)[0]:
+        kind = f" ({type(leaf).__name__})" if is_group(leaf) else ""
+        leaf = leaf._params if is_group(leaf) else leaf
+        if isinstance(leaf, jax.core.Tracer) or not hasattr(leaf, "dtype"):
+            continue
+        array = np.asarray(leaf)
+        if np.issubdtype(array.dtype, np.inexact) and not np.all(np.isfinite(array)):
+            bad = int(array.size - np.count_nonzero(np.isfinite(array)))
+            found.append((jax.tree_util.keystr(path), kind, bad, int(array.size)))
+    return found
 
 
 class SolveError(RuntimeError):
