@@ -17,7 +17,7 @@ from .._runtime_error import raise_if
 from .._threads import lapack_limited
 from ..autodiff._tangents import check_retraction, manifold_leaves
 from ..lstsq import LevenbergMarquardt, NonFiniteStartError, SolveError, Status
-from ..lstsq._solution import is_failure, nonfinite_leaves
+from ..lstsq._solution import SolveResult, is_failure, nonfinite_leaves
 from ..retractions import exp
 from ._elimination import (
     candidates,
@@ -573,10 +573,8 @@ def _count(value, name):
 
 
 def _result(solution, summary):
-    """The `SolveResult` of the loop's `summary` (`[cost, lambda, iterations, solves, status,
+    """The `SolveResult` of the loop's `summary` (`[cost, damping, iterations, solves, status,
     *history]`, a JAX array under transformations, else NumPy)."""
-    from ._result import SolveResult
-
     return SolveResult(
         values=solution,
         cost=summary[0],
@@ -584,7 +582,7 @@ def _result(solution, summary):
         linear_solves=summary[3].astype(np.int32),
         status=summary[4].astype(np.int32),
         cost_history=summary[5:],
-        lambda_=summary[1],
+        damping=summary[1],
     )
 
 

@@ -43,7 +43,7 @@ class OptimizeResult(SolverResult):
     - `linear_solves`: factorizations (or conjugate-gradient solves), rejected steps included.
     - `status`: a `Status` (`status_name` reads its name).
     - `cost_history`: `(iterations + 1,)` numpy array: the initial cost, then after each iteration.
-    - `lambda_`: the damping at the end.
+    - `damping`: the damping at the end.
     """
 
     poses: object
@@ -52,9 +52,9 @@ class OptimizeResult(SolverResult):
     linear_solves: int
     status: Status
     cost_history: np.ndarray
-    lambda_: float
+    damping: float
 
-    _repr_fields = ("cost", "iterations", "linear_solves", "lambda_")
+    _repr_fields = ("cost", "iterations", "linear_solves", "damping")
 
 
 def optimize(
@@ -141,7 +141,7 @@ def optimize(
         linear_solves=int(result.linear_solves),
         status=Status(int(result.status)),
         cost_history=np.asarray(result.cost_history)[: iterations + 1],
-        lambda_=float(result.lambda_),
+        damping=float(result.damping),
     )
 
 

@@ -1,5 +1,7 @@
 """What every lieax solver returns and raises: the `Status` codes, the `SolverResult` base of the
-result types (`Solution` here), and `SolveError`, the base of the solvers' errors."""
+result types, the results of lieax's Levenberg-Marquardt through its two doors (`Solution` of
+`least_squares`, `SolveResult` of `FactorGraph.solve`; `lieax.graph.OptimizeResult` is the host
+view of a `SolveResult`), and `SolveError`, the base of the solvers' errors."""
 
 import enum
 from typing import NamedTuple
@@ -182,3 +184,32 @@ class Solution(SolverResult, _SolutionFields):
     """
 
     __slots__ = ()
+
+
+class _SolveResultFields(NamedTuple):
+    values: tuple
+    cost: jax.Array
+    iterations: jax.Array
+    linear_solves: jax.Array
+    status: jax.Array
+    cost_history: jax.Array
+    damping: jax.Array
+
+
+class SolveResult(SolverResult, _SolveResultFields):
+    r"""The result of `lieax.factorgraph.FactorGraph.solve`, a pytree (so it batches under
+    `vmap`); a `SolverResult`.
+
+    **Fields:**
+
+    - `values`: the solution, a tuple in the order of the graph's `variables`.
+    - `cost`: $\tfrac12 \sum \rho(\|R r\|^2)$ at `values`.
+    - `iterations`: outer iterations (linearizations), as GTSAM counts them.
+    - `linear_solves`: linear solves, rejected steps included.
+    - `status`: an integer `Status` code; `status_name` reads it.
+    - `cost_history`: the initial cost, then the cost after each iteration; NaN after the last.
+    - `damping`: the damping $\mu$ at the end (`LevenbergMarquardt`'s vocabulary).
+    """
+
+    __slots__ = ()
+    _repr_fields = ("cost", "iterations", "linear_solves", "damping")
