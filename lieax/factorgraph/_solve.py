@@ -207,12 +207,7 @@ def make_loop(graph, options):
 
     def loop(values, data, vector):
         phases = _Phases(graph, options, data, vector)
-        body = _iteration.body(
-            phases.evaluate, phases.decide, phases.test, phases.relinearize, phases.propose
-        )
-        state = lax.while_loop(
-            lambda s: s.status == Status.RUNNING, body, phases.initial_state(values)
-        )
+        state = _iteration.run(phases, phases.initial_state(values))
         values, _, cost, _, _, _, lam, _, iterations, solves, status, history, _ = state
         dtype = vector.dtype
         scalars = jnp.stack([cost, lam, *(a.astype(dtype) for a in (iterations, solves, status))])
