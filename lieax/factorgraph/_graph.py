@@ -129,6 +129,7 @@ class FactorGraph:
         self._cost = self._linearize = self._implicit = self._default_data = None
         # what `solve` checks a call against: its options (to the loop), the values' leaves
         self._prepared = {}
+        self._params = {}  # `solve`'s numeric options, as the loop's array (`_parameters`)
         self._initial_leaves, self._initial_treedef = jax.tree_util.tree_flatten(
             self.initial_values
         )
@@ -288,16 +289,10 @@ class FactorGraph:
             values = tuple(values)
             leaves = self._checked_leaves(values)
         data = self._data(data)
-        options = numeric_options(
-            solver,
-            relative_tolerance=relative_tolerance,
-            absolute_tolerance=absolute_tolerance,
-            cg_tolerance=cg_tolerance,
-            max_iterations=max_iterations,
-        )
-        params = np.asarray(
-            [options[name] for name in PARAMETERS], np.result_type(*(x.dtype for x in leaves))
-        )
+        params = self._parameters(
+            solver, relative_tolerance, absolute_tolerance, cg_tolerance, max_iterations,
+            np.result_type(*(x.dtype for x in leaves)),
+        )  # fmt: skip
         traced = any(isinstance(x, jax.core.Tracer) for x in leaves) or any(
             isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(data)
         )
@@ -312,6 +307,27 @@ class FactorGraph:
         if throw:
             result = _raise_on_failure(self, result, values, data)
         return result
+
+    def _parameters(self, solver, *values):
+        """The loop's array of `_solve.PARAMETERS` (`solver`'s damping constants, the
+        tolerances, the iteration limit, in the values' dtype, the last of `values`), kept by
+        their values: a repeated call reuses it."""
+        try:
+            key = (solver, *values)
+            params = self._params.get(key)
+        except TypeError:  # an unhashable value: built, not kept
+            key, params = None, None
+        if params is None:
+            *numbers, dtype = values
+            names = ("relative_tolerance", "absolute_tolerance", "cg_tolerance", "max_iterations")
+            options = numeric_options(solver, **dict(zip(names, numbers)))
+            params = np.asarray([options[name] for name in PARAMETERS], dtype)
+            params.flags.writeable = False
+            if key is not None:
+                if len(self._params) >= 16:
+                    self._params.clear()
+                self._params[key] = params
+        return params
 
     def _loop(
         self, solver, linear_solver, eliminate, max_iterations, retraction, verbose,
