@@ -176,7 +176,10 @@ def main(argv=None):
 
     start = time.perf_counter()
     result = graph.optimize(
-        pose_graph, linear_solver=args.solver, max_iterations=args.max_iterations, verbose=args.verbose
+        pose_graph,
+        linear_solver=args.solver,
+        max_iterations=args.max_iterations,
+        verbose=args.verbose,
     )
     first = time.perf_counter() - start
     start = time.perf_counter()
