@@ -382,13 +382,14 @@ class FactorGraph:
             solver = _auto_method(layout)
         if solver == "cholesky":
             layout.start_plan()  # analysed while the loop is traced and compiled
-        gauss_newton, scaling, damping_update = static
+        gauss_newton, scaling, damping_update, floor = static
         options = {
             "method": solver,
             "schur": schur,
             "scaling": scaling,
             "damping_update": damping_update,
             "gauss_newton": gauss_newton,
+            "floor": floor,
             "retraction": retraction,
             "history_size": max(16, 1 << int(max_iterations).bit_length()),
             "verbose": bool(verbose),
@@ -404,6 +405,7 @@ class FactorGraph:
                     "scaling",
                     "damping_update",
                     "gauss_newton",
+                    "floor",
                     "retraction",
                     "history_size",
                     "verbose",

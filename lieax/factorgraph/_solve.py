@@ -102,10 +102,11 @@ DAMPING_UPDATES = ("gtsam", "nielsen")
 
 
 def static_options(solver):
-    """`(gauss_newton, scaling, damping_update)`: what of `solver` (a `LevenbergMarquardt` or
-    `GaussNewton`) shapes the compiled loop, checked against what this backend supports."""
+    """`(gauss_newton, scaling, damping_update, floor)`: what of `solver` (a `LevenbergMarquardt`
+    or `GaussNewton`) shapes the compiled loop (`floor`: whether the damping has a positive lower
+    bound to keep, `min_damping`), checked against what this backend supports."""
     if isinstance(solver, GaussNewton):
-        return True, "identity", "gtsam"
+        return True, "identity", "gtsam", False
     if not isinstance(solver, LevenbergMarquardt):
         raise TypeError(
             "solver must be a lieax.lstsq.LevenbergMarquardt (e.g. LevenbergMarquardt.gtsam(), "
@@ -122,7 +123,7 @@ def static_options(solver):
             f"FactorGraph.solve supports the damping updates {DAMPING_UPDATES}, got "
             f"{solver.damping_update!r} (MINPACK's radius needs least_squares' dense solves)."
         )
-    return False, solver.scaling, solver.damping_update
+    return False, solver.scaling, solver.damping_update, bool(solver.min_damping > 0)
 
 
 def numeric_options(solver, **others):
@@ -190,9 +191,9 @@ def retract(variables, values, delta, retraction=exp):
 def _damping_diagonal(scaling, block, params):
     """$D$'s diagonal `(n, d)` for the diagonal blocks `block` `(n, d, d)` of $H$ (see the module
     docstring)."""
-    h = jnp.diagonal(block, axis1=1, axis2=2)
     if scaling == "identity":
-        return jnp.ones_like(h)
+        return jnp.ones(block.shape[:2], block.dtype)
+    h = jnp.diagonal(block, axis1=1, axis2=2)
     if scaling == "clipped":
         return jnp.clip(h, params["min_diagonal"], params["max_diagonal"])
     squared = (1.0 + jnp.sqrt(jnp.maximum(lax.stop_gradient(h), 0.0))) ** 2
@@ -201,8 +202,8 @@ def _damping_diagonal(scaling, block, params):
 
 def make_loop(graph, options):
     """The jitted `run(values, data, params) -> (values, summary)` of `graph` under the static
-    `options` (a dict: method, schur plan, scaling, damping_update, gauss_newton, retraction,
-    history_size, verbose, cg_max_iterations); `params` is the array of `PARAMETERS`;
+    `options` (a dict: method, schur plan, scaling, damping_update, gauss_newton, floor,
+    retraction, history_size, verbose, cg_max_iterations); `params` is the array of `PARAMETERS`;
     `summary` is `[cost, damping, iterations, solves, status, *history]`."""
 
     def loop(values, data, vector):
@@ -228,6 +229,8 @@ class _Phases:
         self.data, self.vector = data, vector
         self.dtype = vector.dtype
         self.gauss_newton = options["gauss_newton"]
+        # read once, outside the loop (a read inside would be a kernel of every pass)
+        self.max_iterations = self.params()["max_iterations"].astype(jnp.int32)
 
     def params(self):
         return dict(zip(PARAMETERS, self.vector))
@@ -282,7 +285,8 @@ class _Phases:
             else:
                 new_lam = trust_region.gtsam(success, lam, params["damping_factor"])
                 new_nu = nu
-            new_lam = jnp.maximum(new_lam, params["min_damping"])
+            if self.options["floor"]:  # a zero floor (GTSAM's) adds no operation to the loop
+                new_lam = jnp.maximum(new_lam, params["min_damping"])
             gave_up = (
                 ~success
                 & ~stop_search
@@ -319,9 +323,8 @@ class _Phases:
         nonfinite, diverged = ~jnp.isfinite(next_cost), gave_up & (decrease <= 0)
         if self.gauss_newton:
             nonfinite, diverged = nonfinite | diverged, False
-        max_iterations = params["max_iterations"].astype(jnp.int32)
         status = trust_region.status(
-            nonfinite, converged, diverged, (done | ~started) & (iterations >= max_iterations)
+            nonfinite, converged, diverged, (done | ~started) & (iterations >= self.max_iterations)
         )
         history = state.history
         history = jnp.where(done | ~started, history.at[iterations].set(next_cost), history)
