@@ -593,12 +593,13 @@ def _count(value, name):
 def _result(solution, summary):
     """The `SolveResult` of the loop's `summary` (`[cost, damping, iterations, solves, status,
     *history]`, a JAX array under transformations, else NumPy)."""
+    iterations, solves, status = summary[2:5].astype(np.int32)  # one conversion for three
     return SolveResult(
         values=solution,
         cost=summary[0],
-        iterations=summary[2].astype(np.int32),
-        linear_solves=summary[3].astype(np.int32),
-        status=summary[4].astype(np.int32),
+        iterations=iterations,
+        linear_solves=solves,
+        status=status,
         cost_history=summary[5:],
         damping=summary[1],
     )
