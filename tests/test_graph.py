@@ -500,3 +500,24 @@ def test_matches_gtsam_on_shared_sets(name):
     assert result.status == lieax.Status.CONVERGED
     assert relative_close(result.cost, expected_cost, 1e-6)
     assert result.iterations == expected_iterations
+
+
+def test_between_and_prior_factors_build_the_optimized_graph():
+    """`between_factor` / `prior_factor` are the `Factor` kinds `to_factor_graph` and `optimize`
+    solve: a graph built from them by hand reaches `optimize`'s iterates and cost."""
+    from lieax.factorgraph import FactorGraph, Var
+
+    graph, _ = noisy_graph(SE2, n=8, loops=3, seed=2)
+    graph = graph.with_prior([0])
+    b, p = graph.between, graph.priors
+    poses = Var(graph.poses, name="poses")
+    factors = [
+        lg.between_factor(poses[b.i], poses[b.j], b.measured, sqrt_information=b.sqrt_information),
+        lg.prior_factor(poses[p.index], p.measured, sqrt_information=p.sqrt_information),
+    ]
+    result = FactorGraph(factors).solve()
+    expected = lg.optimize(graph)
+    assert int(result.iterations) == expected.iterations
+    assert relative_close(float(result.cost), expected.cost, 1e-10)
+    with pytest.raises(ValueError, match="needs closed_form"):
+        lg.between_factor(poses[b.i], poses[b.j], b.measured, closed_form=False, exact=False)
