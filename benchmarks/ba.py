@@ -54,7 +54,7 @@ them mirrored.
   `lieax.ba.camera_jacobians`, points eliminated by the Schur complement, LM damped by the clipped
   diagonal of $J^\top J$ as Ceres (`--lieax-damping identity` for GTSAM's $\lambda I$, which
   stalls on Trafalgar-size problems as GTSAM's own LM does) and, by default, Ceres'
-  `LevenbergMarquardtStrategy` for the damping (`lambda_update="nielsen"`: $\lambda_0 = 10^{-4}$,
+  `LevenbergMarquardtStrategy` for the damping (`damping_update="nielsen"`: $\lambda_0 = 10^{-4}$,
   Ceres' `1 / initial_trust_region_radius`; on success $\lambda \leftarrow \lambda
   \max(\tfrac13, 1 - (2\rho - 1)^3)$, on failure $\lambda \leftarrow \lambda\nu$,
   $\nu \leftarrow 2\nu$; `--lieax-lambda-update gtsam` for GTSAM's ×10 / ÷10 from $10^{-5}$,
@@ -525,7 +525,7 @@ def run_lieax(problem, iterations, loss, delta, damping="identity", lambda_updat
     closed-form `camera_jacobians`: cameras one `(SE3, intrinsics)` variable kind, points
     another, eliminated by the Schur complement, LM with `damping` (`"marquardt"`:
     $\lambda\,\mathrm{diag}(H)$, as Ceres and GTSAM's `ceresDefaults`; `"identity"`:
-    $\lambda I$), the $\lambda$ rule `lambda_update` (`"nielsen"`: Ceres', from Ceres' initial
+    $\lambda I$), the $\lambda$ rule `lambda_update` (`LevenbergMarquardt`'s `damping_update`: `"nielsen"`: Ceres', from Ceres' initial
     $\lambda = 10^{-4}$; `"gtsam"`: GTSAM's, from $10^{-5}$) and the iteration cap, no gauge prior (`check_gauge=False`: the damping handles
     it, as for the others). `total` is a warm solve; the first one (structure analysis and XLA
     compilation) is in the note."""
@@ -580,9 +580,11 @@ def lieax_solver(problem, iterations, loss, delta, damping="marquardt", lambda_u
         result = graph.solve(
             eliminate=points,
             max_iterations=iterations,
-            damping=damping,
-            lambda_update=lambda_update,
-            lambda_initial=1e-4 if lambda_update == "nielsen" else 1e-5,
+            solver=lstsq.LevenbergMarquardt.gtsam(
+                scaling="clipped" if damping == "marquardt" else "identity",
+                damping_update=lambda_update,
+                initial_damping=1e-4 if lambda_update == "nielsen" else 1e-5,
+            ),
             # with Ceres' rule, Ceres' stopping test too: function_tolerance 1e-6 (relative)
             relative_tolerance=1e-6 if lambda_update == "nielsen" else 1e-5,
             throw=False,

@@ -308,8 +308,11 @@ def ba_build(problem):
 
 
 def ba_call(problem):
+    from lieax.lstsq import LevenbergMarquardt
+
     graph, points = problem
-    return _ready(graph.solve(eliminate=points, damping="marquardt", max_iterations=20))
+    marquardt = LevenbergMarquardt.gtsam(scaling="clipped", damping_update="nielsen")
+    return _ready(graph.solve(eliminate=points, solver=marquardt, max_iterations=20))
 
 
 def imu_setup(quick, data_dir):

@@ -53,10 +53,13 @@ def solve(problem, *, loss=None, max_iterations=50, verbose=False):
     # The gauge (a similarity of the whole scene) is left free, as in Ceres' and GTSAM's BAL
     # examples: the damping keeps the steps finite.
     graph = fg.FactorGraph([reprojection], check_gauge=False)
-    # The Marquardt diagonal (Ceres' damping) takes Nielsen's λ rule (lambda_update="auto"):
-    # GTSAM's ×10 / ÷10 with it rejects about every other step.
+    # The Marquardt diagonal (Ceres' damping) with Nielsen's λ rule: GTSAM's ×10 / ÷10 with it
+    # rejects about every other step.
     result = graph.solve(
-        eliminate=points, damping="marquardt", max_iterations=max_iterations, verbose=verbose
+        eliminate=points,
+        solver=lstsq.LevenbergMarquardt.gtsam(scaling="clipped", damping_update="nielsen"),
+        max_iterations=max_iterations,
+        verbose=verbose,
     )
     (pose, intrinsics), solved_points = result.values
     solved = problem.with_parameters(

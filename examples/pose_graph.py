@@ -176,11 +176,16 @@ def main(argv=None):
 
     start = time.perf_counter()
     result = graph.optimize(
-        pose_graph, solver=args.solver, max_iterations=args.max_iterations, verbose=args.verbose
+        pose_graph,
+        linear_solver=args.solver,
+        max_iterations=args.max_iterations,
+        verbose=args.verbose,
     )
     first = time.perf_counter() - start
     start = time.perf_counter()
-    result = graph.optimize(pose_graph, solver=args.solver, max_iterations=args.max_iterations)
+    result = graph.optimize(
+        pose_graph, linear_solver=args.solver, max_iterations=args.max_iterations
+    )
     second = time.perf_counter() - start
 
     print(f"{origin}: {pose_graph!r}, initial poses: {args.init}")

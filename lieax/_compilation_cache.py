@@ -41,7 +41,7 @@ def enable_compilation_cache(path=None) -> pathlib.Path:
       GICP covariances found with `search="kdtree"` (the default on a CPU): the registrations of
       `examples/icp_demo.py` and of the LiDAR pairs; `search="grid"` (and `"graph"` for the
       normals) has no callback and is cached;
-    - `lieax.factorgraph` with `solver="cholesky"` and `lieax.graph.optimize` (the host
+    - `lieax.factorgraph` with `linear_solver="cholesky"` and `lieax.graph.optimize` (the host
       multifrontal Cholesky) where the native library is not built or `LIEAX_NATIVE=0`: the
       solve loop (with the native library, its custom call is cached like the rest);
     - a solver's `throw=True` inside your own `jit` (the error is raised from a callback in the

@@ -6,7 +6,7 @@ Three kinds of lieax's work run on thread pools that XLA does not manage:
   from the setting passed through `on_change`), or without the native library NumPy's
   OpenBLAS, and SciPy's LAPACK for the small fronts, inside a host callback;
 - the host k-d tree's queries of `lieax.icp` (pykdtree's OpenMP), inside a host callback;
-- the dense Cholesky of `lieax.factorgraph`'s `solver="dense"` (bundle adjustment's reduced camera
+- the dense Cholesky of `lieax.factorgraph`'s `linear_solver="dense"` (bundle adjustment's reduced camera
   system), which XLA's CPU backend runs through LAPACK: jaxlib takes its LAPACK from SciPy's
   bundled OpenBLAS (`threadpoolctl.threadpool_info()` lists no other BLAS after a
   `jnp.linalg.cholesky` call, and limiting SciPy's pool alone changes its time).

@@ -312,14 +312,14 @@ def offset_graph():
     return _fg_offset_graph()
 
 
-@pytest.mark.parametrize("algorithm", ["levenberg_marquardt", "gauss_newton"])
+@pytest.mark.parametrize("algorithm", [ls.LevenbergMarquardt.gtsam(), ls.GaussNewton()])
 def test_factor_graph_stationary_start_converges_at_iteration_zero(offset_graph, algorithm):
     graph, targets = offset_graph
-    result = graph.solve(values=(targets,), algorithm=algorithm)
+    result = graph.solve(values=(targets,), solver=algorithm)
     assert int(result.status) == ls.Status.CONVERGED  # Levenberg-Marquardt said DIVERGED
     assert int(result.iterations) == 0
     np.testing.assert_array_equal(result.values[0], targets)
-    result = graph.solve(algorithm=algorithm)  # from zeros: a step is tried
+    result = graph.solve(solver=algorithm)  # from zeros: a step is tried
     assert int(result.status) == ls.Status.CONVERGED
     assert int(result.iterations) >= 1
     np.testing.assert_allclose(result.values[0], targets, atol=1e-6)
@@ -354,8 +354,9 @@ def test_factor_graph_relative_tests_are_scale_invariant():
     factor = Factor(fg_rosenbrock, (x[np.array([0])],), jnp.ones((1, 1)), name="rosenbrock")
     graph = FactorGraph([factor], check_gauge=False)
     options = dict(
-        damping="marquardt", absolute_tolerance=0.0, relative_tolerance=1e-10,
-        max_iterations=np.int64(200), diagonal_min=1e-30,
+        solver=ls.LevenbergMarquardt.gtsam(scaling="clipped", damping_update="nielsen",
+                                           min_diagonal=1e-30),
+        absolute_tolerance=0.0, relative_tolerance=1e-10, max_iterations=np.int64(200),
     )  # fmt: skip
     reference = graph.solve(**options)
     assert int(reference.status) == ls.Status.CONVERGED

@@ -423,7 +423,7 @@ def test_unknown_scaling_is_an_error():
     with pytest.raises(ValueError, match="scaling must be one of"):
         ls.LevenbergMarquardt(scaling="marquardt")
     with pytest.raises(ValueError, match="damping_update must be one of"):
-        ls.LevenbergMarquardt(damping_update="gtsam")
+        ls.LevenbergMarquardt(damping_update="ceres")
 
 
 @pytest.mark.parametrize("differentiation", ["implicit", "unrolled"])

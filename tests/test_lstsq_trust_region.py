@@ -110,6 +110,45 @@ def test_levenberg_marquardt_update_is_nielsen_clipped(scaling):
     assert bool(solver.diverged(state, 0.0, 0.0))  # clipped at twice the bound, beyond it
 
 
+def test_gtsam_preset_update_is_gtsams_rule_and_identity_damping():
+    r"""`LevenbergMarquardt.gtsam()` in the dense loop: GTSAM's ×10 / ÷10 from 1e-5 (the same
+    `_trust_region.gtsam` the factor graph runs) and the step of $(H + \mu I)$."""
+    solver = LevenbergMarquardt.gtsam()
+    assert (solver.scaling, solver.damping_update, solver.initial_damping) == (
+        "identity", "gtsam", 1e-5
+    )  # fmt: skip
+    state = solver.init(2, jnp.float64)
+    lam = jnp.asarray(1e-5)
+    for accept in (False, False, True, False, True, True):
+        ratio = jnp.asarray(0.5 if accept else -1.0)
+        kept, state = solver.update(state, ratio, jnp.asarray(True), ratio, jnp.asarray(2.0))
+        assert bool(kept) == accept
+        lam = trust_region.gtsam(kept, lam, 10.0)
+        np.testing.assert_allclose(state[0], lam, rtol=1e-15)
+    hessian = jnp.array([[4.0, 1.0], [1.0, 3.0]])
+    gradient = jnp.array([1.0, -2.0])
+    step, _ = solver.step(state, hessian, gradient)
+    expected = np.linalg.solve(np.asarray(hessian) + float(state[0]) * np.eye(2), -gradient)
+    np.testing.assert_allclose(step, expected, rtol=1e-12)
+
+
+def test_presets_set_their_libraries_defaults_and_take_changes():
+    ceres, minpack_lm = LevenbergMarquardt.ceres(), LevenbergMarquardt.minpack()
+    assert (ceres.scaling, ceres.damping_update, ceres.initial_damping) == (
+        "jacobi",
+        "nielsen",
+        1e-4,
+    )
+    assert (minpack_lm.scaling, minpack_lm.damping_update) == ("minpack", "minpack")
+    assert minpack_lm.min_gain_ratio == 1e-4  # lmder's p0001
+    changed = LevenbergMarquardt.gtsam(scaling="clipped", damping_update="nielsen")
+    assert (changed.scaling, changed.damping_update, changed.max_damping) == (
+        "clipped", "nielsen", 1e5
+    )  # fmt: skip
+    with pytest.raises(ValueError, match="scaling must be one of"):
+        LevenbergMarquardt.gtsam(scaling="marquardt")
+
+
 def minpack(finite, ratio, actual, slope, step_norm, radius, damping, cost=1.0):
     """`trust_region.minpack` on Python numbers, as `(radius, damping)` floats."""
     radius, damping = trust_region.minpack(

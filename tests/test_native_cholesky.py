@@ -232,7 +232,7 @@ CHILD = textwrap.dedent(
     poses = Var(truth.rplus(0.1 * rng.normal(size=(n, 3))), name="poses", fixed=[0])
     between = lambda a, b, z: z.between(a.between(b)).log()
     solved = FactorGraph([Factor(between, (poses[i], poses[j]), measured)]).solve(
-        solver="cholesky")
+        linear_solver="cholesky")
     assert solved.converged
     loaded = events.count("/jax/compilation_cache/cache_hits")
     print(events.count("/jax/core/compile/backend_compile_duration") - loaded, loaded)

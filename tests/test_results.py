@@ -37,7 +37,7 @@ def fields(text):
 
 
 def test_one_status_enum_with_fixed_codes():
-    assert icp.Status is lstsq.Status is lg.Status is lieax.Status
+    assert icp.Status is lstsq.Status is lieax.Status
     codes = {member.name: int(member) for member in lstsq.Status}
     assert codes == {
         "RUNNING": -1,
@@ -66,13 +66,13 @@ def test_every_result_type_is_a_solver_result():
     # the field names users read are unchanged
     assert lstsq.Solution._fields == ("value", "cost", "iterations", "status", "cost_history")
     assert SolveResult._fields == (
-        "values", "cost", "iterations", "linear_solves", "status", "cost_history", "lambda_",
+        "values", "cost", "iterations", "linear_solves", "status", "cost_history", "damping",
     )  # fmt: skip
     assert icp.ICPResult._fields == (
         "transform", "fitness", "inlier_rmse", "iterations", "status", "correspondences",
     )  # fmt: skip
     assert [f.name for f in lg.OptimizeResult.__dataclass_fields__.values()] == [
-        "poses", "cost", "iterations", "linear_solves", "status", "cost_history", "lambda_",
+        "poses", "cost", "iterations", "linear_solves", "status", "cost_history", "damping",
     ]  # fmt: skip
 
 
@@ -146,12 +146,12 @@ def test_factor_graph_result_status_and_repr():
     text = repr(result)
     pattern = line(
         [r"status=CONVERGED", rf"cost={FLOAT}", r"iterations=\d+", r"linear_solves=\d+",
-         rf"lambda_={FLOAT}"]
+         rf"damping={FLOAT}"]
     )  # fmt: skip
     assert pattern.match(text), text
     shown = fields(text)
     assert int(shown["linear_solves"]) == int(result.linear_solves)
-    assert float(shown["lambda_"]) == pytest.approx(float(result.lambda_), rel=1e-9)
+    assert float(shown["damping"]) == pytest.approx(float(result.damping), rel=1e-9)
 
 
 def test_optimize_result_status_and_repr():
@@ -163,7 +163,7 @@ def test_optimize_result_status_and_repr():
     text = repr(result)
     pattern = line(
         [r"status=CONVERGED", rf"cost={FLOAT}", r"iterations=\d+", r"linear_solves=\d+",
-         rf"lambda_={FLOAT}"]
+         rf"damping={FLOAT}"]
     )  # fmt: skip
     assert pattern.match(text), text
     assert int(fields(text)["iterations"]) == result.iterations

@@ -136,7 +136,7 @@ def test_native_cholesky_scopes_its_blas_calls(two_blas_threads):
 
 
 def dense_chain_graph(n):
-    """A factor graph whose `solver="dense"` system has order `3 n`: a chain of `n` SE2 poses
+    """A factor graph whose `linear_solver="dense"` system has order `3 n`: a chain of `n` SE2 poses
     with a prior on the first."""
     rng = np.random.default_rng(0)
     truth = SE2.exp(rng.normal(size=(n, 3)))
@@ -168,14 +168,14 @@ def test_dense_cholesky_runs_on_one_blas_thread_around_the_compiled_call(
         seen.append(blas_counts())
 
     monkeypatch.setattr(_threads, "_enter_blas", recording)
-    result = graph.solve(solver="dense")
+    result = graph.solve(linear_solver="dense")
     assert result.converged
     ones = [1] * len(two_blas_threads)
     assert seen == [ones]
     assert blas_counts() == two_blas_threads and _threads._BLAS_SCOPE["depth"] == 0
     # the same program batched: no callback in it, so vmap of its loop's cond works
     values = jax.tree_util.tree_map(lambda x: jnp.stack([x, x]), graph.initial_values)
-    batched = jax.vmap(lambda v: graph.solve(v, solver="dense", throw=False).cost)(values)
+    batched = jax.vmap(lambda v: graph.solve(v, linear_solver="dense", throw=False).cost)(values)
     np.testing.assert_allclose(batched, float(result.cost), rtol=1e-12)
     small = dense_chain_graph(4)  # order 12: OpenBLAS stays on the calling thread
     assert _sparse.dense_threads(small.layout.pattern) is None

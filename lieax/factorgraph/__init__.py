@@ -18,10 +18,10 @@ Levenberg-Marquardt loop in one jitted `lax.while_loop` with the dense, sparse C
 (right perturbation, translation-first tangents).
 """
 
+from ..lstsq._solution import SolveResult
 from ._factors import Factor
 from ._graph import FactorGraph
 from ._marginals import marginal_covariances
-from ._result import SolveResult
 from ._variables import Var
 
 __all__ = ["Factor", "FactorGraph", "SolveResult", "Var", "marginal_covariances"]

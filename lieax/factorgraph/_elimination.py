@@ -24,7 +24,7 @@ ordering), in modelled seconds of one solve:
   = \tfrac12 d_e ((\sum_u d_u)^2 + \sum_u d_u^2)$ for the blocks $B_u H_{pp}^{-1} B_v^\top$
   (Triggs et al., "Bundle adjustment — a modern synthesis", 2000, Sec. 6.1).
 
-`"cg"` and `"auto"` are costed with the factorization `solver="auto"` would pick for that
+`"cg"` and `"auto"` are costed with the factorization `linear_solver="auto"` would pick for that
 system: a stand-in for conjugate gradients, whose products grow with the same fill.
 
 Measured (`benchmarks/factorgraph.py`, warm LM solves, one process, a shared machine): 20
@@ -47,7 +47,7 @@ from ._sparse import (
 from ._structure import reduced_layout
 
 # seconds per multiply-add of the dense Cholesky in JAX: half the multifrontal's, as
-# `solver="auto"` factors densely up to 800 unknowns when the sparse factor would have half the
+# `linear_solver="auto"` factors densely up to 800 unknowns when the sparse factor would have half the
 # dense multiply-adds (`_graph._DENSE_FILL`); measured 0.33 ns at 180 unknowns (CPU, loaded)
 _DENSE_FLOP_SECONDS = 0.5 * _FLOP_SECONDS
 

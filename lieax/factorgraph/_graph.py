@@ -16,8 +16,8 @@ import numpy as np
 from .._runtime_error import raise_if
 from .._threads import lapack_limited
 from ..autodiff._tangents import check_retraction, manifold_leaves
-from ..lstsq import NonFiniteStartError, SolveError, Status
-from ..lstsq._solution import is_failure
+from ..lstsq import LevenbergMarquardt, NonFiniteStartError, SolveError, Status
+from ..lstsq._solution import SolveResult, is_failure, nonfinite_leaves
 from ..retractions import exp
 from ._elimination import (
     candidates,
@@ -28,12 +28,12 @@ from ._elimination import (
 )
 from ._factors import Factor, linearize_one, residual_one, variables_dtype
 from ._implicit import solve_implicit
-from ._solve import PARAMETERS, make_loop
+from ._solve import PARAMETERS, make_loop, numeric_options, static_options
 from ._sparse import dense_threads
 from ._structure import analyze, digest, schur_layout
 from ._variables import Var, instance
 
-# padded unknowns up to which `solver="auto"` factors the dense matrix in JAX (the crossover
+# padded unknowns up to which `linear_solver="auto"` factors the dense matrix in JAX (the crossover
 # `lieax.graph.optimize` measured for its pose graphs)
 _DENSE_LIMIT = 300
 # ... and up to which it does so when the sparse factor would be nearly dense anyway (its
@@ -45,6 +45,7 @@ _DENSE_LIMIT = 300
 _DENSE_FILLED_LIMIT = 800
 _DENSE_FILL = 0.5
 _SOLVERS = ("auto", "dense", "cholesky", "cg")
+GTSAM = LevenbergMarquardt.gtsam()  # `solve`'s default options (immutable, so shared)
 _CACHE = {}
 _CACHE_SIZE = 16
 
@@ -128,6 +129,7 @@ class FactorGraph:
         self._cost = self._linearize = self._implicit = self._default_data = None
         # what `solve` checks a call against: its options (to the loop), the values' leaves
         self._prepared = {}
+        self._params = {}  # `solve`'s numeric options, as the loop's array (`_parameters`)
         self._initial_leaves, self._initial_treedef = jax.tree_util.tree_flatten(
             self.initial_values
         )
@@ -215,21 +217,13 @@ class FactorGraph:
         values=None,
         data=None,
         *,
-        solver="auto",
+        solver=GTSAM,
+        linear_solver="auto",
         eliminate="auto",
         max_iterations=100,
-        algorithm="levenberg_marquardt",
-        damping="identity",
-        lambda_update="auto",
-        retraction=None,
-        lambda_initial=1e-5,
-        lambda_factor=10.0,
-        lambda_max=1e5,
         relative_tolerance=1e-5,
         absolute_tolerance=1e-5,
-        min_model_fidelity=1e-3,
-        diagonal_min=1e-6,
-        diagonal_max=1e32,
+        retraction=None,
         cg_tolerance=1e-8,
         cg_max_iterations=None,
         verbose=False,
@@ -243,32 +237,36 @@ class FactorGraph:
         - `data`: per factor kind `(data, sqrt_information, loss)` or `None` to keep the
           factor's own (see `FactorGraph.data`); may be traced, batched under `vmap` and
           differentiated (implicit derivatives, `_implicit`).
-        - `solver`: `"dense"`, `"cholesky"` (host multifrontal), `"cg"` (block-Jacobi PCG) or
-          `"auto"` (dense up to 300 padded unknowns, or up to 800 when the sparse factor would be
-          at least half dense, else cholesky); with `eliminate`, the
-          solver of the reduced system.
+        - `solver`: the options of lieax's Levenberg-Marquardt, a
+          `lieax.lstsq.LevenbergMarquardt` (the default is `LevenbergMarquardt.gtsam()`:
+          GTSAM 4.3's damping $\mu I$, $\mu_0 = 10^{-5}$, ×10 / ÷10, give up at $10^5$; pass
+          e.g. `LevenbergMarquardt.gtsam(scaling="clipped", damping_update="nielsen")` for the
+          Marquardt diagonal with Nielsen's rule, or `LevenbergMarquardt.ceres()`), or
+          `lieax.lstsq.GaussNewton()`. This backend supports the scalings `"identity"`,
+          `"clipped"` and `"jacobi"` and the damping updates `"gtsam"` and `"nielsen"`;
+          GTSAM's ×10 / ÷10 with a diagonal scaling ping-pongs between two dampings (see
+          `_solve`).
+        - `linear_solver`: `"dense"`, `"cholesky"` (host multifrontal), `"cg"` (block-Jacobi
+          PCG) or `"auto"` (dense up to 300 padded unknowns, or up to 800 when the sparse factor
+          would be at least half dense, else cholesky); with `eliminate`, the solver of the
+          reduced system.
         - `eliminate`: a `Var` to eliminate by the Schur complement (its instances must not
           share factors: points in bundle adjustment), `None` for none, or `"auto"`: the kind
           whose elimination makes a linear solve cheapest by the cost model of
           `_elimination` (the multifrontal Cholesky's: the modelled time of forming and
           factoring the reduced system, against factoring the whole), or none when none
           pays: points seen by a few cameras are eliminated, landmarks seen by most poses
-          are not (they would make the reduced pose system dense). An explicit `Var` that the model finds costlier than no
-          elimination is still eliminated, with a `UserWarning` naming both costs.
-        - `algorithm`: `"levenberg_marquardt"` or `"gauss_newton"`.
-        - `damping`: `"identity"` ($\lambda I$, GTSAM) or `"marquardt"` ($\lambda$ diag $H$,
-          clipped to `[diagonal_min, diagonal_max]`, Ceres).
-        - `lambda_update`: `"gtsam"` (GTSAM 4.3's: divide or multiply by `lambda_factor`),
-          `"nielsen"` (Madsen-Nielsen-Tingleff's, Ceres', the rule of
-          `lieax.lstsq.LevenbergMarquardt`) or `"auto"`: `"nielsen"` with
-          `damping="marquardt"`, `"gtsam"` with `"identity"`, the pairs of Ceres and of
-          GTSAM's own defaults (its `ceresDefaults()` pairs the diagonal with Nielsen's rule);
-          GTSAM's ×10 / ÷10 with the Marquardt diagonal ping-pongs between two $\lambda$ (see
-          `_solve`).
+          are not (they would make the reduced pose system dense). An explicit `Var` that the
+          model finds costlier than no elimination is still eliminated, with a `UserWarning`
+          naming both costs.
+        - `max_iterations`: outer iterations (linearizations) at most, as GTSAM counts them.
+        - `relative_tolerance`, `absolute_tolerance`: GTSAM's `relativeErrorTol` and
+          `absoluteErrorTol` (see `_solve`).
         - `retraction`: how a step moves the values, a `lieax.retractions.Retraction` (default
           `lieax.retractions.exp`, $x \oplus \delta$; `cayley` is GTSAM's default Pose3 chart).
           The Jacobians and the optimum do not depend on it, the path to the optimum does.
-        - the rest: as `lieax.graph.optimize`, GTSAM's defaults.
+        - `cg_tolerance`, `cg_max_iterations`: of `linear_solver="cg"` (relative residual;
+          default $10\,n\,d$ iterations).
         - `verbose`: print iteration, cost, gain ratio and damping at every attempt.
         - `throw`: raise `SolveError` when the solve ends `DIVERGED` or `NONFINITE`;
           `lieax.lstsq.NonFiniteStartError` (also a `ValueError`) naming the values or factor
@@ -281,8 +279,8 @@ class FactorGraph:
         """
         self._check_x64()
         loop, layout, method = self._loop(
-            solver, eliminate, max_iterations, algorithm, damping, lambda_update, retraction,
-            verbose, cg_max_iterations,
+            solver, linear_solver, eliminate, max_iterations, retraction, verbose,
+            cg_max_iterations,
         )  # fmt: skip
         if values is None:
             values = self.initial_values  # checked by the `Var`s
@@ -291,19 +289,10 @@ class FactorGraph:
             values = tuple(values)
             leaves = self._checked_leaves(values)
         data = self._data(data)
-        params = parameters(
+        params = self._parameters(
+            solver, relative_tolerance, absolute_tolerance, cg_tolerance, max_iterations,
             np.result_type(*(x.dtype for x in leaves)),
-            lambda_initial=lambda_initial,
-            lambda_factor=lambda_factor,
-            lambda_max=lambda_max,
-            relative_tolerance=relative_tolerance,
-            absolute_tolerance=absolute_tolerance,
-            min_model_fidelity=min_model_fidelity,
-            cg_tolerance=cg_tolerance,
-            max_iterations=max_iterations,
-            diagonal_min=diagonal_min,
-            diagonal_max=diagonal_max,
-        )
+        )  # fmt: skip
         traced = any(isinstance(x, jax.core.Tracer) for x in leaves) or any(
             isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(data)
         )
@@ -315,68 +304,66 @@ class FactorGraph:
                 solution, summary = loop(values, data, params)
                 summary = np.asarray(summary)
             result = _result(solution, summary)
-        if throw and isinstance(result.status, jax.core.Tracer):
-            result = result._replace(status=raise_if(result.status, is_failure, _traced_error))
-        elif throw:
-            status = Status(int(result.status))
-            if status == Status.NONFINITE and int(result.iterations) == 0:
-                inputs = _nonfinite_inputs(self, values, data)
-                if inputs:
-                    raise NonFiniteStartError(
-                        "the factor graph solve ended NONFINITE at its start: "
-                        f"{'; '.join(inputs)}. The result holds the values unchanged (pass "
-                        "throw=False to get it back)."
-                    )
-            if status in (Status.DIVERGED, Status.NONFINITE):
-                raise SolveError(
-                    f"the factor graph solve ended {status.name} after {int(result.iterations)} "
-                    f"iterations (cost {float(result.cost):.6g}); pass throw=False to get the "
-                    "result back."
-                )
+        if throw:
+            result = _raise_on_failure(self, result, values, data)
         return result
 
+    def _parameters(self, solver, *values):
+        """The loop's array of `_solve.PARAMETERS` (`solver`'s damping constants, the
+        tolerances, the iteration limit, in the values' dtype, the last of `values`), kept by
+        their values: a repeated call reuses it."""
+        try:
+            key = (solver, *values)
+            params = self._params.get(key)
+        except TypeError:  # an unhashable value: built, not kept
+            key, params = None, None
+        if params is None:
+            *numbers, dtype = values
+            names = ("relative_tolerance", "absolute_tolerance", "cg_tolerance", "max_iterations")
+            options = numeric_options(solver, **dict(zip(names, numbers)))
+            params = np.asarray([options[name] for name in PARAMETERS], dtype)
+            params.flags.writeable = False
+            if key is not None:
+                if len(self._params) >= 16:
+                    self._params.clear()
+                self._params[key] = params
+        return params
+
     def _loop(
-        self, solver, eliminate, max_iterations, algorithm, damping, lambda_update, retraction,
-        verbose, cg_max_iterations,
+        self, solver, linear_solver, eliminate, max_iterations, retraction, verbose,
+        cg_max_iterations,
     ):  # fmt: skip
         """`(loop, layout, method)`: the compiled `run(values, data, params) -> (values, summary)`
         of `solve`'s options (`_solve.make_loop`), the layout its linear solver works on and that
         solver, kept by the options: a repeated call skips their checks."""
+        static = static_options(solver)
         try:
-            key = (solver, eliminate, type(max_iterations), max_iterations, algorithm, damping,
-                   lambda_update, retraction, verbose, type(cg_max_iterations), cg_max_iterations)  # fmt: skip
+            key = (static, linear_solver, eliminate, type(max_iterations), max_iterations,
+                   retraction, verbose, type(cg_max_iterations), cg_max_iterations)  # fmt: skip
             prepared = self._prepared.get(key)
         except TypeError:  # an unhashable argument: checked (and refused) below
             key, prepared = None, None
         # `"auto"` is decided again at every call (cheap), so that the limits stay live
-        if prepared is None or (solver == "auto" and _auto_method(prepared[1]) != prepared[2]):
+        if prepared is None or (
+            linear_solver == "auto" and _auto_method(prepared[1]) != prepared[2]
+        ):
             prepared = self._prepare(
-                solver, eliminate, max_iterations, algorithm, damping, lambda_update, retraction,
-                verbose, cg_max_iterations,
+                static, linear_solver, eliminate, max_iterations, retraction, verbose,
+                cg_max_iterations,
             )  # fmt: skip
             if key is not None:
                 self._prepared[key] = prepared
         return prepared
 
     def _prepare(
-        self, solver, eliminate, max_iterations, algorithm, damping, lambda_update, retraction,
-        verbose, cg_max_iterations,
-    ):  # fmt: skip
-        """`(loop, layout, method)`: the compiled loop of `solve`'s options, each checked, the
-        layout its linear solver works on and that solver (`solve` keeps them by the options, so
-        a repeated call skips the checks)."""
+        self, static, solver, eliminate, max_iterations, retraction, verbose, cg_max_iterations
+    ):
+        """`(loop, layout, method)`: the compiled loop of `solve`'s options (`static`, from
+        `_solve.static_options`; `solver`, the linear solver), each checked, the layout its
+        linear solver works on and that solver (`solve` keeps them by the options, so a repeated
+        call skips the checks)."""
         if solver not in _SOLVERS:
-            raise ValueError(f"solver must be one of {_SOLVERS}, got {solver!r}.")
-        if algorithm not in ("levenberg_marquardt", "gauss_newton"):
-            raise ValueError(f"unknown algorithm {algorithm!r}.")
-        if damping not in ("identity", "marquardt"):
-            raise ValueError(f"damping must be 'identity' or 'marquardt', got {damping!r}.")
-        if lambda_update not in ("auto", "gtsam", "nielsen"):
-            raise ValueError(
-                f"lambda_update must be 'auto', 'gtsam' or 'nielsen', got {lambda_update!r}."
-            )
-        if lambda_update == "auto":
-            lambda_update = "nielsen" if damping == "marquardt" else "gtsam"
+            raise ValueError(f"linear_solver must be one of {_SOLVERS}, got {solver!r}.")
         max_iterations = _count(max_iterations, "max_iterations")
         if cg_max_iterations is not None:
             cg_max_iterations = _count(cg_max_iterations, "cg_max_iterations")
@@ -395,12 +382,14 @@ class FactorGraph:
             solver = _auto_method(layout)
         if solver == "cholesky":
             layout.start_plan()  # analysed while the loop is traced and compiled
+        gauss_newton, scaling, damping_update, floor = static
         options = {
             "method": solver,
             "schur": schur,
-            "damping": damping,
-            "lambda_update": lambda_update,
-            "algorithm": algorithm,
+            "scaling": scaling,
+            "damping_update": damping_update,
+            "gauss_newton": gauss_newton,
+            "floor": floor,
             "retraction": retraction,
             "history_size": max(16, 1 << int(max_iterations).bit_length()),
             "verbose": bool(verbose),
@@ -413,9 +402,10 @@ class FactorGraph:
                 options[k]
                 for k in (
                     "method",
-                    "damping",
-                    "lambda_update",
-                    "algorithm",
+                    "scaling",
+                    "damping_update",
+                    "gauss_newton",
+                    "floor",
                     "retraction",
                     "history_size",
                     "verbose",
@@ -535,14 +525,8 @@ class FactorGraph:
                 )
 
 
-def parameters(dtype, **values):
-    """The loop's `params` array of `dtype`: `values` (every name of `_solve.PARAMETERS`) in
-    that order."""
-    return np.asarray([values[name] for name in PARAMETERS], dtype=dtype)
-
-
 def _auto_method(layout):
-    """The solver `solver="auto"` picks for `layout`: `"dense"` when it is small, or small enough
+    """The solver `linear_solver="auto"` picks for `layout`: `"dense"` when it is small, or small enough
     and its factor nearly dense (see `_DENSE_FILLED_LIMIT`), else `"cholesky"`."""
     n = layout.padded_unknowns
     if n <= _DENSE_LIMIT or (
@@ -559,22 +543,35 @@ def _traced_error(code) -> SolveError:
     )
 
 
+def _raise_on_failure(graph, result, values, data):
+    """`result`, after raising the `SolveError` its status calls for (`solve`'s `throw`): now when
+    the status is concrete, when the compiled program runs under `jit`, never under `vmap`."""
+    if isinstance(result.status, jax.core.Tracer):
+        return result._replace(status=raise_if(result.status, is_failure, _traced_error))
+    status = Status(int(result.status))
+    if status == Status.NONFINITE and int(result.iterations) == 0:
+        inputs = _nonfinite_inputs(graph, values, data)
+        if inputs:
+            raise NonFiniteStartError(
+                "the factor graph solve ended NONFINITE at its start: "
+                f"{'; '.join(inputs)}. The result holds the values unchanged (pass "
+                "throw=False to get it back)."
+            )
+    if status in (Status.DIVERGED, Status.NONFINITE):
+        raise SolveError(
+            f"the factor graph solve ended {status.name} after {int(result.iterations)} "
+            f"iterations (cost {float(result.cost):.6g}); pass throw=False to get the "
+            "result back."
+        )
+    return result
+
+
 def _nonfinite_inputs(graph, values, data):
     """The values and factor data with NaN or infinite entries, named by variable and factor
-    kind (concrete floating leaves only; computed when a solve has failed)."""
-    found = []
+    kind (`nonfinite_leaves`: concrete floating leaves only; computed when a solve has failed)."""
     named = [(f"values[{v.name!r}]", value) for v, value in zip(graph.variables, values)]
     named += [(f"data of factor {f.name!r}", d) for f, d in zip(graph.factors, data)]
-    for name, tree in named:
-        for leaf in jax.tree_util.tree_leaves(tree):
-            array = getattr(leaf, "_params", leaf)
-            if isinstance(array, jax.core.Tracer) or not hasattr(array, "dtype"):
-                continue
-            array = np.asarray(array)
-            if np.issubdtype(array.dtype, np.inexact) and not np.all(np.isfinite(array)):
-                found.append(f"{name} has NaN or infinite entries")
-                break
-    return found
+    return [f"{name} has NaN or infinite entries" for name, tree in named if nonfinite_leaves(tree)]
 
 
 def _kinds(leaves):
@@ -594,18 +591,17 @@ def _count(value, name):
 
 
 def _result(solution, summary):
-    """The `SolveResult` of the loop's `summary` (`[cost, lambda, iterations, solves, status,
+    """The `SolveResult` of the loop's `summary` (`[cost, damping, iterations, solves, status,
     *history]`, a JAX array under transformations, else NumPy)."""
-    from ._result import SolveResult
-
+    iterations, solves, status = summary[2:5].astype(np.int32)  # one conversion for three
     return SolveResult(
         values=solution,
         cost=summary[0],
-        iterations=summary[2].astype(np.int32),
-        linear_solves=summary[3].astype(np.int32),
-        status=summary[4].astype(np.int32),
+        iterations=iterations,
+        linear_solves=solves,
+        status=status,
         cost_history=summary[5:],
-        lambda_=summary[1],
+        damping=summary[1],
     )
 
 

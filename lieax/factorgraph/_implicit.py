@@ -4,7 +4,8 @@ At the solution $x^*(\theta)$ the tangent gradient $g(\delta, \theta) = \nabla_\
 f(x^* \oplus \delta, \theta)$ of the cost vanishes at $\delta = 0$, so
 $\dot\delta = -H^{-1} \frac{\partial g}{\partial\theta}\dot\theta$ with the exact Hessian
 $H = \partial g / \partial \delta$ over the free instances (Ceres' notes on the implicit
-function theorem; `lieax.lstsq`'s `_implicit` for one dense state). $\theta$ is every factor
+function theorem), by `lieax.lstsq._implicit.minimizer_tangents`, the rule of `least_squares`
+too. $\theta$ is every factor
 kind's `(data, sqrt_information, loss)`; fixed instances do not move. The Hessian is dense
 (one forward pass per unknown over a reverse pass of the cost), so this is for problems of up to
 `MAX_UNKNOWNS` unknowns; larger ones raise a `ValueError` when differentiated.
@@ -16,8 +17,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..autodiff._tangents import leaf_tangent_from_local, manifold_leaves
-from ..groups._base import AbstractManifold
+from ..autodiff._tangents import manifold_leaves
+from ..lstsq._implicit import local_to_tangents, minimizer_tangents
 from ._variables import flat_tangent_to_tree
 
 MAX_UNKNOWNS = 2000
@@ -69,26 +70,10 @@ def _tangents(graph, values, data, data_dot):
         return graph_cost(graph.factors, graph.plans, moved, theta)
 
     dtype = jnp.result_type(*(getattr(x, "_params", x) for x in jax.tree_util.tree_leaves(values)))
-    zero = jnp.zeros((n,), dtype)
-    hessian = jax.jacfwd(jax.grad(objective))(zero, data)
-    hessian = 0.5 * (hessian + hessian.T)
-    hessian = jnp.where(free[:, None] & free[None, :], hessian, jnp.eye(n, dtype=dtype))
-    _, (cost_dot, mixed) = jax.jvp(
-        lambda th: jax.value_and_grad(objective)(zero, th), (data,), (data_dot,)
-    )
-    delta_dot = -jnp.linalg.solve(hessian, jnp.where(free, mixed, 0.0))
+    delta_dot, cost_dot = minimizer_tangents(objective, n, dtype, data, data_dot, free)
     values_dot = []
     for var, value, d in zip(graph.variables, values, unflatten(delta_dot)):
         leaves, treedef = manifold_leaves(value, "value")
         local = jax.tree_util.tree_leaves(flat_tangent_to_tree(var, d))
-        values_dot.append(
-            treedef.unflatten(
-                [
-                    type(leaf)._wrap(leaf_tangent_from_local(leaf, t))
-                    if isinstance(leaf, AbstractManifold)
-                    else t.astype(leaf.dtype)
-                    for leaf, t in zip(leaves, local)
-                ]
-            )
-        )
+        values_dot.append(local_to_tangents(leaves, treedef, local))
     return tuple(values_dot), jnp.asarray(cost_dot, dtype)

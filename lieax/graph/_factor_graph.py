@@ -1,6 +1,7 @@
-r"""A pose graph as a factor graph: `to_factor_graph` turns a `PoseGraph` into a
-`lieax.factorgraph.FactorGraph` with a between factor kind and, when the graph has priors, a
-prior factor kind; `optimize` solves it.
+r"""Pose-graph factors for `lieax.factorgraph`: `between_factor` and `prior_factor` make the
+`Factor` kinds of GTSAM's `BetweenFactor` and `PriorFactor` with their closed-form blocks, and
+`to_factor_graph` turns a `PoseGraph` into a `lieax.factorgraph.FactorGraph` of them;
+`optimize` solves it.
 
 The residuals and their closed-form blocks are `between_error` / `between_jacobians` and
 `prior_error` / `prior_jacobian` (see `_factors`: $e = \mathrm{Log}(Z^{-1} X_i^{-1} X_j)$ with
@@ -47,17 +48,72 @@ def refuse_sightings(graph, entry):
         )
 
 
+def between_factor(
+    poses_i, poses_j, measured, *, sqrt_information=None, loss=None, closed_form=True,
+    exact=True, name="between",
+):  # fmt: skip
+    r"""The `lieax.factorgraph.Factor` kind of between measurements (GTSAM's `BetweenFactor`):
+    residual $\mathrm{Log}(Z^{-1} X_i^{-1} X_j)$ (`between_error`).
+
+    **Arguments:**
+
+    - `poses_i`, `poses_j`: the instances, indexed views of a pose `Var` (`poses[i]`,
+      `poses[j]`).
+    - `measured`: the measurements $Z$, a batched `SE2`/`SE3` of one per instance.
+    - `sqrt_information`, `loss`: as `Factor`'s (the upper Cholesky factor of each information
+      matrix; a robust loss).
+    - `closed_form`: give the factor its closed-form blocks (`between_jacobians`; default);
+      `False` lets `lieax.jacobian` differentiate the residual through the groups' rules.
+    - `exact`: `False` drops $J_r^{-1}(e)$ from the closed-form blocks (GTSAM's blocks
+      "before the Log").
+    - `name`: the factor kind's name.
+    """
+    _check_blocks(closed_form, exact)
+    return Factor(
+        between_error,
+        (poses_i, poses_j),
+        measured,
+        sqrt_information=sqrt_information,
+        loss=loss,
+        jacobian_fn=_BLOCKS[bool(exact)][0] if closed_form else None,
+        name=name,
+    )
+
+
+def prior_factor(
+    poses, measured, *, sqrt_information=None, loss=None, closed_form=True, exact=True,
+    name="prior",
+):  # fmt: skip
+    r"""The `lieax.factorgraph.Factor` kind of pose priors (GTSAM's `PriorFactor`): residual
+    $\mathrm{Log}(Z^{-1} X)$ (`prior_error`), with `poses` an indexed view of a pose `Var`
+    and the other arguments as `between_factor`'s (blocks `prior_jacobian`)."""
+    _check_blocks(closed_form, exact)
+    return Factor(
+        prior_error,
+        (poses,),
+        measured,
+        sqrt_information=sqrt_information,
+        loss=loss,
+        jacobian_fn=_BLOCKS[bool(exact)][1] if closed_form else None,
+        name=name,
+    )
+
+
+def _check_blocks(closed_form, exact):
+    if not closed_form and not exact:
+        raise ValueError("exact=False selects approximate closed-form blocks: needs closed_form.")
+
+
 def to_factor_graph(graph, *, closed_form=True, exact=True, fixed="auto", check_gauge=True):
-    """`(factor_graph, poses)`: the `lieax.factorgraph.FactorGraph` of a `PoseGraph` and its
-    pose `Var`, to add factors of other kinds to, or to solve with other options.
+    """`(factor_graph, poses)`: the `lieax.factorgraph.FactorGraph` of a `PoseGraph` (its
+    `between_factor` and, when it has priors, its `prior_factor`) and its pose `Var`, to add
+    factors of other kinds to, or to solve with other options.
 
     **Arguments:**
 
     - `graph`: the `PoseGraph`.
-    - `closed_form`: give the factors their closed-form Jacobian blocks (default); `False` lets
-      `lieax.jacobian` differentiate the residuals through the groups' `custom_jvp` rules.
-    - `exact`: `False` drops $J_r^{-1}(e)$ from the closed-form blocks (`optimize`'s
-      `jacobian="approximate"`, GTSAM's blocks "before the Log").
+    - `closed_form`, `exact`: as `between_factor`'s (`exact=False` is `optimize`'s
+      `jacobian="approximate"`).
     - `fixed`: the pose indices held constant. `"auto"` (default) is `optimize`'s gauge:
       `graph.fixed`, else none with priors, else the first pose. Pass `None` (or indices) when
       factors added later anchor the graph, e.g. GPS positions, with `check_gauge=False` here:
@@ -65,8 +121,7 @@ def to_factor_graph(graph, *, closed_form=True, exact=True, fixed="auto", check_
     - `check_gauge`: as `FactorGraph`'s.
     """
     refuse_sightings(graph, "to_factor_graph")
-    if not closed_form and not exact:
-        raise ValueError("exact=False selects approximate closed-form blocks: needs closed_form.")
+    _check_blocks(closed_form, exact)
     if isinstance(fixed, str) and fixed == "auto":
         if len(graph.fixed):
             fixed = np.asarray(graph.fixed)
@@ -77,30 +132,26 @@ def to_factor_graph(graph, *, closed_form=True, exact=True, fixed="auto", check_
     elif isinstance(fixed, str):
         raise ValueError(f"fixed must be 'auto', None or pose indices, got {fixed!r}.")
     poses = Var(graph.poses, fixed=fixed, name="poses")
-    between_blocks, prior_blocks = _BLOCKS[bool(exact)]
-    b = graph.between
+    b, p = graph.between, graph.priors
+    blocks = {"closed_form": closed_form, "exact": exact}
     factors = [
-        Factor(
-            between_error,
-            (poses[b.i], poses[b.j]),
+        between_factor(
+            poses[b.i],
+            poses[b.j],
             b.measured,
             sqrt_information=b.sqrt_information,
             loss=b.loss,
-            jacobian_fn=between_blocks if closed_form else None,
-            name="between",
-        )
+            **blocks,
+        )  # fmt: skip
     ]
-    p = graph.priors
     if p is not None and len(p):
         factors.append(
-            Factor(
-                prior_error,
-                (poses[p.index],),
+            prior_factor(
+                poses[p.index],
                 p.measured,
                 sqrt_information=p.sqrt_information,
                 loss=p.loss,
-                jacobian_fn=prior_blocks if closed_form else None,
-                name="prior",
-            )
+                **blocks,
+            )  # fmt: skip
         )
     return FactorGraph(factors, [poses], check_gauge=check_gauge), poses

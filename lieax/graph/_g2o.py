@@ -35,6 +35,7 @@ and line.
 import collections
 import os
 import warnings
+from typing import NamedTuple
 
 import numpy as np
 
@@ -124,6 +125,136 @@ def read_g2o(path, *, information="nearest", dtype=None) -> PoseGraph:
     if information not in _POLICIES:
         raise ValueError(f"information must be one of {_POLICIES}, got {information!r}.")
     path = os.fspath(path)
+    records = _read_records(path)
+    dim, skipped = records.dim, records.skipped
+    vertex_ids, vertex_values, vertex_lines = (
+        records.vertex_ids, records.vertex_values, records.vertex_lines
+    )  # fmt: skip
+    edge_pairs, edge_values, edge_lines = (
+        records.edge_pairs, records.edge_values, records.edge_lines
+    )  # fmt: skip
+    fixed_ids = records.fixed_ids
+    if skipped:
+        counts = list(skipped.items())
+        listed = ", ".join(f"{tag!r} ×{n}" for tag, n in counts[:_LISTED_TAGS])
+        if len(counts) > _LISTED_TAGS:
+            listed += f" and {len(counts) - _LISTED_TAGS} other tags"
+        warnings.warn(
+            f"{path}: skipped {sum(skipped.values())} lines with tags lieax does not read "
+            f"({listed}); read_g2o reads pose graphs ({', '.join(_TAGS)}).",
+            G2oWarning,
+            stacklevel=2,
+        )
+    if dim is None:
+        raise G2oError(
+            f"{path}: no pose-graph vertices or edges"
+            + (
+                f" (only skipped tags: {', '.join(list(skipped)[:_LISTED_TAGS])})."
+                if skipped
+                else "."
+            )
+        )
+    group = SE2 if dim == 2 else SE3
+    d = group.tangent_dim
+    edge_pairs = np.asarray(edge_pairs, dtype=np.int64).reshape(-1, 2)
+    width = _TAGS["EDGE_SE2" if dim == 2 else "EDGE_SE3:QUAT"][2] - 2
+    edge_values = np.asarray(edge_values, dtype=np.float64).reshape(len(edge_lines), width)
+    edge_lines = np.asarray(edge_lines, dtype=np.int64)
+    _check_finite(edge_values, edge_lines, path)
+    vertex_rows = np.asarray(vertex_values, dtype=np.float64).reshape(-1, 3 if dim == 2 else 7)
+    vertex_lines_array = np.asarray([vertex_lines[v] for v in vertex_ids], dtype=np.int64)
+    _check_finite(vertex_rows, vertex_lines_array, path)
+
+    measured, measured_off = _poses_from_rows(
+        group, edge_values[:, : 3 if dim == 2 else 7], edge_lines, path
+    )
+    upper = edge_values[:, 3 if dim == 2 else 7 :]
+    root = square_root_information(
+        _repaired_information(_upper_to_symmetric(upper, d), information, edge_lines, path),
+        "information matrix of edge",
+    )
+
+    if vertex_ids:
+        ids, index = _vertex_index(vertex_ids, edge_pairs, edge_lines, path)
+        poses, poses_off = _poses_from_rows(group, vertex_rows, vertex_lines_array, path)
+        has_vertices = True
+    else:
+        ids, index = np.unique(edge_pairs, return_inverse=True)
+        index = index.reshape(-1, 2)
+        poses_off = np.zeros(0)
+        has_vertices = False
+    _warn_quaternions(
+        np.concatenate([poses_off, measured_off]),
+        np.concatenate([vertex_lines_array, edge_lines]),
+        path,
+    )
+    lookup = {int(v): k for k, v in enumerate(ids)}
+    for vertex, number in fixed_ids:
+        if vertex not in lookup:
+            raise G2oError(
+                f"{path}:{number}: FIX refers to vertex {vertex}, which the file does not define."
+            )
+    fixed = np.unique(np.asarray([lookup[v] for v, _ in fixed_ids], dtype=np.int64))
+
+    # one transfer per array: `jnp.asarray` would compile a conversion per shape (issue 30)
+    to_dtype = (
+        (lambda x: to_device(x)) if dtype is None else (lambda x: to_device(np.asarray(x, dtype)))
+    )
+    measured = group._wrap(to_dtype(measured))
+    between = BetweenFactors(index[:, 0].copy(), index[:, 1].copy(), measured, to_dtype(root))
+    if has_vertices:
+        poses = group._wrap(to_dtype(poses))
+    else:
+        from ._init import spanning_tree_poses
+
+        n = len(ids)
+        placeholder = PoseGraph(group.identity((n,), dtype=measured.dtype), ids, between)
+        count, _ = placeholder.components()
+        if count > 1:
+            raise G2oError(
+                f"{path}: the file has no vertices and its edges form {count} "
+                "disconnected components, so no initial poses can be composed."
+            )
+        poses = spanning_tree_poses(placeholder)
+    return PoseGraph(poses, ids, between, fixed=fixed)
+
+
+def _vertex_index(vertex_ids, edge_pairs, edge_lines, path):
+    """`(ids, index)`: the vertex ids as an array, and each edge's two positions in it (a
+    `G2oError` names the line of an edge whose vertex the file does not define)."""
+    ids = np.asarray(vertex_ids, dtype=np.int64)
+    order = np.argsort(ids, kind="stable")
+    sorted_ids = ids[order]
+    found = np.searchsorted(sorted_ids, edge_pairs.clip(min=sorted_ids[0]))
+    found = found.clip(max=len(ids) - 1)
+    missing = sorted_ids[found] != edge_pairs
+    if np.any(missing):
+        row = int(np.argmax(np.any(missing, axis=1)))
+        vertex = int(edge_pairs[row][np.argmax(missing[row])])
+        raise G2oError(
+            f"{path}:{edge_lines[row]}: edge refers to vertex {vertex}, which the "
+            "file does not define."
+        )
+    return ids, order[found]
+
+
+class _Records(NamedTuple):
+    """The pose-graph lines of a g2o file, as read (`_read_records`)."""
+
+    dim: object  # 2, 3, or None when the file has no pose-graph element
+    vertex_ids: list
+    vertex_values: list
+    vertex_lines: dict  # vertex id -> line number
+    edge_pairs: list
+    edge_values: list
+    edge_lines: list
+    fixed_ids: list  # (vertex id, line number) of FIX lines
+    skipped: collections.Counter  # lines of other tags, by tag
+
+
+def _read_records(path):
+    """The `_Records` of the g2o file `path`: each line's tag, ids and numbers checked (a
+    `G2oError` names the line), nothing converted yet."""
     dim = None
     vertex_ids, vertex_values, vertex_lines = [], [], {}
     edge_pairs, edge_values, edge_lines = [], [], []
@@ -176,102 +307,10 @@ def read_g2o(path, *, information="nearest", dtype=None) -> PoseGraph:
                 edge_pairs.append(pair)
                 edge_values.append(_floats(fields[3:], where))
                 edge_lines.append(number)
-    if skipped:
-        counts = list(skipped.items())
-        listed = ", ".join(f"{tag!r} ×{n}" for tag, n in counts[:_LISTED_TAGS])
-        if len(counts) > _LISTED_TAGS:
-            listed += f" and {len(counts) - _LISTED_TAGS} other tags"
-        warnings.warn(
-            f"{path}: skipped {sum(skipped.values())} lines with tags lieax does not read "
-            f"({listed}); read_g2o reads pose graphs ({', '.join(_TAGS)}).",
-            G2oWarning,
-            stacklevel=2,
-        )
-    if dim is None:
-        raise G2oError(
-            f"{path}: no pose-graph vertices or edges"
-            + (
-                f" (only skipped tags: {', '.join(list(skipped)[:_LISTED_TAGS])})."
-                if skipped
-                else "."
-            )
-        )
-    group = SE2 if dim == 2 else SE3
-    d = group.tangent_dim
-    edge_pairs = np.asarray(edge_pairs, dtype=np.int64).reshape(-1, 2)
-    width = _TAGS["EDGE_SE2" if dim == 2 else "EDGE_SE3:QUAT"][2] - 2
-    edge_values = np.asarray(edge_values, dtype=np.float64).reshape(len(edge_lines), width)
-    edge_lines = np.asarray(edge_lines, dtype=np.int64)
-    _check_finite(edge_values, edge_lines, path)
-    vertex_rows = np.asarray(vertex_values, dtype=np.float64).reshape(-1, 3 if dim == 2 else 7)
-    vertex_lines_array = np.asarray([vertex_lines[v] for v in vertex_ids], dtype=np.int64)
-    _check_finite(vertex_rows, vertex_lines_array, path)
-
-    measured, measured_off = _poses_from_rows(
-        group, edge_values[:, : 3 if dim == 2 else 7], edge_lines, path
-    )
-    upper = edge_values[:, 3 if dim == 2 else 7 :]
-    root = square_root_information(
-        _repaired_information(_upper_to_symmetric(upper, d), information, edge_lines, path),
-        "information matrix of edge",
-    )
-
-    if vertex_ids:
-        ids = np.asarray(vertex_ids, dtype=np.int64)
-        order = np.argsort(ids, kind="stable")
-        sorted_ids = ids[order]
-        found = np.searchsorted(sorted_ids, edge_pairs.clip(min=sorted_ids[0]))
-        found = found.clip(max=len(ids) - 1)
-        missing = sorted_ids[found] != edge_pairs
-        if np.any(missing):
-            row = int(np.argmax(np.any(missing, axis=1)))
-            vertex = int(edge_pairs[row][np.argmax(missing[row])])
-            raise G2oError(
-                f"{path}:{edge_lines[row]}: edge refers to vertex {vertex}, which the "
-                "file does not define."
-            )
-        index = order[found]
-        poses, poses_off = _poses_from_rows(group, vertex_rows, vertex_lines_array, path)
-        has_vertices = True
-    else:
-        ids, index = np.unique(edge_pairs, return_inverse=True)
-        index = index.reshape(-1, 2)
-        poses_off = np.zeros(0)
-        has_vertices = False
-    _warn_quaternions(
-        np.concatenate([poses_off, measured_off]),
-        np.concatenate([vertex_lines_array, edge_lines]),
-        path,
-    )
-    lookup = {int(v): k for k, v in enumerate(ids)}
-    for vertex, number in fixed_ids:
-        if vertex not in lookup:
-            raise G2oError(
-                f"{path}:{number}: FIX refers to vertex {vertex}, which the file does not define."
-            )
-    fixed = np.unique(np.asarray([lookup[v] for v, _ in fixed_ids], dtype=np.int64))
-
-    # one transfer per array: `jnp.asarray` would compile a conversion per shape (issue 30)
-    to_dtype = (
-        (lambda x: to_device(x)) if dtype is None else (lambda x: to_device(np.asarray(x, dtype)))
-    )
-    measured = group._wrap(to_dtype(measured))
-    between = BetweenFactors(index[:, 0].copy(), index[:, 1].copy(), measured, to_dtype(root))
-    if has_vertices:
-        poses = group._wrap(to_dtype(poses))
-    else:
-        from ._init import spanning_tree_poses
-
-        n = len(ids)
-        placeholder = PoseGraph(group.identity((n,), dtype=measured.dtype), ids, between)
-        count, _ = placeholder.components()
-        if count > 1:
-            raise G2oError(
-                f"{path}: the file has no vertices and its edges form {count} "
-                "disconnected components, so no initial poses can be composed."
-            )
-        poses = spanning_tree_poses(placeholder)
-    return PoseGraph(poses, ids, between, fixed=fixed)
+    return _Records(
+        dim, vertex_ids, vertex_values, vertex_lines, edge_pairs, edge_values, edge_lines,
+        fixed_ids, skipped,
+    )  # fmt: skip
 
 
 def _ints(fields, where):

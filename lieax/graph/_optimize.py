@@ -1,19 +1,19 @@
 r"""Levenberg-Marquardt on a pose graph, with GTSAM's `LevenbergMarquardtOptimizer` semantics.
 
-`optimize` is a thin layer over `lieax.factorgraph`: the `PoseGraph` becomes a `FactorGraph` of
-between factors $\mathrm{Log}(Z^{-1} X_i^{-1} X_j)$ and prior factors $\mathrm{Log}(Z^{-1} X)$
-with their closed-form blocks (`to_factor_graph`), built once per structure
-(edges, priors, fixed poses) and reused with the new graph's poses and measurements as values
-and data, and the compiled loop of `FactorGraph.solve` runs it (one jitted `lax.while_loop`; see
-`lieax.factorgraph._solve` for the steps), called directly: the poses and data are the
-structure's by construction, so `solve`'s checks of them are skipped.
+`optimize` is a short convenience over the public `lieax.factorgraph` API: the `PoseGraph`
+becomes a `FactorGraph` of between factors $\mathrm{Log}(Z^{-1} X_i^{-1} X_j)$ and prior
+factors $\mathrm{Log}(Z^{-1} X)$ with their closed-form blocks (`to_factor_graph`), built once
+per structure (edges, priors, fixed poses) and solved by `FactorGraph.solve` with the graph's
+poses and measurements as values and data, so that a new start or new measurements of the same
+structure reuse its analysis and its compiled loop.
 
-Semantics (GTSAM 4.3's defaults, so that iteration counts compare): $\lambda_0 = 10^{-5}$, factor
-10, $\lambda \ge 10^5$ gives up; a step is taken when the model fidelity (actual over predicted
-cost decrease) exceeds $10^{-3}$, otherwise $\lambda$ grows and the same linearization is solved
-again; an outer iteration ends with a taken step, or without one when the cost change is below
-`relative_tolerance` × cost; the run stops when the cost decrease of an iteration is at most
-`absolute_tolerance` or `relative_tolerance` × cost, or after `max_iterations` iterations.
+Semantics: `lieax.lstsq.LevenbergMarquardt.gtsam()`, GTSAM 4.3's defaults, so that iteration
+counts compare: $\mu_0 = 10^{-5}$, factor 10, $\mu \ge 10^5$ gives up; a step is taken when
+the model fidelity (actual over predicted cost decrease) exceeds $10^{-3}$, otherwise $\mu$
+grows and the same linearization is solved again; an outer iteration ends with a taken step, or
+without one when the cost change is below `relative_tolerance` × cost; the run stops when the
+cost decrease of an iteration is at most `absolute_tolerance` or `relative_tolerance` × cost,
+or after `max_iterations` iterations (`lieax.factorgraph._solve`).
 """
 
 import dataclasses
@@ -22,20 +22,18 @@ import hashlib
 import jax
 import numpy as np
 
-from .. import retractions
-from .._threads import lapack_limited
-from ..factorgraph._graph import parameters
-from ..factorgraph._sparse import dense_threads
-from ..lstsq import Status
+from ..lstsq import LevenbergMarquardt, Status
 from ..lstsq._solution import SolverResult
 from ._factor_graph import refuse_sightings, to_factor_graph
 
-_SOLVERS = ("cholesky", "cg")
+_LINEAR_SOLVERS = ("cholesky", "cg")
+_GTSAM = LevenbergMarquardt.gtsam()
 
 
 @dataclasses.dataclass(frozen=True, repr=False)
 class OptimizeResult(SolverResult):
-    r"""What `optimize` returns (concrete NumPy and Python values); a `lieax.lstsq.SolverResult`.
+    r"""What `optimize` returns (concrete NumPy and Python values); a `lieax.lstsq.SolverResult`,
+    the host view of the `lieax.factorgraph.SolveResult` of its solve.
 
     **Fields:**
 
@@ -45,7 +43,7 @@ class OptimizeResult(SolverResult):
     - `linear_solves`: factorizations (or conjugate-gradient solves), rejected steps included.
     - `status`: a `Status` (`status_name` reads its name).
     - `cost_history`: `(iterations + 1,)` numpy array: the initial cost, then after each iteration.
-    - `lambda_`: the damping at the end.
+    - `damping`: the damping at the end.
     """
 
     poses: object
@@ -54,44 +52,45 @@ class OptimizeResult(SolverResult):
     linear_solves: int
     status: Status
     cost_history: np.ndarray
-    lambda_: float
+    damping: float
 
-    _repr_fields = ("cost", "iterations", "linear_solves", "lambda_")
+    _repr_fields = ("cost", "iterations", "linear_solves", "damping")
 
 
 def optimize(
     graph,
     *,
+    solver=_GTSAM,
+    linear_solver="cholesky",
     max_iterations=100,
-    solver="cholesky",
-    jacobian="exact",
-    retraction=None,
-    verbose=False,
-    lambda_initial=1e-5,
-    lambda_factor=10.0,
-    lambda_max=1e5,
     relative_tolerance=1e-5,
     absolute_tolerance=1e-5,
-    min_model_fidelity=1e-3,
+    jacobian="exact",
+    retraction=None,
     cg_tolerance=1e-8,
     cg_max_iterations=None,
+    verbose=False,
 ):
     r"""Levenberg-Marquardt on a `PoseGraph` (see the module docstring for the semantics).
 
     **Arguments:**
 
     - `graph`: the `PoseGraph`; its poses are the initial values.
-    - `max_iterations`: outer iterations at most.
-    - `solver`: `"cholesky"` (default): exact steps, so the iterates follow GTSAM's. Graphs of
-      more than 300 unknowns (poses × tangent dimension) use the host's multifrontal block
-      Cholesky (`lieax.graph.CholeskyPlan`, numpy and LAPACK, called from the jitted loop);
-      smaller ones factor the dense matrix inside JAX, which skips the host call and the
-      per-front overheads. The crossover is measured (one CPU thread, whole `optimize` calls
-      on prefixes of smallGrid3D and intel): dense / multifrontal time 0.3-0.4 at 60-120
-      unknowns, 0.5-0.7 at 180-240, 0.9 at 300, 1.0-1.3 at 360, 2.1 at 540, 2.3 at 600 (the
-      dense factorization's $O((nd)^3)$ work overtakes the fronts' fixed costs early).
-      `"cg"`: block-Jacobi preconditioned conjugate gradients, all in JAX, for accelerators
-      (no host round trip; inexact steps, slower to converge on poorly conditioned graphs).
+    - `solver`: the Levenberg-Marquardt options (default `LevenbergMarquardt.gtsam()`), as
+      `FactorGraph.solve`'s.
+    - `linear_solver`: `"cholesky"` (default): exact steps, so the iterates follow GTSAM's.
+      Graphs of more than 300 unknowns (poses × tangent dimension) use the host's multifrontal
+      block Cholesky (numpy and LAPACK, called from the jitted loop); smaller ones factor the
+      dense matrix inside JAX, which skips the host call and the per-front overheads
+      (`FactorGraph.solve(linear_solver="auto")`). The crossover is measured (one CPU thread,
+      whole `optimize` calls on prefixes of smallGrid3D and intel): dense / multifrontal time
+      0.3-0.4 at 60-120 unknowns, 0.5-0.7 at 180-240, 0.9 at 300, 1.0-1.3 at 360, 2.1 at 540,
+      2.3 at 600 (the dense factorization's $O((nd)^3)$ work overtakes the fronts' fixed costs
+      early). `"cg"`: block-Jacobi preconditioned conjugate gradients, all in JAX, for
+      accelerators (no host round trip; inexact steps, slower to converge on poorly
+      conditioned graphs).
+    - `max_iterations`, `relative_tolerance`, `absolute_tolerance`: GTSAM's `maxIterations`,
+      `relativeErrorTol`, `absoluteErrorTol`.
     - `jacobian`: `"exact"` (default) differentiates the residual $\mathrm{Log}(Z^{-1}X_i^{-1}X_j)$
       exactly (with $J_r^{-1}(e)$), so the optimizer converges to a stationary point of the cost.
       GTSAM 4.3's iterates match these (same iteration counts, final costs equal to 1e-12 on the
@@ -103,61 +102,46 @@ def optimize(
       `lieax.retractions.exp`, $X_i \mathrm{Exp}(\delta_i)$ as GTSAM with
       `GTSAM_POSE3_EXPMAP`; `lieax.retractions.cayley` is GTSAM's default Pose3 chart). The
       Jacobians and the optimum do not depend on it, the path to the optimum does.
-    - `verbose`: print the cost, $\lambda$ and the step's fate at every attempt.
-    - the rest: the Levenberg-Marquardt parameters (GTSAM's defaults) and the conjugate-gradient
-      tolerance and iteration limit (default $10\,n\,d$).
+    - `cg_tolerance`, `cg_max_iterations`: of `linear_solver="cg"` (default $10\,n\,d$
+      iterations).
+    - `verbose`: print the cost, the damping and the step's fate at every attempt.
 
     The gauge: poses in `graph.fixed` are held constant; without any, and without priors, the
     first pose is. A graph with several connected components must anchor each one (a prior or
     a fixed pose), else `ValueError`: a disconnected graph is reported, not silently optimized.
+    A solve that ends `DIVERGED` or `NONFINITE` is returned, not raised: read `status`.
 
     **Returns:** an `OptimizeResult`.
     """
     refuse_sightings(graph, "optimize")
-    if solver not in _SOLVERS:
-        raise ValueError(f"solver must be one of {_SOLVERS}, got {solver!r}.")
+    if linear_solver not in _LINEAR_SOLVERS:
+        raise ValueError(f"linear_solver must be one of {_LINEAR_SOLVERS}, got {linear_solver!r}.")
     if jacobian not in ("exact", "approximate"):
         raise ValueError(f"jacobian must be 'exact' or 'approximate', got {jacobian!r}.")
-    if max_iterations < 0:
-        raise ValueError(f"max_iterations must be non-negative, got {max_iterations}.")
-    if retraction is None:
-        retraction = retractions.exp
-    if not isinstance(retraction, retractions.Retraction):
-        raise TypeError(f"retraction must be a lieax.retractions.Retraction, got {retraction!r}.")
-    # the concrete path to the cached compiled loop of `FactorGraph.solve` (its checks of the
-    # values and data hold by construction here: the poses are the structure's, the data
-    # `factor_data`'s), a third of the host time of a call on tinyGrid3D
-    factor_graph = _factor_graph(graph, jacobian == "exact")
-    loop, layout, method = factor_graph._loop(
-        "auto" if solver == "cholesky" else "cg", None, max_iterations, "levenberg_marquardt",
-        "identity", "gtsam", retraction, verbose, cg_max_iterations,
-    )  # fmt: skip
-    params = parameters(
-        graph.poses.dtype,
-        lambda_initial=lambda_initial,
-        lambda_factor=lambda_factor,
-        lambda_max=lambda_max,
+    result = _factor_graph(graph, jacobian == "exact").solve(
+        (graph.poses,),
+        factor_data(graph),
+        solver=solver,
+        linear_solver="auto" if linear_solver == "cholesky" else "cg",
+        eliminate=None,
+        max_iterations=max_iterations,
         relative_tolerance=relative_tolerance,
         absolute_tolerance=absolute_tolerance,
-        min_model_fidelity=min_model_fidelity,
+        retraction=retraction,
         cg_tolerance=cg_tolerance,
-        max_iterations=max_iterations,
-        diagonal_min=1e-6,  # unused with damping="identity"
-        diagonal_max=1e32,
+        cg_max_iterations=cg_max_iterations,
+        verbose=verbose,
+        throw=False,
     )
-    threads = dense_threads(layout.pattern) if method == "dense" else None
-    with lapack_limited(threads):  # waits for the program (`np.asarray`) inside
-        solution, summary = loop((graph.poses,), factor_data(graph), params)
-        summary = np.asarray(summary)  # `[cost, lambda, iterations, solves, status, *history]`
-    iterations = int(summary[2])
+    iterations = int(result.iterations)
     return OptimizeResult(
-        poses=solution[0],
-        cost=float(summary[0]),
+        poses=result.values[0],
+        cost=float(result.cost),
         iterations=iterations,
-        linear_solves=int(summary[3]),
-        status=Status(int(summary[4])),
-        cost_history=summary[5 : 5 + iterations + 1],
-        lambda_=float(summary[1]),
+        linear_solves=int(result.linear_solves),
+        status=Status(int(result.status)),
+        cost_history=np.asarray(result.cost_history)[: iterations + 1],
+        damping=float(result.damping),
     )
 
 
@@ -168,6 +152,7 @@ _CACHE_SIZE = 8
 
 
 def _digest(*arrays):
+    """A digest of the index arrays of a structure (the cache key of `_factor_graph`)."""
     h = hashlib.blake2b(digest_size=16)
     for a in arrays:
         a = np.ascontiguousarray(a)

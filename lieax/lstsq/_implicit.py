@@ -10,7 +10,11 @@ H = \frac{\partial g}{\partial \delta}
   = \nabla^2_\delta f(x^* \oplus \delta, \theta)\big|_{\delta=0},$$
 
 with the exact Hessian of the (robust) cost in tangent coordinates, not the Gauss-Newton one, so
-that problems with nonzero residuals get exact derivatives. $\dot\delta$ is a right-local
+that problems with nonzero residuals get exact derivatives. `minimizer_tangents` is this rule
+once for lieax's Levenberg-Marquardt, for both its doors: `least_squares` (one state,
+`with_implicit_derivatives`) and `FactorGraph.solve` (`lieax.factorgraph._implicit`, whose fixed
+instances do not move); `local_to_tangents` turns the right-local $\dot\delta$ into JAX tangents
+of the solution's leaves. $\dot\delta$ is a right-local
 tangent; each group leaf's JAX tangent is made from it by `leaf_tangent_from_local`. The cost
 moves by $\partial f / \partial \theta\,\dot\theta$ (its derivative through $x^*$ vanishes
 with $g$). No iteration is unrolled: the rule costs one Hessian ($n$ forward passes over one
@@ -36,6 +40,42 @@ from ._normal_equations import cholesky_with_fallback, solve_factored
 from ._problem import cost
 
 
+def minimizer_tangents(objective, n, dtype, theta, theta_dot, free=None):
+    r"""`(delta_dot, cost_dot)`: the implicit derivative $\dot\delta = -H^{-1}\,\partial_\theta
+    g\,\dot\theta$ of the minimizer of `objective(delta, theta)` at $\delta = 0$ (the solution,
+    where its gradient $g$ vanishes) and the cost's $\partial_\theta f\,\dot\theta$, for `n`
+    tangent coordinates of `dtype`. `free` (a boolean mask of the coordinates, or `None`) holds
+    the others still: their rows and columns of $H$ become the identity's and their
+    $\dot\delta$ is zero. $H$ is the exact Hessian (`n` forward passes over one reverse pass),
+    symmetrized and solved by `cholesky_with_fallback` (the factorization of the dense loop's
+    `solve_spd`, whose regularized fallback gives a singular direction, such as a free gauge,
+    no motion; `solve_factored` is linear in the right side, so JAX transposes it)."""
+    zero = jnp.zeros((n,), dtype=dtype)
+    hessian = jax.jacfwd(jax.grad(objective))(zero, theta)
+    hessian = 0.5 * (hessian + hessian.T)
+    _, (cost_dot, mixed) = jax.jvp(
+        lambda th: jax.value_and_grad(objective)(zero, th), (theta,), (theta_dot,)
+    )
+    if free is not None:
+        hessian = jnp.where(free[:, None] & free[None, :], hessian, jnp.eye(n, dtype=dtype))
+        mixed = jnp.where(free, mixed, 0.0)
+    return -solve_factored(cholesky_with_fallback(hessian), mixed), cost_dot
+
+
+def local_to_tangents(leaves, treedef, local):
+    """The JAX tangents of a solution's `leaves` (flattened by `manifold_leaves` into
+    `treedef`) from their right-local tangents `local` (one array per leaf): a group leaf's by
+    `leaf_tangent_from_local` (the tangent carrier), an array's as it is."""
+    return treedef.unflatten(
+        [
+            type(leaf)._wrap(leaf_tangent_from_local(leaf, d))
+            if isinstance(leaf, AbstractManifold)
+            else d.astype(leaf.dtype)
+            for leaf, d in zip(leaves, local)
+        ]
+    )
+
+
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
 def with_implicit_derivatives(residual_fn, x_star, cost_star, theta):
     """`(x_star, cost_star)` unchanged, carrying the implicit derivatives with respect to
@@ -59,20 +99,9 @@ def _with_implicit_derivatives_jvp(residual_fn, primals, tangents):
         args, loss = theta
         return cost(residual_fn(rplus(x_star, unflatten_tangents(x_star, delta)), args), loss)
 
-    zero = jnp.zeros((tangent_dim(x_star),), dtype=dtype)
-    hessian = jax.jacfwd(jax.grad(objective))(zero, theta)
-    hessian = 0.5 * (hessian + hessian.T)
-    _, (cost_dot, mixed) = jax.jvp(
-        lambda th: jax.value_and_grad(objective)(zero, th), (theta,), (theta_dot,)
+    delta_dot, cost_dot = minimizer_tangents(
+        objective, tangent_dim(x_star), dtype, theta, theta_dot
     )
-    delta_dot = -solve_factored(cholesky_with_fallback(hessian), mixed)
     local = jax.tree_util.tree_leaves(unflatten_tangents(x_star, delta_dot))
-    x_dot = treedef.unflatten(
-        [
-            type(leaf)._wrap(leaf_tangent_from_local(leaf, d))
-            if isinstance(leaf, AbstractManifold)
-            else d.astype(leaf.dtype)
-            for leaf, d in zip(leaves, local)
-        ]
-    )
+    x_dot = local_to_tangents(leaves, treedef, local)
     return (x_star, cost_star), (x_dot, jnp.asarray(cost_dot, jnp.result_type(cost_star)))

@@ -25,8 +25,38 @@ evaluates residuals and Jacobian blocks at every trial point and assembles the n
 only for a kept one, inside a `cond`), what an iteration counts (every trial point, as MINPACK
 counts function evaluations; a taken step, as GTSAM counts iterations) and the stopping rules
 (MINPACK-style scaled tests; GTSAM's cost-change tests). The body adds no operation of its own:
-a loop's compiled program is its phases' in sequence.
+a loop's compiled program is its phases' in sequence. `run` is the one loop that runs a body.
 """
+
+import jax
+import jax.numpy as jnp
+from jax import lax
+
+from ._solution import Status
+
+
+def run(phases, initial, unrolled_length=None):
+    """The loop of lieax's Levenberg-Marquardt and Gauss-Newton: `body` of `phases` (an object
+    with the five phases as methods: `_least_squares._DensePhases`, the factor graph's
+    `_solve._Phases`) from the state `initial` until its `status` is no longer `RUNNING`: a
+    `lax.while_loop`, or with `unrolled_length` a `lax.scan` of that many iterations masked
+    once stopped, so that reverse mode can go through them (every problem of a `vmap` runs in
+    lockstep either way; a stopped one keeps its state)."""
+    step = body(phases.evaluate, phases.decide, phases.test, phases.relinearize, phases.propose)
+
+    def running(state):
+        return state.status == Status.RUNNING
+
+    if unrolled_length is None:
+        return lax.while_loop(running, step, initial)
+
+    def masked(state, _):
+        new = step(state)
+        return jax.tree_util.tree_map(
+            lambda a, b: jnp.where(running(state), a, b), new, state
+        ), None
+
+    return lax.scan(masked, initial, None, length=unrolled_length)[0]
 
 
 def body(evaluate, decide, test, relinearize, propose):

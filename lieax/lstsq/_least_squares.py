@@ -40,7 +40,14 @@ from . import _trust_region as trust_region
 from ._implicit import with_implicit_derivatives
 from ._losses import AbstractLoss
 from ._problem import linearize
-from ._solution import NonFiniteStartError, Solution, SolveError, Status, is_failure
+from ._solution import (
+    NonFiniteStartError,
+    Solution,
+    SolveError,
+    Status,
+    is_failure,
+    nonfinite_leaves,
+)
 from ._solvers import AbstractSolver, LevenbergMarquardt
 
 _DEFAULT_TOLERANCES = {  # (function, gradient, parameter) by dtype
@@ -275,29 +282,80 @@ def _solve(
     loss,
     tolerances,
 ):
-    function_tolerance, gradient_tolerance, parameter_tolerance = tolerances
     implicit = differentiation == "implicit"
     if implicit:  # the loop is not differentiated: derivatives come from with_implicit_derivatives
         x0, args_loop, loss_loop = lax.stop_gradient((x0, args, loss))
     else:
         args_loop, loss_loop = args, loss
+    phases = _DensePhases(
+        residual_fn, solver, retraction, x0, args_loop, loss_loop, tolerances, max_iterations,
+        verbose,
+    )  # fmt: skip
+    # implicit: a `while_loop`; unrolled: a fixed number of masked iterations, so that reverse
+    # mode can go through them
+    final = _iteration.run(
+        phases, phases.initial_state(x0), None if implicit else max_iterations + 1
+    )
     sg = lax.stop_gradient
-    n = tangent_dim(x0)
-    x0_arrays = [leaf_array(leaf) for leaf in manifold_leaves(x0, "x0")[0]]
-    dtype = jnp.result_type(*x0_arrays)
-    start_finite = _all_finite(*x0_arrays)  # a NaN the residual does not read counts too
+    if verbose:
+        jax.debug.callback(
+            _print_summary, final.status, final.iteration, final.cost_history[0], sg(final.cost)
+        )
+    value, cost = final.x, final.cost
+    if implicit:
+        value, cost = with_implicit_derivatives(residual_fn, value, cost, (args, loss))
+    return Solution(
+        value=value,
+        cost=cost,
+        iterations=final.iteration,
+        status=final.status,
+        cost_history=final.cost_history,
+    )
 
-    # One linearization per iteration, at the trial point the previous iteration chose; the
-    # first iteration evaluates x0 (so the residual is traced and compiled once).
-    def evaluate(state: _State):
-        cost, hessian, gradient = linearize(residual_fn, state.x_trial, args_loop, loss_loop)
-        finite = _all_finite(cost, hessian, gradient) & (~state.first | start_finite)
+
+class _DensePhases:
+    """The five phases of `_iteration.body` for the dense normal equations of one state (see the
+    module docstring): one linearization per iteration, at the trial point the previous
+    iteration chose; the first iteration evaluates $x_0$ (so the residual is traced and
+    compiled once). Decisions are not differentiated, they only select between differentiable
+    values."""
+
+    def __init__(
+        self, residual_fn, solver, retraction, x0, args, loss, tolerances, max_iterations,
+        verbose,
+    ):  # fmt: skip
+        self.residual_fn, self.solver, self.retraction = residual_fn, solver, retraction
+        self.args, self.loss, self.tolerances = args, loss, tolerances
+        self.max_iterations, self.verbose = max_iterations, verbose
+        self.n = tangent_dim(x0)
+        x0_arrays = [leaf_array(leaf) for leaf in manifold_leaves(x0, "x0")[0]]
+        self.dtype = jnp.result_type(*x0_arrays)
+        self.start_finite = _all_finite(*x0_arrays)  # a NaN the residual does not read counts too
+
+    def initial_state(self, x0):
+        n, dtype = self.n, self.dtype
+        return _State(
+            x=x0,
+            cost=jnp.zeros((), dtype),
+            hessian=jnp.zeros((n, n), dtype),
+            gradient=jnp.zeros((n,), dtype),
+            solver_state=self.solver.init(n, dtype),
+            x_trial=x0,
+            step=jnp.zeros((n,), dtype),
+            first=jnp.ones((), bool),
+            iteration=jnp.zeros((), jnp.int32),
+            status=jnp.asarray(Status.RUNNING, jnp.int32),
+            cost_history=jnp.full((self.max_iterations + 1,), jnp.nan, dtype),
+        )
+
+    def evaluate(self, state: _State):
+        cost, hessian, gradient = linearize(self.residual_fn, state.x_trial, self.args, self.loss)
+        finite = _all_finite(cost, hessian, gradient) & (~state.first | self.start_finite)
         return {"cost": cost, "hessian": hessian, "gradient": gradient, "finite": finite}
 
-    # keep or reject the trial point (x0 is always kept); decisions are not differentiated, they
-    # only select between differentiable values
-    def decide(state: _State, evaluation):
-        first = state.first
+    def decide(self, state: _State, evaluation):
+        """Keep or reject the trial point (x0 is always kept)."""
+        sg, solver, first = lax.stop_gradient, self.solver, state.first
         gain_ratio, actual, predicted = _gain_ratio(
             sg((state.cost, evaluation["cost"], state.step, state.hessian, state.gradient)),
             evaluation["finite"],
@@ -306,7 +364,7 @@ def _solve(
             sg(state.solver_state), gain_ratio, evaluation["finite"], actual, sg(state.cost)
         )
         accept = accept | first
-        solver_state = _tree_where(first, solver.init(n, dtype), solver_state)
+        solver_state = _tree_where(first, solver.init(self.n, self.dtype), solver_state)
         point = _tree_where(
             accept,
             (state.x_trial, evaluation["cost"], evaluation["hessian"], evaluation["gradient"]),
@@ -322,10 +380,12 @@ def _solve(
             "iteration": jnp.where(first, state.iteration, state.iteration + 1),
         }
 
-    # stop? (at x0 only on a non-finite start or an exactly zero gradient); the gradient as a
-    # cosine at the kept point, the step in the solver's scaled variables (see
-    # `AbstractSolver.scale`)
-    def test(state: _State, evaluation, decision):
+    def test(self, state: _State, evaluation, decision):
+        """Stop? (at x0 only on a non-finite start or an exactly zero gradient); the gradient as
+        a cosine at the kept point, the step in the solver's scaled variables (see
+        `AbstractSolver.scale`)."""
+        sg, solver, n = lax.stop_gradient, self.solver, self.n
+        function_tolerance, gradient_tolerance, parameter_tolerance = self.tolerances
         first, accept = state.first, decision["accept"]
         _, cost, hessian, gradient = decision["point"]
         column_norms = jnp.sqrt(jnp.maximum(sg(jnp.diagonal(hessian)), 0.0))
@@ -359,7 +419,7 @@ def _solve(
         nonfinite = ~trial_finite & (first | small_step | (not solver.rejects_steps))
         solver_state = decision["solver_state"]
         diverged = ~first & solver.diverged(solver_state, sg(cost), sg(state.cost_history[0]))
-        if verbose:
+        if self.verbose:
             jax.debug.callback(
                 _print_row,
                 state.status == Status.RUNNING,  # stopped problems run on masked under vmap
@@ -376,74 +436,32 @@ def _solve(
         # a step that is not finite (`propose`) is NONFINITE too, the status of highest
         # precedence
         status = trust_region.status(
-            nonfinite, converged, diverged, decision["iteration"] >= max_iterations
+            nonfinite, converged, diverged, decision["iteration"] >= self.max_iterations
         )
         return status, state.cost_history.at[decision["iteration"]].set(sg(cost))
 
-    # every trial point was linearized (`evaluate`): the kept point's is at hand (`decide`)
-    def relinearize(state: _State, evaluation, decision, status):
+    def relinearize(self, state: _State, evaluation, decision, status):
+        """Every trial point was linearized (`evaluate`): the kept point's is at hand."""
         return decision["point"], status
 
-    def propose(state: _State, evaluation, decision, cost_history, point, status):
+    def propose(self, state: _State, evaluation, decision, cost_history, point, status):
         x, cost, hessian, gradient = point
-        step, solver_state = solver.step(decision["solver_state"], hessian, gradient)
-        step = step.astype(dtype)
+        step, solver_state = self.solver.step(decision["solver_state"], hessian, gradient)
+        step = step.astype(self.dtype)
+        finite = _all_finite(lax.stop_gradient(step))
         return _State(
             x=x,
             cost=cost,
             hessian=hessian,
             gradient=gradient,
             solver_state=solver_state,
-            x_trial=rplus(x, unflatten_tangents(x, step), retraction),
+            x_trial=rplus(x, unflatten_tangents(x, step), self.retraction),
             step=step,
             first=jnp.zeros((), bool),
             iteration=decision["iteration"],
-            status=jnp.where(_all_finite(sg(step)), status, Status.NONFINITE).astype(jnp.int32),
+            status=jnp.where(finite, status, Status.NONFINITE).astype(jnp.int32),
             cost_history=cost_history,
         )
-
-    body = _iteration.body(evaluate, decide, test, relinearize, propose)
-
-    initial = _State(
-        x=x0,
-        cost=jnp.zeros((), dtype),
-        hessian=jnp.zeros((n, n), dtype),
-        gradient=jnp.zeros((n,), dtype),
-        solver_state=solver.init(n, dtype),
-        x_trial=x0,
-        step=jnp.zeros((n,), dtype),
-        first=jnp.ones((), bool),
-        iteration=jnp.zeros((), jnp.int32),
-        status=jnp.asarray(Status.RUNNING, jnp.int32),
-        cost_history=jnp.full((max_iterations + 1,), jnp.nan, dtype),
-    )
-
-    def running(state):
-        return state.status == Status.RUNNING
-
-    if implicit:
-        final = lax.while_loop(running, body, initial)
-    else:  # a fixed number of masked iterations, so that reverse mode can go through them
-
-        def masked(state, _):
-            return _tree_where(running(state), body(state), state), None
-
-        final, _ = lax.scan(masked, initial, None, length=max_iterations + 1)
-    if verbose:
-        jax.debug.callback(
-            _print_summary, final.status, final.iteration, final.cost_history[0], sg(final.cost)
-        )
-
-    value, cost = final.x, final.cost
-    if implicit:
-        value, cost = with_implicit_derivatives(residual_fn, value, cost, (args, loss))
-    return Solution(
-        value=value,
-        cost=cost,
-        iterations=final.iteration,
-        status=final.status,
-        cost_history=final.cost_history,
-    )
 
 
 # ---- errors --------------------------------------------------------------------------------
@@ -493,22 +511,13 @@ def _raise_on_failure(solution: Solution, x0, args, loss) -> Solution:
 
 def _nonfinite_inputs(x0, args, loss) -> list:
     """What makes a start non-finite, each named by its pytree path: NaN or infinite entries of
-    `x0` or `args`, loss scales that are not positive and finite (concrete values only)."""
-    found = []
-    is_group = lambda node: isinstance(node, AbstractManifold)  # noqa: E731
-    for name, tree in (("x0", x0), ("args", args)):
-        for path, leaf in jax.tree_util.tree_flatten_with_path(tree, is_leaf=is_group)[0]:
-            kind = f" ({type(leaf).__name__})" if is_group(leaf) else ""
-            leaf = leaf_array(leaf) if is_group(leaf) else leaf
-            if isinstance(leaf, jax.core.Tracer) or not hasattr(leaf, "dtype"):
-                continue
-            array = np.asarray(leaf)
-            if np.issubdtype(array.dtype, np.inexact) and not np.all(np.isfinite(array)):
-                bad = int(array.size - np.count_nonzero(np.isfinite(array)))
-                found.append(
-                    f"{name}{jax.tree_util.keystr(path)}{kind} has NaN or infinite entries "
-                    f"({bad} of {array.size})"
-                )
+    `x0` or `args` (`nonfinite_leaves`), loss scales that are not positive and finite (concrete
+    values only)."""
+    found = [
+        f"{name}{path}{kind} has NaN or infinite entries ({bad} of {size})"
+        for name, tree in (("x0", x0), ("args", args))
+        for path, kind, bad, size in nonfinite_leaves(tree)
+    ]
     is_leaf = lambda node: node is None or isinstance(node, AbstractLoss)  # noqa: E731
     for path, leaf in jax.tree_util.tree_flatten_with_path(loss, is_leaf=is_leaf)[0]:
         if isinstance(leaf, AbstractLoss) and not isinstance(leaf.scale, jax.core.Tracer):

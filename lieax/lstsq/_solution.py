@@ -1,11 +1,15 @@
 """What every lieax solver returns and raises: the `Status` codes, the `SolverResult` base of the
-result types (`Solution` here), and `SolveError`, the base of the solvers' errors."""
+result types, the results of lieax's Levenberg-Marquardt through its two doors (`Solution` of
+`least_squares`, `SolveResult` of `FactorGraph.solve`; `lieax.graph.OptimizeResult` is the host
+view of a `SolveResult`), and `SolveError`, the base of the solvers' errors."""
 
 import enum
 from typing import NamedTuple
 
 import jax
 import numpy as np
+
+from ..groups._base import AbstractManifold
 
 
 class Status(enum.IntEnum):
@@ -60,6 +64,25 @@ def is_failure(code) -> bool:
     """Whether a status code is one that `throw=True` raises for, in every solver: `DIVERGED`,
     `NONFINITE`, `DEGENERATE`, `INVALID` (not `MAX_ITERATIONS`: that result is usable)."""
     return code in (Status.DIVERGED, Status.NONFINITE, Status.DEGENERATE, Status.INVALID)
+
+
+def nonfinite_leaves(tree):
+    """`(path, kind, bad, size)` of each concrete floating leaf of `tree` with NaN or infinite
+    entries (`kind` is `" (SE3)"` for a group leaf, `""` for an array; `bad` of its `size`
+    entries are not finite): the one report of a non-finite start, which `least_squares` and
+    `FactorGraph.solve` word (traced leaves are skipped: their values are not known)."""
+    found = []
+    is_group = lambda node: isinstance(node, AbstractManifold)  # noqa: E731
+    for path, leaf in jax.tree_util.tree_flatten_with_path(tree, is_leaf=is_group)[0]:
+        kind = f" ({type(leaf).__name__})" if is_group(leaf) else ""
+        leaf = leaf._params if is_group(leaf) else leaf
+        if isinstance(leaf, jax.core.Tracer) or not hasattr(leaf, "dtype"):
+            continue
+        array = np.asarray(leaf)
+        if np.issubdtype(array.dtype, np.inexact) and not np.all(np.isfinite(array)):
+            bad = int(array.size - np.count_nonzero(np.isfinite(array)))
+            found.append((jax.tree_util.keystr(path), kind, bad, int(array.size)))
+    return found
 
 
 class SolveError(RuntimeError):
@@ -161,3 +184,32 @@ class Solution(SolverResult, _SolutionFields):
     """
 
     __slots__ = ()
+
+
+class _SolveResultFields(NamedTuple):
+    values: tuple
+    cost: jax.Array
+    iterations: jax.Array
+    linear_solves: jax.Array
+    status: jax.Array
+    cost_history: jax.Array
+    damping: jax.Array
+
+
+class SolveResult(SolverResult, _SolveResultFields):
+    r"""The result of `lieax.factorgraph.FactorGraph.solve`, a pytree (so it batches under
+    `vmap`); a `SolverResult`.
+
+    **Fields:**
+
+    - `values`: the solution, a tuple in the order of the graph's `variables`.
+    - `cost`: $\tfrac12 \sum \rho(\|R r\|^2)$ at `values`.
+    - `iterations`: outer iterations (linearizations), as GTSAM counts them.
+    - `linear_solves`: linear solves, rejected steps included.
+    - `status`: an integer `Status` code; `status_name` reads it.
+    - `cost_history`: the initial cost, then the cost after each iteration; NaN after the last.
+    - `damping`: the damping $\mu$ at the end (`LevenbergMarquardt`'s vocabulary).
+    """
+
+    __slots__ = ()
+    _repr_fields = ("cost", "iterations", "linear_solves", "damping")

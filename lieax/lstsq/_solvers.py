@@ -36,8 +36,8 @@ import jax.numpy as jnp
 from . import _trust_region as trust_region
 from ._normal_equations import damping_for_radius, solve_spd
 
-_SCALINGS = ("minpack", "jacobi", "clipped")
-_DAMPING_UPDATES = ("nielsen", "minpack")
+_SCALINGS = ("minpack", "jacobi", "clipped", "identity")
+_DAMPING_UPDATES = ("nielsen", "minpack", "gtsam")
 
 
 class AbstractSolver:
@@ -115,13 +115,27 @@ class GaussNewton(AbstractSolver):
 class LevenbergMarquardt(AbstractSolver):
     r"""Levenberg-Marquardt: $(J^\top W J + \mu D^2)\,\delta = -J^\top W r$ with a diagonal
     scaling $D$ of the variables; a step with gain ratio $\varrho \ge$ `min_gain_ratio` is kept.
+
+    The one options object of lieax's Levenberg-Marquardt, for both doors:
+    `lieax.lstsq.least_squares(..., solver=...)` (dense) and
+    `lieax.factorgraph.FactorGraph.solve(solver=...)` (block-sparse; it supports the scalings
+    `"identity"`, `"clipped"` and `"jacobi"` and the damping updates `"gtsam"` and
+    `"nielsen"`, accepts a step when $\varrho >$ `min_gain_ratio` and gives up when
+    $\mu \ge$ `max_damping`, GTSAM's conventions). The presets reproduce the defaults of the
+    libraries they name: `LevenbergMarquardt.gtsam()` (`FactorGraph.solve`'s and
+    `lieax.graph.optimize`'s default), `LevenbergMarquardt.ceres()` and
+    `LevenbergMarquardt.minpack()`; each takes keyword changes, e.g.
+    `LevenbergMarquardt.gtsam(scaling="clipped", damping_update="nielsen")` (GTSAM's diagonal
+    damping with Nielsen's rule, as its `ceresDefaults()`). `LevenbergMarquardt()` is
+    `least_squares`' default: MINPACK's scaling with Nielsen's rule and Ceres' constants.
+
     `damping_update` chooses how the damping $\mu$ follows $\varrho$:
 
     - `"nielsen"` (default): Nielsen's rule, a kept step sets
       $\mu \leftarrow \mu \max(\tfrac13, 1 - (2\varrho - 1)^3)$, $\nu \leftarrow 2$; a
       rejected one $\mu \leftarrow \nu\mu$, $\nu \leftarrow 2\nu$ (Madsen, Nielsen,
       Tingleff, "Methods for non-linear least squares problems", 2004, Sec. 3.2; the rule of
-      `lieax.factorgraph`'s `lambda_update="nielsen"` too: both call `_trust_region.nielsen`).
+      `lieax.factorgraph`'s loop too: both call `_trust_region.nielsen`).
     - `"minpack"`: MINPACK's trust region (`lmder`, Moré 1978): a radius $\Delta$ on
       $\|D\delta\|$, halved or cut to as little as a tenth after a poor step
       ($\varrho \le \tfrac14$), set to $2\|D\delta\|$ after a good one
@@ -139,6 +153,11 @@ class LevenbergMarquardt(AbstractSolver):
       MGH17's first start it crawls along a valley and needs more than 1,000 iterations under
       `vmap` (1,534; 381 unbatched, where rounding differs), which Nielsen's rule does not
       (569), so it is not the default. `initial_damping` and `min_damping` play no part.
+    - `"gtsam"`: GTSAM 4.3's rule (`LevenbergMarquardtOptimizer` with `useFixedLambdaFactor`):
+      $\mu \leftarrow \mu / f$ after a kept step, $\mu f$ after a rejected one,
+      $f$ = `damping_factor` (`_trust_region.gtsam`). With the Marquardt diagonal it
+      ping-pongs between two values of $\mu$ (see `lieax.factorgraph._solve`), so pair it with
+      `scaling="identity"`, as GTSAM does.
 
     The system is solved in scaled variables $\tilde\delta = S^{-1}\delta$:
     $(S H S + \mu \tilde D)\,\tilde\delta = -S g$, $\delta = S\tilde\delta$
@@ -157,11 +176,14 @@ class LevenbergMarquardt(AbstractSolver):
       `levenberg_marquardt_strategy.cc`). The $1$ in $1 + c_j$ leaves columns of norm below
       about 1 unscaled.
     - `"clipped"`: $S = I$, $\tilde D = \mathrm{diag}(H)$ clipped to
-      `[min_diagonal, max_diagonal]` (lieax's damping before the scaling option; Ceres without
-      `jacobi_scaling`). The clip is absolute: it misjudges columns whose norms span many orders
-      of magnitude (`tests/test_lstsq_scaling.py`).
+      `[min_diagonal, max_diagonal]` (Marquardt's diagonal: lieax's damping before the scaling
+      option; Ceres without `jacobi_scaling`; GTSAM's `diagonalDamping`). The clip is absolute:
+      it misjudges columns whose norms span many orders of magnitude
+      (`tests/test_lstsq_scaling.py`).
+    - `"identity"`: $S = I$, $\tilde D = I$: $\mu I$, GTSAM's default damping; $\mu$ is in
+      the units of $H$.
 
-    `scale` is $d$ (`"minpack"`), $1 + c$ (`"jacobi"`) or ones (`"clipped"`).
+    `scale` is $d$ (`"minpack"`), $1 + c$ (`"jacobi"`) or ones (`"clipped"`, `"identity"`).
 
     Only `"minpack"` is invariant under a constant factor on the residual (every term of its
     system scales alike; powers of two leave its iterates unchanged bit for bit,
@@ -179,8 +201,20 @@ class LevenbergMarquardt(AbstractSolver):
     - `min_damping`, `max_damping`: bounds of $\mu$; reaching `max_damping` without converging
       stops the solve with `Status.DIVERGED`.
     - `min_diagonal`, `max_diagonal`: bounds of $\tilde D$ for `"jacobi"` and `"clipped"`.
-    - `scaling`: `"minpack"`, `"jacobi"` or `"clipped"` (static: each compiles its own solve).
-    - `damping_update`: `"nielsen"` or `"minpack"` (static).
+    - `damping_factor`: $f$ of `damping_update="gtsam"` (GTSAM's `lambdaFactor`).
+    - `scaling`: `"minpack"`, `"jacobi"`, `"clipped"` or `"identity"` (static: each compiles its
+      own solve).
+    - `damping_update`: `"nielsen"`, `"minpack"` or `"gtsam"` (static).
+
+    | preset | scaling | damping update | `initial_damping` | `max_damping` | `min_gain_ratio` |
+    |---|---|---|---|---|---|
+    | `LevenbergMarquardt()` | `"minpack"` | `"nielsen"` | $10^{-4}$ | $10^{32}$ | $10^{-3}$ |
+    | `.gtsam()` (GTSAM 4.3) | `"identity"` | `"gtsam"`, ×10 | $10^{-5}$ | $10^{5}$ | $10^{-3}$ |
+    | `.ceres()` (Ceres 2) | `"jacobi"` | `"nielsen"` | $10^{-4}$ | $10^{32}$ | $10^{-3}$ |
+    | `.minpack()` (`lmder`) | `"minpack"` | `"minpack"` | unused | $10^{32}$ | $10^{-4}$ |
+
+    `.gtsam()` has `min_damping=0` (GTSAM's `lambdaLowerBound`); the others $10^{-16}$ (Ceres'
+    `max_trust_region_radius` $10^{16}$).
     """
 
     rejects_steps = True
@@ -190,8 +224,36 @@ class LevenbergMarquardt(AbstractSolver):
     max_damping: float = 1e32
     min_diagonal: float = 1e-6
     max_diagonal: float = 1e32
+    damping_factor: float = 10.0
     scaling: str = dataclasses.field(default="minpack", metadata={"static": True})
     damping_update: str = dataclasses.field(default="nielsen", metadata={"static": True})
+
+    @classmethod
+    def gtsam(cls, **changes) -> "LevenbergMarquardt":
+        r"""GTSAM 4.3's `LevenbergMarquardtParams` defaults: $\mu I$, $\mu_0 = 10^{-5}$, ×10 on
+        a rejection and ÷10 on a kept step, give up at $10^5$, a step kept when its gain ratio
+        exceeds $10^{-3}$ (`changes`: fields to set otherwise)."""
+        preset = dict(
+            scaling="identity", damping_update="gtsam", initial_damping=1e-5, damping_factor=10.0,
+            max_damping=1e5, min_damping=0.0, min_gain_ratio=1e-3,
+        )  # fmt: skip
+        return cls(**{**preset, **changes})
+
+    @classmethod
+    def ceres(cls, **changes) -> "LevenbergMarquardt":
+        r"""Ceres 2's `Solver::Options` defaults for Levenberg-Marquardt: `jacobi_scaling`,
+        Nielsen's rule from the trust radius $10^4$ ($\mu_0 = 10^{-4}$), the diagonal clipped
+        to `[1e-6, 1e32]`, `min_relative_decrease` $10^{-3}$ (`changes`: fields to set
+        otherwise)."""
+        return cls(**{"scaling": "jacobi", "damping_update": "nielsen", **changes})
+
+    @classmethod
+    def minpack(cls, **changes) -> "LevenbergMarquardt":
+        """MINPACK's `lmder` in mode 1: the running maximum of the column norms as scaling, its
+        trust-region radius and `lmpar`'s damping, a step kept when its gain ratio is at least
+        $10^{-4}$ (`changes`: fields to set otherwise)."""
+        return cls(**{"scaling": "minpack", "damping_update": "minpack", "min_gain_ratio": 1e-4,
+                      **changes})  # fmt: skip
 
     def __post_init__(self):
         if self.scaling not in _SCALINGS:
@@ -227,7 +289,7 @@ class LevenbergMarquardt(AbstractSolver):
         elif self.scaling == "jacobi":
             scale = 1.0 + norms
         scaled = hessian / (scale[:, None] * scale[None, :])
-        if self.scaling == "minpack":
+        if self.scaling in ("minpack", "identity"):
             diagonal = jnp.ones_like(scale)
         else:
             diagonal = jnp.clip(jnp.diagonal(scaled), self.min_diagonal, self.max_diagonal)
@@ -256,7 +318,10 @@ class LevenbergMarquardt(AbstractSolver):
             )
             damping = jnp.minimum(damping, 2.0 * self.max_damping)
             return accept, (damping, factor, scale, step_norm, slope)
-        damping, factor = trust_region.nielsen(accept, gain_ratio, damping, factor)
+        if self.damping_update == "gtsam":
+            damping = trust_region.gtsam(accept, damping, self.damping_factor)
+        else:
+            damping, factor = trust_region.nielsen(accept, gain_ratio, damping, factor)
         damping = jnp.clip(damping, self.min_damping, 2.0 * self.max_damping)
         return accept, (damping, factor.astype(damping.dtype), scale)
 
