@@ -18,8 +18,18 @@ import os
 
 import jax
 
+from . import _threads
+
 # handler symbol in the library -> name of the custom-call target registered with JAX
-_TARGETS = {"LieaxProbe": "lieax_probe"}
+_TARGETS = {
+    "LieaxProbe": "lieax_probe",
+    "LieaxKdtreeBuild": "lieax_kdtree_build",
+    "LieaxKdtreeNearest": "lieax_kdtree_nearest",
+    "LieaxKdtreeTrack": "lieax_kdtree_track",
+    "LieaxKdtreeSpacing": "lieax_kdtree_spacing",
+    "LieaxKdtreeNeighbours": "lieax_kdtree_neighbours",
+    "LieaxKdtreeCovariances": "lieax_kdtree_covariances",
+}
 
 
 @functools.cache
@@ -33,9 +43,18 @@ def library():
     lib = ctypes.CDLL(spec.origin)
     for symbol, target in _TARGETS.items():
         jax.ffi.register_ffi_target(target, jax.ffi.pycapsule(getattr(lib, symbol)), platform="cpu")
+    lib.LieaxSetThreads.argtypes = [ctypes.c_int]
+    lib.LieaxSetThreads(_threads.get_threads() or 0)
     return lib
 
 
 def available() -> bool:
     """Whether the native library is built, enabled and registered."""
     return library() is not None
+
+
+def set_threads(threads):
+    """Hands lieax's thread setting (`None`: one per core) to the library, if it is loaded (its
+    k-d tree's queries read it at each call; `lieax._threads` calls this when it changes)."""
+    if library.cache_info().currsize and library() is not None:
+        library().LieaxSetThreads(threads or 0)

@@ -132,6 +132,14 @@ def set_threads(n: int | None) -> None:
     if value is not None:
         _check_blas(setting)
     _SETTING.update(threads=value, source=setting)
+    _publish()
+
+
+def _publish():
+    """The setting handed to the native library's k-d tree (`lieax._native`), if it is loaded."""
+    native = sys.modules.get("lieax._native")
+    if native is not None:
+        native.set_threads(get_threads())
 
 
 def get_threads() -> int | None:
@@ -149,10 +157,12 @@ def threads(n: int | None):
     if value is not None:
         _check_blas(setting)
     _SETTING.update(threads=value, source=setting)
+    _publish()
     try:
         yield
     finally:
         _SETTING.update(previous)
+        _publish()
 
 
 def threads_for(work, parallel_from):

@@ -41,8 +41,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import _threads
+from .. import _native, _threads
 from .._host_call import host_call
+from . import _native_kdtree
 from ._coordinates import row_sums, squared_norms
 
 _CAPACITY = 256
@@ -51,18 +52,19 @@ _TREES: collections.OrderedDict = collections.OrderedDict()
 _IDS: dict = {}  # digest -> id
 _NEXT_ID = [0]
 _LOCK = threading.Lock()
-_LIBRARIES = ("scipy", "pykdtree")
+_LIBRARIES = ("native", "scipy", "pykdtree")
 
 
 class KDTreeIndex(NamedTuple):
-    """A target cloud whose k-d tree lives on the host (see the module docstring).
+    """A target cloud and its k-d tree (see the module docstring).
 
     **Fields:**
 
     - `points`: `(N, 3)` the target points in their original order; invalid points hold `inf`.
     - `order`: `(N,)` int32, `arange(N)` (slots are the original indices).
     - `valid`: `(N,)` bool.
-    - `tree`: `()` int32, the id of the tree in the host registry.
+    - `tree`: the native tree's arrays (a `lieax.icp._native_kdtree.NativeKDTree`), or for the
+      host trees `()` int32, the id of the tree in the host registry.
     """
 
     points: jax.Array
@@ -91,26 +93,33 @@ def build_kdtree(points, mask=None, *, library=None) -> KDTreeIndex:
     **Arguments:**
 
     - `points`, `mask`: the target cloud and its valid rows.
-    - `library`: `"scipy"` (`scipy.spatial.cKDTree`) or `"pykdtree"` (needs the package);
-      default `default_library()` (see `host_tree`).
+    - `library`: `"native"` (the native library's tree, `lieax.icp._native_kdtree`: float32 and
+      float64 points), `"scipy"` (`scipy.spatial.cKDTree`) or `"pykdtree"` (needs the package;
+      both on the host, see `host_tree`); default `default_library(points.dtype)`.
 
     **Returns:** a `KDTreeIndex`.
     """
+    points = jnp.asarray(points)
     if library is None:
-        library = default_library()
+        library = default_library(points.dtype)
     if library not in _LIBRARIES:
         raise ValueError(f"library must be one of {_LIBRARIES}, got {library!r}.")
     if library == "pykdtree":
         import pykdtree.kdtree  # noqa: F401  (fail here, at trace time, when it is missing)
-    _threads.prepare()  # (the thread pools listed here, not in the callbacks)
-    points = jnp.asarray(points)
+    if library == "native":
+        _check_native(points.dtype)
+    else:
+        _threads.prepare()  # (the thread pools listed here, not in the callbacks)
     check_on_host(points, "the target")
     n = points.shape[0]
     if n >= 2**24:
         raise ValueError(f"search='kdtree' handles fewer than {2**24} points, got {n}.")
     valid = jnp.ones((n,), bool) if mask is None else jnp.asarray(mask, bool)
     valid = valid & jnp.all(jnp.isfinite(points), axis=1)
-    tree = host_call(_BUILDERS[library], jax.ShapeDtypeStruct((), jnp.int32), points, valid)
+    if library == "native":
+        tree = _native_kdtree.build(points, valid)
+    else:
+        tree = host_call(_BUILDERS[library], jax.ShapeDtypeStruct((), jnp.int32), points, valid)
     points = jnp.where(valid[:, None], points, jnp.inf)
     return KDTreeIndex(points, jnp.arange(n, dtype=jnp.int32), valid, tree)
 
@@ -123,21 +132,48 @@ def has_pykdtree():
     return True
 
 
-def default_library():
-    """`"pykdtree"` where it is installed (it builds 2-4x and queries up to 2x faster than
-    cKDTree on the benchmark's clouds, `benchmarks/neighbors.py`), else `"scipy"`."""
+def default_library(dtype=None):
+    """`"native"` where the native library is available (`lieax._native.available()`) and takes
+    `dtype` (float32, float64; `None`: any), else the host trees: `"pykdtree"` where it is
+    installed (it builds 2-4x and queries up to 2x faster than cKDTree on the benchmark's clouds,
+    `benchmarks/neighbors.py`), else `"scipy"`."""
+    if _native.available() and (dtype is None or _native_kdtree.supports(dtype)):
+        return "native"
+    return host_library()
+
+
+def host_library():
+    """The host tree: `"pykdtree"` where it is installed, else `"scipy"`."""
     return "pykdtree" if has_pykdtree() else "scipy"
+
+
+def _check_native(dtype):
+    if not _native.available():
+        raise ValueError(
+            "library='native' needs the native library (lieax._native: not built, or turned off "
+            "by LIEAX_NATIVE=0); use 'pykdtree' or 'scipy'."
+        )
+    if not _native_kdtree.supports(dtype):
+        raise ValueError(
+            f"library='native' takes float32 or float64 points, got {np.dtype(dtype)}; use "
+            "'pykdtree' or 'scipy'."
+        )
+
+
+def is_native(index: KDTreeIndex) -> bool:
+    """Whether `index` holds the native tree (else a host tree's id)."""
+    return isinstance(index.tree, _native_kdtree.NativeKDTree)
 
 
 def host_tree(points, library=None):
     """The k-d tree of `points` (a C-contiguous `(n, 3)` NumPy array, `n >= 1`) on the host:
-    pykdtree's `KDTree` or SciPy's `cKDTree` (`library`, default `default_library()`).
+    pykdtree's `KDTree` or SciPy's `cKDTree` (`library`, default `host_library()`).
 
     SciPy's tree is built with `balanced_tree=False`: XLA runs host callbacks with the x86
     flush-to-zero and denormals-are-zero flags set (MXCSR `0x9fe2`), and under those flags SciPy
     1.17's default build (`balanced_tree=True`, `compact_nodes=True`) segfaults on a cloud with
     repeated points, inside JAX or not (`tests/test_icp_search.py`); either flag off builds."""
-    if (library or default_library()) == "pykdtree":
+    if (library or host_library()) == "pykdtree":
         from pykdtree.kdtree import KDTree
 
         return KDTree(points)
@@ -223,8 +259,11 @@ def _entry(tree_id):
 def kdtree_spacing(index: KDTreeIndex):
     """`(N,)` the distance from each valid point of the index to its nearest other valid point
     (`inf` for a single point, 0 for invalid ones); one host call, the k-nearest query made on
-    the first call for this tree only (the host keeps the result with the tree)."""
+    the first call for this tree only (the host keeps the result with the tree); for the native
+    tree, one custom call that makes the query (XLA computes it once per program)."""
     points = index.points
+    if is_native(index):
+        return _native_kdtree.spacing(index.tree)
     return host_call(
         _spacing, jax.ShapeDtypeStruct(points.shape[:1], points.dtype), index.tree, points
     )
@@ -294,12 +333,16 @@ def nearest_in_kdtree(index: KDTreeIndex, queries, radius=jnp.inf, *, mask=None,
         spacing = kdtree_spacing(index)[previous].astype(queries.dtype)
         slack = 4 * (1 + 16 * jnp.finfo(queries.dtype).eps)  # rounding of both sides
         kept = active & index.valid[previous] & (slack * previous_d2 <= spacing * spacing)
-    out = host_call(
-        _query, jax.ShapeDtypeStruct((m, 2), queries.dtype), index.tree, queries, radius,
-        active & ~kept, batched=_per_target(_query),
-    )  # fmt: skip
-    # A slot below 2**24 is exact in float32.
-    slot, d2 = out[:, 1].astype(jnp.int32), out[:, 0]
+    if is_native(index):
+        slot, d2 = _native_kdtree.nearest(index.tree, queries, radius, active & ~kept)
+        d2 = d2.astype(queries.dtype)
+    else:
+        out = host_call(
+            _query, jax.ShapeDtypeStruct((m, 2), queries.dtype), index.tree, queries, radius,
+            active & ~kept, batched=_per_target(_query),
+        )  # fmt: skip
+        # A slot below 2**24 is exact in float32.
+        slot, d2 = out[:, 1].astype(jnp.int32), out[:, 0]
     if previous is not None:
         hit = kept & (previous_d2 <= radius * radius)
         slot = jnp.where(hit, previous, jnp.where(kept, 0, slot))
@@ -393,11 +436,15 @@ def track_in_kdtree(index: KDTreeIndex, queries, radius, warm: KDTreeWarmStart, 
 
     near, total = row_sums([(sent & (moved < gap)).astype(dtype), sent.astype(dtype)])
     pairs = near >= _PAIR_SHARE * total
-    out = host_call(
-        _track_query, jax.ShapeDtypeStruct((m, 2), dtype), index.tree, queries, radius, sent,
-        pairs, batched=_per_target(_track_query),
-    )  # fmt: skip
-    fresh_slot, fresh_allowance = out[:, 0].astype(jnp.int32), out[:, 1]  # (slots below 2**24)
+    if is_native(index):
+        fresh_slot, fresh_allowance = _native_kdtree.track(index.tree, queries, radius, sent, pairs)
+        fresh_allowance = fresh_allowance.astype(dtype)
+    else:
+        out = host_call(
+            _track_query, jax.ShapeDtypeStruct((m, 2), dtype), index.tree, queries, radius, sent,
+            pairs, batched=_per_target(_track_query),
+        )  # fmt: skip
+        fresh_slot, fresh_allowance = out[:, 0].astype(jnp.int32), out[:, 1]  # (slots < 2**24)
     fresh_hits = sent & (fresh_slot >= 0)
     hits, allowances = row_sums(
         [fresh_hits.astype(dtype), jnp.where(fresh_hits, fresh_allowance, 0.0)]
