@@ -10,6 +10,7 @@
 #include <cmath>
 #include <cstdint>
 #include <limits>
+#include <numeric>
 #include <string>
 #include <thread>
 #include <utility>
@@ -26,7 +27,7 @@ namespace {
 constexpr int64_t kParallelNeighbours = 32768;
 // Queries handed to a thread at a time (dynamic scheduling: query costs differ across a cloud).
 constexpr int64_t kChunk = 512;
-// A build of at least this many points splits its top levels over threads.
+// A batch of builds of at least this many points in all spreads its trees over threads.
 constexpr int64_t kParallelBuild = 65536;
 
 std::atomic<int> g_threads{0};  // lieax's thread setting (0: one per core)
@@ -96,18 +97,8 @@ int64_t Core(ffi::Span<const int64_t> dims, int core) {
 
 // ---- the tree -------------------------------------------------------------------------------
 
-// (f(c), f(c + 1)), f the node count of the tree of c points with leaves of at most `leaf`:
-// f(c) = 1 for c <= leaf, else 1 + f(floor(c/2)) + f(ceil(c/2)) (each node splits at its median,
-// so the shape depends on the count alone); the halves of c and c + 1 are h = floor(c/2) and
-// h + 1, so one recursion on h gives both: O(log c).
-std::pair<int64_t, int64_t> NodeCounts(int64_t c, int64_t leaf) {
-  if (c + 1 <= leaf) return {1, 1};
-  const auto [h, h1] = NodeCounts(c / 2, leaf);  // f(h), f(h + 1)
-  const bool even = c % 2 == 0;
-  return {c <= leaf ? 1 : (even ? 1 + 2 * h : 1 + h + h1), even ? 1 + h + h1 : 1 + 2 * h1};
-}
-
-int64_t NodeCount(int64_t count, int64_t leaf) { return NodeCounts(std::max<int64_t>(count, 0), leaf).first; }
+// The nodes a tree of `count` points may need: every leaf holds at least one point.
+int64_t NodeCapacity(int64_t count) { return std::max<int64_t>(1, 2 * count - 1); }
 
 // Views of one tree (see lieax/icp/_native_kdtree.py): `order` (N) tree position -> row, the
 // first `count` valid; `points` (N, 3) in tree order; `nodes` (C, 4) start, end, split dimension
@@ -124,85 +115,143 @@ struct Tree {
   int32_t count() const { return nodes[1]; }
 };
 
+// The build works on the indices of the points (4 bytes moved per swap) and reads one coordinate
+// array at a time (the points' coordinates split into three arrays): per level a partition pass
+// over one array, as pykdtree's build, where moving whole points moved 8 times the memory.
 template <typename T>
 class Builder {
  public:
-  Builder(const T* points, int64_t leaf, int32_t* order, int32_t* nodes, T* bounds)
-      : p_(points), leaf_(leaf), order_(order), nodes_(nodes), bounds_(bounds) {}
+  Builder(const T* const* coordinates, int32_t* index, int64_t leaf, int32_t* nodes, T* bounds)
+      : c_{coordinates[0], coordinates[1], coordinates[2]},
+        index_(index),
+        leaf_(leaf),
+        nodes_(nodes),
+        bounds_(bounds) {}
 
-  // Node `node` over order[start, end); subtrees above `spawn` levels deep run on their own thread.
-  void Build(int64_t node, int32_t start, int32_t end, int spawn, T* box = nullptr) {
+  // The tree of index[start, end) (inside the box lo, hi) from node `next_` on, in preorder.
+  // Returns the number of nodes used.
+  int64_t Build(int32_t start, int32_t end, const T* box_lo, const T* box_hi) {
+    const int64_t node = next_++;
+    if (end - start <= leaf_) return Leaf(node, start, end);
     T lo[3], hi[3];
+    std::copy_n(box_lo, 3, lo), std::copy_n(box_hi, 3, hi);
+    // The midpoint of the box's longest side (no pass over the points); where one side gets
+    // no point, the box shrinks to the points' and splits at its midpoint (both sides then hold
+    // points: where rounding puts the midpoint at the smallest coordinate, the largest splits).
+    int dim = Longest(lo, hi);
+    T cut = lo[dim] + (hi[dim] - lo[dim]) / 2, low, high;
+    int32_t mid = Partition(start, end, dim, cut, low, high);
+    if (mid == start || mid == end) {
+      Bounds(start, end, lo, hi);
+      dim = Longest(lo, hi);
+      if (!(hi[dim] > lo[dim])) return Leaf(node, start, end);  // repeats: one leaf
+      cut = lo[dim] + (hi[dim] - lo[dim]) / 2;
+      if (!(cut > lo[dim])) cut = hi[dim];
+      mid = Partition(start, end, dim, cut, low, high);
+    }
+    bounds_[2 * node] = low;
+    bounds_[2 * node + 1] = high;
+    T left_hi[3], right_lo[3];
+    std::copy_n(hi, 3, left_hi), std::copy_n(lo, 3, right_lo);
+    left_hi[dim] = low, right_lo[dim] = high;
+    Build(start, mid, lo, left_hi);
+    const int64_t right = next_;
+    Build(mid, end, right_lo, hi);
+    int32_t* out = nodes_ + 4 * node;
+    out[0] = start, out[1] = end, out[2] = dim, out[3] = static_cast<int32_t>(right);
+    return next_;
+  }
+
+  // The bounding box of the points index[start, end).
+  void Bounds(int32_t start, int32_t end, T* lo, T* hi) const {
     for (int d = 0; d < 3; ++d) {
       lo[d] = std::numeric_limits<T>::infinity();
       hi[d] = -std::numeric_limits<T>::infinity();
-    }
-    for (int32_t i = start; i < end; ++i) {
-      const T* q = p_ + 3 * static_cast<int64_t>(order_[i]);
-      for (int d = 0; d < 3; ++d) lo[d] = std::min(lo[d], q[d]), hi[d] = std::max(hi[d], q[d]);
-    }
-    if (box != nullptr) std::copy(lo, lo + 3, box), std::copy(hi, hi + 3, box + 3);
-    int32_t* out = nodes_ + 4 * node;
-    const int32_t count = end - start;
-    if (count <= leaf_) {
-      out[0] = start, out[1] = end, out[2] = -1, out[3] = -1;
-      bounds_[2 * node] = bounds_[2 * node + 1] = 0;
-      return;
-    }
-    int dim = 0;
-    for (int d = 1; d < 3; ++d)
-      if (hi[d] - lo[d] > hi[dim] - lo[dim]) dim = d;
-    const int32_t mid = start + count / 2;
-    const T* p = p_;
-    std::nth_element(order_ + start, order_ + mid, order_ + end, [p, dim](int32_t a, int32_t b) {
-      return p[3 * static_cast<int64_t>(a) + dim] < p[3 * static_cast<int64_t>(b) + dim];
-    });
-    T low = -std::numeric_limits<T>::infinity();
-    for (int32_t i = start; i < mid; ++i) low = std::max(low, p[3 * int64_t{order_[i]} + dim]);
-    const int64_t right = node + 1 + NodeCount(count / 2, leaf_);
-    out[0] = start, out[1] = end, out[2] = dim, out[3] = static_cast<int32_t>(right);
-    bounds_[2 * node] = low;
-    bounds_[2 * node + 1] = p[3 * int64_t{order_[mid]} + dim];
-    if (spawn > 0) {
-      std::thread left([&] { Build(node + 1, start, mid, spawn - 1); });
-      Build(right, mid, end, spawn - 1);
-      left.join();
-    } else {
-      Build(node + 1, start, mid, 0);
-      Build(right, mid, end, 0);
+      for (int32_t i = start; i < end; ++i) {
+        const T v = c_[d][index_[i]];
+        lo[d] = std::min(lo[d], v), hi[d] = std::max(hi[d], v);
+      }
     }
   }
 
  private:
-  const T* p_;
+  static int Longest(const T* lo, const T* hi) {
+    int dim = 0;
+    for (int d = 1; d < 3; ++d)
+      if (hi[d] - lo[d] > hi[dim] - lo[dim]) dim = d;
+    return dim;
+  }
+
+  int64_t Leaf(int64_t node, int32_t start, int32_t end) {
+    int32_t* out = nodes_ + 4 * node;
+    out[0] = start, out[1] = end, out[2] = -1, out[3] = -1;
+    bounds_[2 * node] = bounds_[2 * node + 1] = 0;
+    return next_;
+  }
+
+  // The points below `cut` along `dim` first; returns where the others begin, with `low` the
+  // largest coordinate below and `high` the smallest at or above the cut. Branch-free (Lomuto's
+  // scheme with an unconditional swap): the comparisons are unpredictable, and a branching
+  // partition spent most of the build in mispredictions.
+  int32_t Partition(int32_t start, int32_t end, int dim, T cut, T& low, T& high) {
+    const T* c = c_[dim];
+    constexpr T kInf = std::numeric_limits<T>::infinity();
+    low = -kInf, high = kInf;
+    int32_t i = start;
+    for (int32_t k = start; k < end; ++k) {
+      const int32_t id = index_[k];
+      const T v = c[id];
+      const bool below = v < cut;
+      index_[k] = index_[i];
+      index_[i] = id;
+      i += below;
+      low = std::max(low, below ? v : -kInf);
+      high = std::min(high, below ? kInf : v);
+    }
+    return i;
+  }
+
+  const T* c_[3];
+  int32_t* index_;
   int64_t leaf_;
-  int32_t* order_;
   int32_t* nodes_;
   T* bounds_;
+  int64_t next_ = 0;
 };
 
 // Builds the tree of the valid, finite rows of `points` (n, 3) into the given arrays (`capacity`
 // nodes); unused nodes are zero, the rows past the valid ones hold inf.
 template <typename T>
 void BuildTree(const T* points, const bool* valid, int64_t n, int64_t leaf, int64_t capacity,
-               int threads, int32_t* order, T* tree_points, int32_t* nodes, T* bounds, T* box) {
-  int32_t count = 0;
-  auto usable = [&](int64_t i) {
+               int32_t* order, T* tree_points, int32_t* nodes, T* bounds, T* box) {
+  std::vector<T> coordinates(3 * n);
+  T* const split[3] = {coordinates.data(), coordinates.data() + n, coordinates.data() + 2 * n};
+  std::vector<int32_t> rows, index;
+  rows.reserve(n);
+  int32_t rest = 0;
+  for (int64_t i = 0; i < n; ++i) {
     const T* q = points + 3 * i;
-    return valid[i] && std::isfinite(q[0]) && std::isfinite(q[1]) && std::isfinite(q[2]);
-  };
-  for (int64_t i = 0; i < n; ++i)
-    if (usable(i)) order[count++] = static_cast<int32_t>(i);
-  int32_t rest = count;
-  for (int64_t i = 0; i < n; ++i)
-    if (!usable(i)) order[rest++] = static_cast<int32_t>(i);
-  std::fill(nodes, nodes + 4 * capacity, 0);
-  std::fill(bounds, bounds + 2 * capacity, T(0));
-  int spawn = 0;
-  if (count >= kParallelBuild)
-    while ((2 << spawn) <= threads && spawn < 4) ++spawn;
-  Builder<T>(points, leaf, order, nodes, bounds).Build(0, 0, count, spawn, box);
-  for (int32_t i = 0; i < count; ++i) std::copy_n(points + 3 * int64_t{order[i]}, 3, tree_points + 3 * int64_t{i});
+    if (valid[i] && std::isfinite(q[0]) && std::isfinite(q[1]) && std::isfinite(q[2])) {
+      for (int d = 0; d < 3; ++d) split[d][rows.size()] = q[d];
+      rows.push_back(static_cast<int32_t>(i));
+    } else {
+      order[n - 1 - rest++] = static_cast<int32_t>(i);  // (reversed below)
+    }
+  }
+  const int32_t count = static_cast<int32_t>(rows.size());
+  std::reverse(order + count, order + n);
+  index.resize(count);
+  std::iota(index.begin(), index.end(), 0);
+  Builder<T> builder(split, index.data(), leaf, nodes, bounds);
+  builder.Bounds(0, count, box, box + 3);
+  const int64_t used = builder.Build(0, count, box, box + 3);
+  std::fill(nodes + 4 * used, nodes + 4 * capacity, 0);
+  std::fill(bounds + 2 * used, bounds + 2 * capacity, T(0));
+  for (int32_t i = 0; i < count; ++i) {
+    const int32_t k = index[i];
+    order[i] = rows[k];
+    for (int d = 0; d < 3; ++d) tree_points[3 * int64_t{i} + d] = split[d][k];
+  }
   std::fill(tree_points + 3 * int64_t{count}, tree_points + 3 * n, std::numeric_limits<T>::infinity());
 }
 
@@ -320,32 +369,28 @@ ffi::Error BuildTyped(ffi::AnyBuffer points, ffi::Buffer<ffi::PRED> valid, int64
   const auto pd = points.dimensions();
   const int64_t n = pd[pd.size() - 2];
   const int64_t capacity = nodes->dimensions()[nodes->dimensions().size() - 2];
-  if (capacity < NodeCount(n, leaf))
+  if (capacity < NodeCapacity(n))
     return ffi::Error::InvalidArgument("the node arrays are too small for the points");
   const Batch batch(order->dimensions(), 1);
   const int threads = ThreadsFor(batch.size() * n, kParallelBuild);
-  auto build = [&](int64_t b, int inner) {
+  auto build = [&](int64_t b) {
     BuildTree<T>(static_cast<const T*>(points.untyped_data()) + batch.Offset(pd, 2, b) * 3 * n,
                  valid.typed_data() + batch.Offset(valid.dimensions(), 1, b) * n, n, leaf,
-                 capacity, inner, order->typed_data() + b * n,
+                 capacity, order->typed_data() + b * n,
                  static_cast<T*>(tree_points->untyped_data()) + b * 3 * n,
                  nodes->typed_data() + b * 4 * capacity,
                  static_cast<T*>(bounds->untyped_data()) + b * 2 * capacity,
                  static_cast<T*>(box->untyped_data()) + b * 6);
   };
-  if (batch.size() == 1) {
-    build(0, threads);
-  } else {
-    std::atomic<int64_t> next{0};
-    auto work = [&] {
-      for (int64_t b; (b = next.fetch_add(1)) < batch.size();) build(b, 1);
-    };
-    const int count = static_cast<int>(std::min<int64_t>(threads, batch.size()));
-    std::vector<std::thread> pool;
-    for (int t = 1; t < count; ++t) pool.emplace_back(work);
-    work();
-    for (auto& thread : pool) thread.join();
-  }
+  std::atomic<int64_t> next{0};
+  auto work = [&] {
+    for (int64_t b; (b = next.fetch_add(1)) < batch.size();) build(b);
+  };
+  const int count = static_cast<int>(std::min<int64_t>(threads, batch.size()));
+  std::vector<std::thread> pool;
+  for (int t = 1; t < count; ++t) pool.emplace_back(work);
+  work();
+  for (auto& thread : pool) thread.join();
   return ffi::Error::Success();
 }
 
@@ -518,14 +563,13 @@ struct ScratchTrees {
   std::vector<Tree<T>> trees;
   ScratchTrees(ffi::AnyBuffer cloud, ffi::Buffer<ffi::PRED> valid, const Batch& batch, int64_t leaf) {
     const auto pd = cloud.dimensions();
-    const int64_t n = pd[pd.size() - 2], capacity = NodeCount(n, leaf), size = batch.size();
+    const int64_t n = pd[pd.size() - 2], capacity = NodeCapacity(n), size = batch.size();
     order.resize(size * n), points.resize(size * 3 * n), nodes.resize(size * 4 * capacity);
     bounds.resize(size * 2 * capacity), box.resize(size * 6);
-    const int threads = ThreadsFor(n, kParallelBuild);
     for (int64_t b = 0; b < size; ++b) {
       BuildTree<T>(static_cast<const T*>(cloud.untyped_data()) + batch.Offset(pd, 2, b) * 3 * n,
                    valid.typed_data() + batch.Offset(valid.dimensions(), 1, b) * n, n, leaf,
-                   capacity, threads, order.data() + b * n, points.data() + b * 3 * n,
+                   capacity, order.data() + b * n, points.data() + b * 3 * n,
                    nodes.data() + b * 4 * capacity, bounds.data() + b * 2 * capacity,
                    box.data() + b * 6);
     }
@@ -646,9 +690,6 @@ ffi::Error CovariancesImpl(ffi::AnyBuffer points, ffi::Buffer<ffi::PRED> valid, 
 
 // lieax._threads' setting (0: one thread per core), called through ctypes.
 LIEAX_EXPORT void LieaxSetThreads(int threads) { g_threads.store(threads); }
-
-// The node count of a tree of `count` points with leaves of at most `leaf` (for tests).
-LIEAX_EXPORT int64_t LieaxKdtreeNodeCount(int64_t count, int64_t leaf) { return NodeCount(count, leaf); }
 
 #define LIEAX_TREE_ARGS                 \
   .Arg<ffi::AnyBuffer>()                \
