@@ -3,7 +3,10 @@ r"""How many threads lieax's work outside XLA's own thread pool uses, and the sc
 Three kinds of lieax's work run on thread pools that XLA does not manage:
 - the host multifrontal Cholesky of `lieax.factorgraph` and `lieax.graph` (NumPy's OpenBLAS, and
   SciPy's LAPACK for the small fronts), inside a host callback;
-- the host k-d tree's queries of `lieax.icp` (pykdtree's OpenMP), inside a host callback;
+- the k-d tree's queries of `lieax.icp`: the native library's `std::thread`s (started per call
+  from `PARALLEL_NEIGHBOURS` neighbours asked for, capped by the setting, which
+  `lieax._native.set_threads` hands to the library), or without it the host tree's (pykdtree's
+  OpenMP), inside a host callback;
 - the dense Cholesky of `lieax.factorgraph`'s `solver="dense"` (bundle adjustment's reduced camera
   system), which XLA's CPU backend runs through LAPACK: jaxlib takes its LAPACK from SciPy's
   bundled OpenBLAS (`threadpoolctl.threadpool_info()` lists no other BLAS after a

@@ -1,33 +1,43 @@
-r"""A k-d tree on the host, built once per target and queried from jitted code through `host_call`.
+r"""The k-d tree search of `lieax.icp` (`search="kdtree"`): `KDTreeIndex`, its build and queries,
+served by the native library's tree or, without it, by a tree on the host.
 
-On a CPU the compiled k-d trees of SciPy (`cKDTree`) and pykdtree answer a nearest-neighbour query
-in well under a microsecond, faster than any fixed-shape search XLA compiles (see
-`benchmarks/neighbors.py`), and `lieax._host_call.host_call` hands XLA's host buffers to NumPy
-in a few microseconds. So the tree lives on the host:
+On a CPU a compiled k-d tree answers a nearest-neighbour query in well under a microsecond,
+faster than any fixed-shape search XLA compiles (see `benchmarks/neighbors.py`). Two kinds serve
+the same functions here, chosen by `build_kdtree(library=...)` (default `default_library`):
 
-- `build_kdtree` sends the target to the host once; the host builds the tree over its valid points
-  and keeps it in a registry, keyed by a digest of the points and mask (a second build of the same
-  target, or every element of a `vmap` that shares a target, reuses it), and hands back an integer
-  id that travels in the traced `KDTreeIndex`;
-- `nearest_in_kdtree` sends the queries and the id each time, and gets the nearest valid target
-  point within the radius back (under `vmap`, one host call for the whole batch, with one tree
-  query per target: `_per_target`).
+- `"native"` (`lieax.icp._native_kdtree`): the tree is arrays built by one custom call and
+  carried in `KDTreeIndex.tree`; the queries are custom calls on them. Pure (no state outside
+  the arrays), one call per batch under `vmap`, and the programs are kept by JAX's persistent
+  compilation cache. Its answers are pykdtree's, ties aside (`tests/test_native_kdtree.py`).
+- `"pykdtree"` or `"scipy"`: the fallback where the native library is not available. The trees
+  of pykdtree and SciPy's `cKDTree` live on the host, and `lieax._host_call.host_call` hands
+  XLA's host buffers to NumPy in a few microseconds (a program with such a callback is compiled
+  in every process):
+
+  - `build_kdtree` sends the target to the host once; the host builds the tree over its valid
+    points and keeps it in a registry, keyed by a digest of the points and mask (a second build
+    of the same target, or every element of a `vmap` that shares a target, reuses it), and hands
+    back an integer id that travels in the traced `KDTreeIndex`;
+  - `nearest_in_kdtree` sends the queries and the id each time, and gets the nearest valid target
+    point within the radius back (under `vmap`, one host call for the whole batch, with one tree
+    query per target: `_per_target`).
 
 Warm starts. ICP's iterations use `track_in_kdtree`, which keeps the answer of a query that moved
 less than half the gap between its nearest and second-nearest distances (see there), and asks the
 tree for the second-nearest distance only when the moves are small enough for that to pay.
-For `nearest_in_kdtree(previous=...)` the host also computes, on the first such call, each
-target point's `spacing` (`kdtree_spacing`), the distance to its nearest other valid point, and
-keeps it with the tree (a k-nearest query over the whole target, 0.2-0.4 s on the Kinect
-benchmark's 181k points, that ICP's `track_in_kdtree` does not need, so the build does not pay
-for it). A query at distance $d$ from its previous match $c$ keeps it
+For `nearest_in_kdtree(previous=...)` the tree also gives each target point's `spacing`
+(`kdtree_spacing`), the distance to its nearest other valid point (the host tree computes it on
+the first such call and keeps it with the tree; the native tree in each program that asks, XLA
+computing it once there): a k-nearest query over the whole target, 0.2-0.4 s with pykdtree on
+the Kinect benchmark's 181k points, that ICP's `track_in_kdtree` does not need, so the build
+does not pay for it. A query at distance $d$ from its previous match $c$ keeps it
 when $2d \le$ `spacing[c]`: every other point $p$ has $|q - p| \ge |p - c| - d \ge$
 `spacing[c]` $- d \ge d$ (the triangle inequality), so $c$ is still the nearest. Only the other
 queries are sent to the tree (40-80% of the source points are kept near convergence on the
 benchmark's scans).
 
-The registry keeps the `_CAPACITY` most recently used trees; a query for an evicted tree raises.
-The host tree needs the data on the host: on another backend (a GPU) it raises, naming the
+The registry keeps the `_CAPACITY` most recently used host trees; a query for an evicted tree
+raises. Both kinds need the data on the host: on another backend (a GPU) it raises, naming the
 backends that run there (`"grid"`, `"brute"`).
 """
 
