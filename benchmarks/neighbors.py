@@ -9,8 +9,8 @@ Clouds (the ICP benchmark's, `benchmarks/icp.py` imports them from here):
 Per cloud and backend, at the pose ICP converges to: the index build (jitted, on the target; the
 host tree's registry emptied first), one matching step of every source point inside a jitted call
 from scratch (the graph: seed, descent and exact check) and warm-started from the exact matches
-(the graph's descent, as in ICP's iterations; the host tree skipping the matches its spacing test
-keeps), and exactness: the share of the source points with a target point within the radius that
+(the graph's descent, as in ICP's iterations; the host trees skipping the matches their spacing
+test keeps; the native tree, which keeps no spacing, answering every query), and exactness: the share of the source points with a target point within the radius that
 got their nearest one (or one at the same distance) in the warm-started step, against SciPy's
 cKDTree, and for the graph also after its exact check. The two host libraries are also timed bare
 (numpy in, numpy out) to choose between them.

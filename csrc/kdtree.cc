@@ -690,6 +690,7 @@ ffi::Error CovariancesImpl(ffi::AnyBuffer points, ffi::Buffer<ffi::PRED> valid, 
 
 // lieax._threads' setting (0: one thread per core), called through ctypes.
 LIEAX_EXPORT void LieaxSetThreads(int threads) { g_threads.store(threads); }
+LIEAX_EXPORT int LieaxThreads() { return g_threads.load(); }
 
 #define LIEAX_TREE_ARGS                 \
   .Arg<ffi::AnyBuffer>()                \

@@ -111,8 +111,9 @@ def test_grid_is_exact_with_colliding_buckets_and_wide_tables(capacity):
 @pytest.mark.parametrize("library", ["native", "host"])
 def test_kdtree_warm_start_keeps_only_provably_nearest_matches(library):
     """Earlier matches kept by the spacing test (right ones, wrong ones, random ones) change
-    nothing: the result is still the exact nearest point within the radius. The host tree
-    computes the spacing at the first such query, not at the build."""
+    nothing: the result is still the exact nearest point within the radius (the native tree
+    ignores them). The host tree computes the spacing at the first such query, not at the
+    build; both give the spacing."""
     if library == "native" and not _native.available():
         pytest.skip("the native library is not built")
     rng = np.random.default_rng(5)

@@ -226,6 +226,21 @@ def test_bad_dtypes_and_a_missing_library_are_named(monkeypatch):
         _search.build_index(jnp.zeros((4, 3)), search="kdtree", library="native")
 
 
+def test_the_thread_setting_reaches_the_library():
+    """`lieax.threads` / `lieax.set_threads` hand their cap to the native tree (0: one thread
+    per core), restored after the block."""
+    import lieax
+
+    library = _native.library()
+    before = library.LieaxThreads()
+    with lieax.threads(1):
+        assert library.LieaxThreads() == 1
+        with lieax.threads(None):
+            assert library.LieaxThreads() == 0
+        assert library.LieaxThreads() == 1
+    assert library.LieaxThreads() == before == (lieax.get_threads() or 0)
+
+
 CHILD = textwrap.dedent(
     """
     import sys, jax

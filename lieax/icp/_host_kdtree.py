@@ -25,12 +25,13 @@ the same functions here, chosen by `build_kdtree(library=...)` (default `default
 Warm starts. ICP's iterations use `track_in_kdtree`, which keeps the answer of a query that moved
 less than half the gap between its nearest and second-nearest distances (see there), and asks the
 tree for the second-nearest distance only when the moves are small enough for that to pay.
-For `nearest_in_kdtree(previous=...)` the tree also gives each target point's `spacing`
-(`kdtree_spacing`), the distance to its nearest other valid point (the host tree computes it on
-the first such call and keeps it with the tree; the native tree in each program that asks, XLA
-computing it once there): a k-nearest query over the whole target, 0.2-0.4 s with pykdtree on
-the Kinect benchmark's 181k points, that ICP's `track_in_kdtree` does not need, so the build
-does not pay for it. A query at distance $d$ from its previous match $c$ keeps it
+For `nearest_in_kdtree(previous=...)` the host tree also computes, on the first such call, each
+target point's `spacing` (`kdtree_spacing`), the distance to its nearest other valid point, and
+keeps it with the tree (a k-nearest query over the whole target, 0.2-0.4 s with pykdtree on the
+Kinect benchmark's 181k points, that ICP's `track_in_kdtree` does not need, so the build does
+not pay for it). The native tree keeps nothing between calls, so it would pay that query in
+every call, more than the queries it saves: it answers every query and ignores `previous`
+(`kdtree_spacing` still gives its spacing). A query at distance $d$ from its previous match $c$ keeps it
 when $2d \le$ `spacing[c]`: every other point $p$ has $|q - p| \ge |p - c| - d \ge$
 `spacing[c]` $- d \ge d$ (the triangle inequality), so $c$ is still the nearest. Only the other
 queries are sent to the tree (40-80% of the source points are kept near convergence on the
@@ -326,7 +327,8 @@ def nearest_in_kdtree(index: KDTreeIndex, queries, radius=jnp.inf, *, mask=None,
     - `radius`: the search radius (`inf`: the nearest point).
     - `mask`: queries to skip (they get no match).
     - `previous`: `(m,)` slots of earlier matches (any valid slots): a query whose earlier match
-      is provably still its nearest (see the module docstring) is not sent to the host.
+      is provably still its nearest (see the module docstring) is not sent to the host tree
+      (the native tree answers every query: see there).
 
     **Returns:** `(slot, squared_distance)`: the match's index in the target (0 where there is
     none) and its squared distance (`inf` where there is none).
@@ -338,6 +340,8 @@ def nearest_in_kdtree(index: KDTreeIndex, queries, radius=jnp.inf, *, mask=None,
     active = active & jnp.all(jnp.isfinite(queries), axis=1)
     radius = jnp.asarray(radius, queries.dtype)
     kept = jnp.zeros((m,), bool)
+    if is_native(index):
+        previous = None
     if previous is not None:
         previous_d2 = squared_norms(index.points[previous].astype(queries.dtype) - queries)
         spacing = kdtree_spacing(index)[previous].astype(queries.dtype)
