@@ -9,19 +9,21 @@ Clouds (the ICP benchmark's, `benchmarks/icp.py` imports them from here):
 Per cloud and backend, at the pose ICP converges to: the index build (jitted, on the target; the
 host tree's registry emptied first), one matching step of every source point inside a jitted call
 from scratch (the graph: seed, descent and exact check) and warm-started from the exact matches
-(the graph's descent, as in ICP's iterations; the host tree skipping the matches its spacing test
-keeps), and exactness: the share of the source points with a target point within the radius that
+(the graph's descent, as in ICP's iterations; the host trees skipping the matches their spacing
+test keeps; the native tree, which keeps no spacing, answering every query), and exactness: the share of the source points with a target point within the radius that
 got their nearest one (or one at the same distance) in the warm-started step, against SciPy's
 cKDTree, and for the graph also after its exact check. The two host libraries are also timed bare
 (numpy in, numpy out) to choose between them.
 
-A third table, `--libraries`, chooses the host tree lieax depends on: SciPy's cKDTree
-(`balanced_tree=False`, as lieax builds it), pykdtree and small_gicp's `KdTree`, float64, built on
+A third table, `--libraries`, compares the k-d trees lieax could use: SciPy's cKDTree
+(`balanced_tree=False`, as lieax builds it), pykdtree, small_gicp's `KdTree` and lieax's native
+tree (`lieax.icp._native_kdtree`, each call a jitted custom call), float64, built on
 the target and queried for k = 1 (the source at the converged pose: ICP's matching) and k = 10
 (the target against itself: normals and covariances), no distance bound (small_gicp has none),
 each with its default threads (cKDTree `workers=1`, pykdtree OpenMP's default: one per core,
-small_gicp `num_threads=1`) and with the other choice (one thread for pykdtree, by
-threadpoolctl; one per core for the other two), also on the raw
+small_gicp `num_threads=1`, native one per core) and with the other choice (one thread for
+pykdtree, by threadpoolctl, and the native tree, by `lieax.threads`; one per core for cKDTree and
+small_gicp), also on the raw
 25k-point LiDAR scans; medians of interleaved repeats.
 
 Run `LIEAX_DATA_DIR=../shared/data python benchmarks/neighbors.py` (needs the `bench` extra:
@@ -51,7 +53,7 @@ from _timing import format_seconds, machine_description, markdown_table, time_in
 
 LIDAR_VOXEL = 0.5
 KINECT_VOXEL = 0.01
-BACKENDS = ("graph", "grid", "kdtree", "kdtree pykdtree", "brute")
+BACKENDS = ("graph", "grid", "kdtree native", "kdtree pykdtree", "kdtree scipy", "brute")
 
 
 # ---- clouds --------------------------------------------------------------------------------------
@@ -129,7 +131,7 @@ def aligned(source, target, radius, truth):
 
 def builder(backend, radius):
     name, _, library = backend.partition(" ")
-    options = {"library": {"": "scipy"}.get(library, library)} if name == "kdtree" else {}
+    options = {"library": library} if name == "kdtree" and library else {}
     return jax.jit(lambda t: _search.build_index(t, search=name, max_distance=radius, **options))
 
 
@@ -233,7 +235,7 @@ def host_libraries(label, source, target, radius, truth, repeats=7):
 # OpenMP's, one per core), a number that many threads
 HOST_TREES = (
     ("cKDTree", None), ("cKDTree", os.cpu_count()), ("pykdtree", None), ("pykdtree", 1),
-    ("small_gicp", None), ("small_gicp", os.cpu_count()),
+    ("small_gicp", None), ("small_gicp", os.cpu_count()), ("native", None), ("native", 1),
 )  # fmt: skip
 
 
@@ -246,6 +248,8 @@ def host_tree_variants(target, queries, library, threads):
     from pykdtree.kdtree import KDTree
     from threadpoolctl import ThreadpoolController
 
+    if library == "native":
+        return native_tree_variants(target, queries, threads)
     if library == "cKDTree":
         workers = 1 if threads is None else threads
         build = lambda: cKDTree(target, balanced_tree=False)
@@ -274,6 +278,39 @@ def host_tree_variants(target, queries, library, threads):
             return run
 
         variants = {what: limited(fn) for what, fn in variants.items()}
+    return variants
+
+
+def native_tree_variants(target, queries, threads):
+    """`host_tree_variants` of lieax's native tree (`lieax.icp._native_kdtree`), each a jitted
+    call of its custom call, NumPy in and out (`threads`: None, one per core, or that many by
+    `lieax.threads`). Its k = 10 query of the target is `neighbours`, which builds the tree in
+    the same call (normals' and covariances' use): the build's time is in it."""
+    import lieax
+    from lieax.icp import _native_kdtree
+
+    valid = np.ones(len(target), bool)
+    build = jax.jit(_native_kdtree.build)
+    nearest = jax.jit(
+        lambda tree, q: _native_kdtree.nearest(tree, q, np.inf, np.ones(len(q), bool))
+    )
+    neighbours = jax.jit(_native_kdtree.neighbours, static_argnums=2)
+    tree = jax.block_until_ready(build(target, valid))
+
+    def run(fn, *args):
+        def timed():
+            with lieax.threads(threads):
+                return jax.tree_util.tree_map(np.asarray, fn(*args))
+
+        return timed
+
+    variants = {
+        "build": run(build, target, valid),
+        "k=1": run(nearest, tree, queries),
+        "k=10": run(neighbours, target, valid, 10),
+    }
+    for fn in variants.values():
+        fn()  # (compiled here)
     return variants
 
 
@@ -352,7 +389,7 @@ def print_host_trees(data_dir, clouds, repeats):
     scans = np.load(os.path.join(data_dir, "clouds", "lidar_scans_0_1_2", "scans.npz"))
     clouds = {**clouds, "LiDAR raw 25k": (scans["scan1"], scans["scan0"], 1.0, None)}
     sizes = ", ".join(f"{label} {len(c[0])}/{len(c[1])}" for label, c in clouds.items())
-    print(f"\n## Host k-d trees for lieax: cKDTree, pykdtree, small_gicp\n\n{os.cpu_count()} "
+    print(f"\n## k-d trees for lieax: cKDTree, pykdtree, small_gicp, native\n\n{os.cpu_count()} "
           f"CPUs, float64, {repeats} interleaved repeats, median (× the fastest of the three); "
           f"points (queries/target): {sizes}; {time.strftime('%Y-%m-%d %H:%M')}, load "
           f"{os.getloadavg()[0]:.1f}\n")  # fmt: skip

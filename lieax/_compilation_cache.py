@@ -37,10 +37,11 @@ def enable_compilation_cache(path=None) -> pathlib.Path:
     What JAX cannot cache: a program that contains a Python host callback. Such a program is
     compiled in every process. In lieax today:
 
-    - `lieax.icp` on a CPU with the default `search` (the host k-d tree), and the normals and
-      GICP covariances found with `search="kdtree"` (the default on a CPU): the registrations of
-      `examples/icp_demo.py` and of the LiDAR pairs; `search="grid"` (and `"graph"` for the
-      normals) has no callback and is cached;
+    - `lieax.icp` on a CPU with the default `search` and the normals and GICP covariances found
+      with `search="kdtree"` (the default on a CPU) where the native library is not available
+      (`lieax._native.available()`: they then use the host k-d tree); with it, those programs
+      call its k-d tree by name and are cached (the registrations of `examples/icp_demo.py` and
+      of the LiDAR pairs); `search="grid"` (and `"graph"` for the normals) is cached either way;
     - `lieax.factorgraph` with `linear_solver="cholesky"` and `lieax.graph.optimize` (the host
       multifrontal Cholesky) where the native library is not built or `LIEAX_NATIVE=0`: the
       solve loop (with the native library, its custom call is cached like the rest);

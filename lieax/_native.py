@@ -18,8 +18,19 @@ import os
 
 import jax
 
+from . import _threads
+
 # handler symbol in the library -> name of the custom-call target registered with JAX
-_TARGETS = {"LieaxProbe": "lieax_probe", "LieaxCholeskySolve": "lieax_cholesky_solve"}
+_TARGETS = {
+    "LieaxProbe": "lieax_probe",
+    "LieaxCholeskySolve": "lieax_cholesky_solve",
+    "LieaxKdtreeBuild": "lieax_kdtree_build",
+    "LieaxKdtreeNearest": "lieax_kdtree_nearest",
+    "LieaxKdtreeTrack": "lieax_kdtree_track",
+    "LieaxKdtreeSpacing": "lieax_kdtree_spacing",
+    "LieaxKdtreeNeighbours": "lieax_kdtree_neighbours",
+    "LieaxKdtreeCovariances": "lieax_kdtree_covariances",
+}
 
 
 @functools.cache
@@ -33,9 +44,12 @@ def library():
     lib = ctypes.CDLL(spec.origin)
     for symbol, target in _TARGETS.items():
         jax.ffi.register_ffi_target(target, jax.ffi.pycapsule(getattr(lib, symbol)), platform="cpu")
+    lib.LieaxSetThreads.argtypes = [ctypes.c_int]
+    _threads.on_change(lambda threads: lib.LieaxSetThreads(threads or 0))  # the k-d tree's cap
     return lib
 
 
 def available() -> bool:
     """Whether the native library is built, enabled and registered."""
     return library() is not None
+

@@ -70,10 +70,11 @@ def pair():
 
 @pytest.mark.parametrize("search", ["kdtree", "kdtree scipy", "graph"])
 def test_covariances_match_a_numpy_reference(search, monkeypatch):
-    """The covariances against small_gicp's rule in NumPy; `"kdtree scipy"`: the host tree
-    forced to SciPy's (as without pykdtree, the bench extra), the same covariances."""
+    """The covariances against small_gicp's rule in NumPy; `"kdtree"` is the native tree where
+    the library is built, `"kdtree scipy"` the host tree forced to SciPy's (as without the native
+    library and pykdtree), the same covariances."""
     if search == "kdtree scipy":
-        monkeypatch.setattr(_host_kdtree, "has_pykdtree", lambda: False)
+        monkeypatch.setattr(_host_kdtree, "default_library", lambda dtype=None: "scipy")
         search = "kdtree"
     points = np.asarray(icp.synthetic_scene(390, noise=0.002, seed=4)[0])
     cloud, mask = padded(points)

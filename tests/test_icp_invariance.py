@@ -128,8 +128,9 @@ def test_prebuilt_index_far_from_the_origin(pair, at_origin):
 
 def test_buckets_and_the_host_tree_far_from_the_origin(pair):
     """Padding to the capacity bucket (400 -> 448 rows) gives the unpadded result at 1e5 m; the
-    loop builds its host k-d tree on the target as given, so a tree prebuilt on the same points
-    is found in the registry (no second tree)."""
+    loop builds its k-d tree on the target as given, so with the host tree (no native library) a
+    tree prebuilt on the same points is found in the registry (no second tree; the native tree
+    keeps no registry)."""
     G = placement(1e5, rotated=True)
     icp.build_index(G @ pair[1], search="kdtree")
     trees = len(_host_kdtree._TREES)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from lieax import icp
+from lieax import _native, icp
 from lieax.icp import _grid, _host_kdtree, _search
 
 BACKENDS = ("graph", "grid", "kdtree", "brute")
@@ -108,17 +108,23 @@ def test_grid_is_exact_with_colliding_buckets_and_wide_tables(capacity):
     _check_against_kdtree(result, target, ones, queries, np.ones(len(queries), bool), radius, True)
 
 
-def test_kdtree_warm_start_keeps_only_provably_nearest_matches():
+@pytest.mark.parametrize("library", ["native", "host"])
+def test_kdtree_warm_start_keeps_only_provably_nearest_matches(library):
     """Earlier matches kept by the spacing test (right ones, wrong ones, random ones) change
-    nothing: the result is still the exact nearest point within the radius. The spacing is
-    computed at the first such query, not by the build."""
+    nothing: the result is still the exact nearest point within the radius (the native tree
+    ignores them). The host tree computes the spacing at the first such query, not at the
+    build; both give the spacing."""
+    if library == "native" and not _native.available():
+        pytest.skip("the native library is not built")
     rng = np.random.default_rng(5)
     target, queries, radius = _ring_cloud(rng)
-    index = _search.build_index(target, search="kdtree")
+    library = _host_kdtree.host_library() if library == "host" else library
+    index = _search.build_index(target, search="kdtree", library=library)
     exact = _search.match(index, queries, radius)
     reference, _ = cKDTree(target).query(queries, 1)
     within = reference <= radius
-    assert _host_kdtree._entry(index.tree)[4] is None  # the spacing waits for `previous`
+    if library != "native":
+        assert _host_kdtree._entry(index.tree)[4] is None  # the spacing waits for `previous`
     match = jax.jit(lambda q, p: _search.match(index, q, radius, previous=p))
     for previous in (exact[0], rng.integers(0, len(target), len(queries)), exact[0][::-1]):
         _, d2 = match(queries, jnp.asarray(previous, jnp.int32))
@@ -152,21 +158,23 @@ def test_normals_from_the_host_tree_and_the_graph_agree():
         assert np.all(np.sum(found[mask] * -points[mask], axis=1) > np.cos(np.radians(10)))
 
 
-@pytest.mark.parametrize("library", ["scipy", "pykdtree"])
+@pytest.mark.parametrize("library", ["scipy", "pykdtree", "native"])
 def test_host_neighbourhoods_survive_repeated_points(library):
-    """The host k-d tree of the normals, inside XLA's callback (flush-to-zero and
-    denormals-are-zero set), on a cloud with more repeats of one point than a leaf holds: SciPy's
-    default `cKDTree` build segfaults there (`lieax.icp._normals`), the unbalanced one and
-    pykdtree give the exact `k` nearest distances (NumPy's brute force)."""
+    """The k-d tree of the normals, inside XLA's callback (flush-to-zero and denormals-are-zero
+    set) or custom call, on a cloud with more repeats of one point than a leaf holds: SciPy's
+    default `cKDTree` build segfaults there (`lieax.icp._normals`), the unbalanced one, pykdtree
+    and the native tree give the exact `k` nearest distances (NumPy's brute force)."""
     if library == "pykdtree" and importlib.util.find_spec("pykdtree") is None:
         pytest.skip("pykdtree is not installed (the bench extra)")
+    if library == "native" and not _native.available():
+        pytest.skip("the native library is not built")
     from lieax.icp import _normals
 
     rng = np.random.default_rng(0)
     points = np.concatenate([rng.normal(size=(200, 3)), np.zeros((40, 3))])
     mask = np.arange(len(points)) % 7 != 3
     found = np.asarray(
-        _normals._host_neighbourhoods_call(
+        _normals._kdtree_neighbourhoods_call(
             jnp.asarray(points), jnp.asarray(mask), k=12, library=library
         )
     )
@@ -289,7 +297,8 @@ def test_vmap_over_sources_sharing_a_target(pair, search):
 def test_vmap_over_targets_builds_one_host_tree_each(pair):
     source, target, _, _ = pair
     targets = jnp.stack([target, target + 0.01])
-    index = jax.vmap(lambda t: _search.build_index(t, search="kdtree"))(targets)
+    host = _host_kdtree.host_library()
+    index = jax.vmap(lambda t: _search.build_index(t, search="kdtree", library=host))(targets)
     assert index.tree.shape == (2,) and int(index.tree[0]) != int(index.tree[1])
     result = jax.vmap(lambda ix: _search.nearest(ix, source, radius=0.1))(index)
     for b in range(2):
@@ -305,7 +314,8 @@ def test_vmap_groups_host_queries_by_tree_and_radius(pair):
     source, target, _, _ = pair
     targets = jnp.stack([target, target + 0.01, target])
     radii = jnp.asarray([0.1, 0.1, 0.03])
-    index = jax.vmap(lambda t: _search.build_index(t, search="kdtree"))(targets)
+    host = _host_kdtree.host_library()
+    index = jax.vmap(lambda t: _search.build_index(t, search="kdtree", library=host))(targets)
     assert int(index.tree[0]) == int(index.tree[2]) != int(index.tree[1])
     result = jax.jit(jax.vmap(lambda ix, r: _search.nearest(ix, source, radius=r)))(index, radii)
     for b in range(3):
@@ -317,8 +327,9 @@ def test_vmap_groups_host_queries_by_tree_and_radius(pair):
 
 def test_prebuilt_index_is_reused(pair):
     source, target, normals, _ = pair
-    first = _search.build_index(target, search="kdtree")
-    again = _search.build_index(target, search="kdtree")
+    host = _host_kdtree.host_library()
+    first = _search.build_index(target, search="kdtree", library=host)
+    again = _search.build_index(target, search="kdtree", library=host)
     assert int(first.tree) == int(again.tree)  # the host registry found the same target
     reference = _register(source, target, normals, "kdtree")
     for index in (first, _search.build_index(target, search="grid", max_distance=0.15)):

@@ -6,8 +6,8 @@
   them coarse to fine on a voxel pyramid. `Status` is `lieax.lstsq.Status` (the one enum of every
   solver), `ICPResult` a `lieax.lstsq.SolverResult` and `ICPError` a `lieax.lstsq.SolveError`.
 - `build_index`, `nearest`: the nearest-neighbour searches they use, built once per target and
-  exact within a radius: `search="kdtree"` (a host k-d tree called from the compiled loop, the
-  CPU default), `"graph"` (a k-d tree of equal leaves and a neighbour graph, in JAX), `"grid"` (a
+  exact within a radius: `search="kdtree"` (a k-d tree in the native library, else on the host,
+  called from the compiled loop, the CPU default), `"graph"` (a k-d tree of equal leaves and a neighbour graph, in JAX), `"grid"` (a
   voxel hash grid, in JAX), `"brute"` (chunked brute force, for accelerators); `"auto"` chooses
   by backend and size.
 - `estimate_normals`, `estimate_covariances`, `voxel_downsample`: preprocessing.

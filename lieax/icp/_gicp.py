@@ -22,7 +22,7 @@ from .. import _cpu_emitters as cpu_emitters
 from .._checks import as_float_array
 from .._host_call import host_call
 from ..groups._se3 import SE3
-from . import _host_kdtree, _neighbors, _normals, _search
+from . import _host_kdtree, _native_kdtree, _neighbors, _normals, _search
 from ._batch import pad_to_bucket
 from ._checks import check_cloud, check_count, check_mask, check_parameter
 from ._normals import _UPPER, offset_covariances, smallest_eigenvector
@@ -55,9 +55,9 @@ def estimate_covariances(points, *, k=20, mask=None, search="auto"):
     - `points`: shape `(n, 3)`.
     - `k`: neighbourhood size, the point itself included (small_gicp's default, 20).
     - `mask`: `(n,)` bools, False for padding; those rows get the identity.
-    - `search`: how the neighbours are found, as for `estimate_normals`: `"kdtree"`, the host
-      k-d tree (pykdtree's where it is installed, else SciPy's; exact; CPU only; the sums over
-      each neighbourhood are made on the host too, see `_kdtree_covariances`), `"graph"`, the
+    - `search`: how the neighbours are found, as for `estimate_normals`: `"kdtree"`, a k-d tree
+      (the native library's, else pykdtree's or SciPy's on the host; exact; CPU only; the sums
+      over each neighbourhood are made beside it, see `_kdtree_covariances`), `"graph"`, the
       fixed-shape neighbour graph (any backend;
       99.96% of the bunny's neighbourhoods exact), or `"auto"` (`"kdtree"` on a CPU, else
       `"graph"`).
@@ -73,7 +73,7 @@ def estimate_covariances(points, *, k=20, mask=None, search="auto"):
         search = "kdtree" if _search.platform_of(points) == "cpu" else "graph"
     if search == "kdtree":
         _host_kdtree.check_on_host(points, "the points")
-        return _kdtree_covariances(points, mask, k, _host_kdtree.default_library())
+        return _kdtree_covariances(points, mask, k, _host_kdtree.default_library(points.dtype))
     return _estimate(points, mask, k=k)
 
 
@@ -111,10 +111,11 @@ def _covariances_of_neighbours(points, mask, found):
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(2, 3))
 def _kdtree_covariances(points, mask, k, library):
-    """`estimate_covariances(search="kdtree")`: the neighbours' sums on the host, in the k-d tree's
-    callback (`_host_covariance_entries`), the eigenvector and the regularization in JAX.
+    """`estimate_covariances(search="kdtree")`: the neighbours' sums beside the k-d tree, in the
+    native library's custom call (`lieax.icp._native_kdtree.covariance_entries`) or the host
+    tree's callback (`_host_covariance_entries`), the eigenvector and the regularization in JAX.
 
-    The host skips what the JAX path of `_covariances_of_neighbours` pays for: the `(n, k)`
+    Either skips what the JAX path of `_covariances_of_neighbours` pays for: the `(n, k)`
     indices' trip back to XLA and XLA's gather of `(n, 3, k)` copies (on the Kinect cloud of
     `benchmarks/gicp.py`, 67k points, about 2x the time of the NumPy sums). Derivatives (the
     neighbourhoods held fixed) are those of `_covariances_of_neighbours`, the JVP rule below."""
@@ -124,9 +125,12 @@ def _kdtree_covariances(points, mask, k, library):
 @cpu_emitters.jit(static_argnames=("k", "library"))
 def _kdtree_covariances_primal(points, mask, *, k, library):
     valid = mask & jnp.all(jnp.isfinite(points), axis=1)
-    host = functools.partial(_host_covariance_entries, k=k, library=library)
-    result = jax.ShapeDtypeStruct((points.shape[0], 6), points.dtype)
-    entries = host_call(host, result, points, valid)
+    if library == "native":
+        entries = _native_kdtree.covariance_entries(points, valid, k)
+    else:
+        host = functools.partial(_host_covariance_entries, k=k, library=library)
+        result = jax.ShapeDtypeStruct((points.shape[0], 6), points.dtype)
+        entries = host_call(host, result, points, valid)
     upper = [entries[:, j] for j in range(6)]
     covariance = jnp.stack(
         [jnp.stack([_entry(upper, a, b) for b in range(3)], -1) for a in range(3)], -2

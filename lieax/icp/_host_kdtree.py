@@ -1,33 +1,44 @@
-r"""A k-d tree on the host, built once per target and queried from jitted code through `host_call`.
+r"""The k-d tree search of `lieax.icp` (`search="kdtree"`): `KDTreeIndex`, its build and queries,
+served by the native library's tree or, without it, by a tree on the host.
 
-On a CPU the compiled k-d trees of SciPy (`cKDTree`) and pykdtree answer a nearest-neighbour query
-in well under a microsecond, faster than any fixed-shape search XLA compiles (see
-`benchmarks/neighbors.py`), and `lieax._host_call.host_call` hands XLA's host buffers to NumPy
-in a few microseconds. So the tree lives on the host:
+On a CPU a compiled k-d tree answers a nearest-neighbour query in well under a microsecond,
+faster than any fixed-shape search XLA compiles (see `benchmarks/neighbors.py`). Two kinds serve
+the same functions here, chosen by `build_kdtree(library=...)` (default `default_library`):
 
-- `build_kdtree` sends the target to the host once; the host builds the tree over its valid points
-  and keeps it in a registry, keyed by a digest of the points and mask (a second build of the same
-  target, or every element of a `vmap` that shares a target, reuses it), and hands back an integer
-  id that travels in the traced `KDTreeIndex`;
-- `nearest_in_kdtree` sends the queries and the id each time, and gets the nearest valid target
-  point within the radius back (under `vmap`, one host call for the whole batch, with one tree
-  query per target: `_per_target`).
+- `"native"` (`lieax.icp._native_kdtree`): the tree is arrays built by one custom call and
+  carried in `KDTreeIndex.tree`; the queries are custom calls on them. Pure (no state outside
+  the arrays), one call per batch under `vmap`, and the programs are kept by JAX's persistent
+  compilation cache. Its answers are pykdtree's, ties aside (`tests/test_native_kdtree.py`).
+- `"pykdtree"` or `"scipy"`: the fallback where the native library is not available. The trees
+  of pykdtree and SciPy's `cKDTree` live on the host, and `lieax._host_call.host_call` hands
+  XLA's host buffers to NumPy in a few microseconds (a program with such a callback is compiled
+  in every process):
+
+  - `build_kdtree` sends the target to the host once; the host builds the tree over its valid
+    points and keeps it in a registry, keyed by a digest of the points and mask (a second build
+    of the same target, or every element of a `vmap` that shares a target, reuses it), and hands
+    back an integer id that travels in the traced `KDTreeIndex`;
+  - `nearest_in_kdtree` sends the queries and the id each time, and gets the nearest valid target
+    point within the radius back (under `vmap`, one host call for the whole batch, with one tree
+    query per target: `_per_target`).
 
 Warm starts. ICP's iterations use `track_in_kdtree`, which keeps the answer of a query that moved
 less than half the gap between its nearest and second-nearest distances (see there), and asks the
 tree for the second-nearest distance only when the moves are small enough for that to pay.
-For `nearest_in_kdtree(previous=...)` the host also computes, on the first such call, each
+For `nearest_in_kdtree(previous=...)` the host tree also computes, on the first such call, each
 target point's `spacing` (`kdtree_spacing`), the distance to its nearest other valid point, and
-keeps it with the tree (a k-nearest query over the whole target, 0.2-0.4 s on the Kinect
-benchmark's 181k points, that ICP's `track_in_kdtree` does not need, so the build does not pay
-for it). A query at distance $d$ from its previous match $c$ keeps it
+keeps it with the tree (a k-nearest query over the whole target, 0.2-0.4 s with pykdtree on the
+Kinect benchmark's 181k points, that ICP's `track_in_kdtree` does not need, so the build does
+not pay for it). The native tree keeps nothing between calls, so it would pay that query in
+every call, more than the queries it saves: it answers every query and ignores `previous`
+(`kdtree_spacing` still gives its spacing). A query at distance $d$ from its previous match $c$ keeps it
 when $2d \le$ `spacing[c]`: every other point $p$ has $|q - p| \ge |p - c| - d \ge$
 `spacing[c]` $- d \ge d$ (the triangle inequality), so $c$ is still the nearest. Only the other
 queries are sent to the tree (40-80% of the source points are kept near convergence on the
 benchmark's scans).
 
-The registry keeps the `_CAPACITY` most recently used trees; a query for an evicted tree raises.
-The host tree needs the data on the host: on another backend (a GPU) it raises, naming the
+The registry keeps the `_CAPACITY` most recently used host trees; a query for an evicted tree
+raises. Both kinds need the data on the host: on another backend (a GPU) it raises, naming the
 backends that run there (`"grid"`, `"brute"`).
 """
 
@@ -41,8 +52,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import _threads
+from .. import _native, _threads
 from .._host_call import host_call
+from . import _native_kdtree
 from ._coordinates import row_sums, squared_norms
 
 _CAPACITY = 256
@@ -51,18 +63,19 @@ _TREES: collections.OrderedDict = collections.OrderedDict()
 _IDS: dict = {}  # digest -> id
 _NEXT_ID = [0]
 _LOCK = threading.Lock()
-_LIBRARIES = ("scipy", "pykdtree")
+_LIBRARIES = ("native", "scipy", "pykdtree")
 
 
 class KDTreeIndex(NamedTuple):
-    """A target cloud whose k-d tree lives on the host (see the module docstring).
+    """A target cloud and its k-d tree (see the module docstring).
 
     **Fields:**
 
     - `points`: `(N, 3)` the target points in their original order; invalid points hold `inf`.
     - `order`: `(N,)` int32, `arange(N)` (slots are the original indices).
     - `valid`: `(N,)` bool.
-    - `tree`: `()` int32, the id of the tree in the host registry.
+    - `tree`: the native tree's arrays (a `lieax.icp._native_kdtree.NativeKDTree`), or for the
+      host trees `()` int32, the id of the tree in the host registry.
     """
 
     points: jax.Array
@@ -91,26 +104,33 @@ def build_kdtree(points, mask=None, *, library=None) -> KDTreeIndex:
     **Arguments:**
 
     - `points`, `mask`: the target cloud and its valid rows.
-    - `library`: `"scipy"` (`scipy.spatial.cKDTree`) or `"pykdtree"` (needs the package);
-      default `default_library()` (see `host_tree`).
+    - `library`: `"native"` (the native library's tree, `lieax.icp._native_kdtree`: float32 and
+      float64 points), `"scipy"` (`scipy.spatial.cKDTree`) or `"pykdtree"` (needs the package;
+      both on the host, see `host_tree`); default `default_library(points.dtype)`.
 
     **Returns:** a `KDTreeIndex`.
     """
+    points = jnp.asarray(points)
     if library is None:
-        library = default_library()
+        library = default_library(points.dtype)
     if library not in _LIBRARIES:
         raise ValueError(f"library must be one of {_LIBRARIES}, got {library!r}.")
     if library == "pykdtree":
         import pykdtree.kdtree  # noqa: F401  (fail here, at trace time, when it is missing)
-    _threads.prepare()  # (the thread pools listed here, not in the callbacks)
-    points = jnp.asarray(points)
+    if library == "native":
+        _check_native(points.dtype)
+    else:
+        _threads.prepare()  # (the thread pools listed here, not in the callbacks)
     check_on_host(points, "the target")
     n = points.shape[0]
     if n >= 2**24:
         raise ValueError(f"search='kdtree' handles fewer than {2**24} points, got {n}.")
     valid = jnp.ones((n,), bool) if mask is None else jnp.asarray(mask, bool)
     valid = valid & jnp.all(jnp.isfinite(points), axis=1)
-    tree = host_call(_BUILDERS[library], jax.ShapeDtypeStruct((), jnp.int32), points, valid)
+    if library == "native":
+        tree = _native_kdtree.build(points, valid)
+    else:
+        tree = host_call(_BUILDERS[library], jax.ShapeDtypeStruct((), jnp.int32), points, valid)
     points = jnp.where(valid[:, None], points, jnp.inf)
     return KDTreeIndex(points, jnp.arange(n, dtype=jnp.int32), valid, tree)
 
@@ -123,21 +143,48 @@ def has_pykdtree():
     return True
 
 
-def default_library():
-    """`"pykdtree"` where it is installed (it builds 2-4x and queries up to 2x faster than
-    cKDTree on the benchmark's clouds, `benchmarks/neighbors.py`), else `"scipy"`."""
+def default_library(dtype=None):
+    """`"native"` where the native library is available (`lieax._native.available()`) and takes
+    `dtype` (float32, float64; `None`: any), else the host trees: `"pykdtree"` where it is
+    installed (it builds 2-4x and queries up to 2x faster than cKDTree on the benchmark's clouds,
+    `benchmarks/neighbors.py`), else `"scipy"`."""
+    if _native.available() and (dtype is None or _native_kdtree.supports(dtype)):
+        return "native"
+    return host_library()
+
+
+def host_library():
+    """The host tree: `"pykdtree"` where it is installed, else `"scipy"`."""
     return "pykdtree" if has_pykdtree() else "scipy"
+
+
+def _check_native(dtype):
+    if not _native.available():
+        raise ValueError(
+            "library='native' needs the native library (lieax._native: not built, or turned off "
+            "by LIEAX_NATIVE=0); use 'pykdtree' or 'scipy'."
+        )
+    if not _native_kdtree.supports(dtype):
+        raise ValueError(
+            f"library='native' takes float32 or float64 points, got {np.dtype(dtype)}; use "
+            "'pykdtree' or 'scipy'."
+        )
+
+
+def is_native(index: KDTreeIndex) -> bool:
+    """Whether `index` holds the native tree (else a host tree's id)."""
+    return isinstance(index.tree, _native_kdtree.NativeKDTree)
 
 
 def host_tree(points, library=None):
     """The k-d tree of `points` (a C-contiguous `(n, 3)` NumPy array, `n >= 1`) on the host:
-    pykdtree's `KDTree` or SciPy's `cKDTree` (`library`, default `default_library()`).
+    pykdtree's `KDTree` or SciPy's `cKDTree` (`library`, default `host_library()`).
 
     SciPy's tree is built with `balanced_tree=False`: XLA runs host callbacks with the x86
     flush-to-zero and denormals-are-zero flags set (MXCSR `0x9fe2`), and under those flags SciPy
     1.17's default build (`balanced_tree=True`, `compact_nodes=True`) segfaults on a cloud with
     repeated points, inside JAX or not (`tests/test_icp_search.py`); either flag off builds."""
-    if (library or default_library()) == "pykdtree":
+    if (library or host_library()) == "pykdtree":
         from pykdtree.kdtree import KDTree
 
         return KDTree(points)
@@ -223,8 +270,11 @@ def _entry(tree_id):
 def kdtree_spacing(index: KDTreeIndex):
     """`(N,)` the distance from each valid point of the index to its nearest other valid point
     (`inf` for a single point, 0 for invalid ones); one host call, the k-nearest query made on
-    the first call for this tree only (the host keeps the result with the tree)."""
+    the first call for this tree only (the host keeps the result with the tree); for the native
+    tree, one custom call that makes the query (XLA computes it once per program)."""
     points = index.points
+    if is_native(index):
+        return _native_kdtree.spacing(index.tree)
     return host_call(
         _spacing, jax.ShapeDtypeStruct(points.shape[:1], points.dtype), index.tree, points
     )
@@ -277,7 +327,8 @@ def nearest_in_kdtree(index: KDTreeIndex, queries, radius=jnp.inf, *, mask=None,
     - `radius`: the search radius (`inf`: the nearest point).
     - `mask`: queries to skip (they get no match).
     - `previous`: `(m,)` slots of earlier matches (any valid slots): a query whose earlier match
-      is provably still its nearest (see the module docstring) is not sent to the host.
+      is provably still its nearest (see the module docstring) is not sent to the host tree
+      (the native tree answers every query: see there).
 
     **Returns:** `(slot, squared_distance)`: the match's index in the target (0 where there is
     none) and its squared distance (`inf` where there is none).
@@ -289,17 +340,23 @@ def nearest_in_kdtree(index: KDTreeIndex, queries, radius=jnp.inf, *, mask=None,
     active = active & jnp.all(jnp.isfinite(queries), axis=1)
     radius = jnp.asarray(radius, queries.dtype)
     kept = jnp.zeros((m,), bool)
+    if is_native(index):
+        previous = None
     if previous is not None:
         previous_d2 = squared_norms(index.points[previous].astype(queries.dtype) - queries)
         spacing = kdtree_spacing(index)[previous].astype(queries.dtype)
         slack = 4 * (1 + 16 * jnp.finfo(queries.dtype).eps)  # rounding of both sides
         kept = active & index.valid[previous] & (slack * previous_d2 <= spacing * spacing)
-    out = host_call(
-        _query, jax.ShapeDtypeStruct((m, 2), queries.dtype), index.tree, queries, radius,
-        active & ~kept, batched=_per_target(_query),
-    )  # fmt: skip
-    # A slot below 2**24 is exact in float32.
-    slot, d2 = out[:, 1].astype(jnp.int32), out[:, 0]
+    if is_native(index):
+        slot, d2 = _native_kdtree.nearest(index.tree, queries, radius, active & ~kept)
+        d2 = d2.astype(queries.dtype)
+    else:
+        out = host_call(
+            _query, jax.ShapeDtypeStruct((m, 2), queries.dtype), index.tree, queries, radius,
+            active & ~kept, batched=_per_target(_query),
+        )  # fmt: skip
+        # A slot below 2**24 is exact in float32.
+        slot, d2 = out[:, 1].astype(jnp.int32), out[:, 0]
     if previous is not None:
         hit = kept & (previous_d2 <= radius * radius)
         slot = jnp.where(hit, previous, jnp.where(kept, 0, slot))
@@ -393,11 +450,15 @@ def track_in_kdtree(index: KDTreeIndex, queries, radius, warm: KDTreeWarmStart, 
 
     near, total = row_sums([(sent & (moved < gap)).astype(dtype), sent.astype(dtype)])
     pairs = near >= _PAIR_SHARE * total
-    out = host_call(
-        _track_query, jax.ShapeDtypeStruct((m, 2), dtype), index.tree, queries, radius, sent,
-        pairs, batched=_per_target(_track_query),
-    )  # fmt: skip
-    fresh_slot, fresh_allowance = out[:, 0].astype(jnp.int32), out[:, 1]  # (slots below 2**24)
+    if is_native(index):
+        fresh_slot, fresh_allowance = _native_kdtree.track(index.tree, queries, radius, sent, pairs)
+        fresh_allowance = fresh_allowance.astype(dtype)
+    else:
+        out = host_call(
+            _track_query, jax.ShapeDtypeStruct((m, 2), dtype), index.tree, queries, radius, sent,
+            pairs, batched=_per_target(_track_query),
+        )  # fmt: skip
+        fresh_slot, fresh_allowance = out[:, 0].astype(jnp.int32), out[:, 1]  # (slots < 2**24)
     fresh_hits = sent & (fresh_slot >= 0)
     hits, allowances = row_sums(
         [fresh_hits.astype(dtype), jnp.where(fresh_hits, fresh_allowance, 0.0)]

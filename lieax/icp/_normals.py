@@ -6,10 +6,12 @@ neighbourhood (the point and its `k - 1` nearest neighbours, optionally only tho
 (Smith, "Eigenvalues of a symmetric 3x3 matrix", CACM 1961, then the largest cross product of
 two rows of $A - \lambda I$), and flipped to face `viewpoint`.
 
-The neighbourhoods (`neighbourhoods`) come from a k-d tree on the host on a CPU (through
-`host_call`: exact, and no search to compile; under `jit` and `vmap` too):
-`lieax.icp._host_kdtree.nearest_valid_rows`, pykdtree's tree where it is installed, else SciPy's
-`cKDTree` built so that it survives XLA's callbacks (see `_host_kdtree.host_tree`). Elsewhere
+The neighbourhoods (`neighbourhoods`) come from a k-d tree on a CPU (exact, and no search to
+compile; under `jit` and `vmap` too): the native library's (`lieax.icp._native_kdtree.neighbours`,
+one custom call that builds and queries it), else, without that library, one on the host through
+`host_call` (`lieax.icp._host_kdtree.nearest_valid_rows`, pykdtree's tree where it is installed,
+else SciPy's `cKDTree` built so that it survives XLA's callbacks, see `_host_kdtree.host_tree`,
+and a program that JAX's persistent compilation cache cannot keep). Elsewhere
 they come from the fixed-shape neighbour graph of `lieax.icp._neighbors` (the graph's build
 compiles for seconds; 99.96% of the bunny's neighbourhoods exact). The covariances and
 eigenvectors are computed in JAX from those neighbourhoods (`normals_from_neighbourhoods`), so
@@ -23,7 +25,7 @@ import jax.numpy as jnp
 
 from .. import _cpu_emitters as cpu_emitters
 from .._host_call import host_call
-from . import _host_kdtree, _neighbors, _search
+from . import _host_kdtree, _native_kdtree, _neighbors, _search
 from ._checks import check_cloud, check_count, check_mask
 
 NORMAL_SEARCHES = ("auto", "kdtree", "graph")
@@ -43,8 +45,8 @@ def estimate_normals(
     - `mask`: `(n,)` bools, False for padding; those rows get `(0, 0, 0)`.
     - `viewpoint`: each normal is flipped to point toward it ($n^\top (v - p) \ge 0$), e.g. the
       sensor position; `None` leaves the sign the eigen solver gives.
-    - `search`: how the neighbourhoods are found: `"kdtree"` (a host k-d tree, pykdtree's where
-      it is installed, else SciPy's; exact; CPU only), `"graph"` (the fixed-shape neighbour graph,
+    - `search`: how the neighbourhoods are found: `"kdtree"` (a k-d tree, the native library's,
+      else pykdtree's or SciPy's on the host; exact; CPU only), `"graph"` (the fixed-shape neighbour graph,
       any backend) or `"auto"` (`"kdtree"` on a CPU, else `"graph"`).
 
     Neighbourhoods with fewer than 3 points give `(0, 0, 1)`. Runs under `jit` and `vmap`.
@@ -66,16 +68,18 @@ def neighbourhoods(points, mask, k, *, search="auto"):
         search = "kdtree" if _search.platform_of(points) == "cpu" else "graph"
     if search == "kdtree":
         _host_kdtree.check_on_host(points, "the points")
-        library = _host_kdtree.default_library()
+        library = _host_kdtree.default_library(points.dtype)
         # (the neighbourhoods are piecewise constant in the points: no derivative to carry)
         fixed = jax.lax.stop_gradient(points)
-        return _host_neighbourhoods_call(fixed, mask, k=k, library=library)
+        return _kdtree_neighbourhoods_call(fixed, mask, k=k, library=library)
     return _graph_neighbourhoods(points, mask, k=k)
 
 
 @functools.partial(jax.jit, static_argnames=("k", "library"))
-def _host_neighbourhoods_call(points, mask, *, k, library):
+def _kdtree_neighbourhoods_call(points, mask, *, k, library):
     valid = mask & jnp.all(jnp.isfinite(points), axis=1)
+    if library == "native":
+        return _native_kdtree.neighbours(points, valid, k)
     result = jax.ShapeDtypeStruct((points.shape[0], k), jnp.int32)
     host = functools.partial(_host_kdtree.nearest_valid_rows, k=k, library=library)
     return host_call(host, result, points, valid)

@@ -5,8 +5,9 @@
   slowest to build.
 - `"grid"`: `GridIndex`, a voxel hash grid with cells of the radius (`_grid`); the 27 cells
   around a query, each scanned in full. Cheap to build, inside JAX (accelerators).
-- `"kdtree"`: `KDTreeIndex`, pykdtree's or SciPy's k-d tree on the host (`_host_kdtree`), one
-  host call per query batch. Cheapest to build on a CPU.
+- `"kdtree"`: `KDTreeIndex`, a k-d tree in the native library (`_native_kdtree`, one custom call
+  per build and per query batch), else pykdtree's or SciPy's on the host (`_host_kdtree`, one
+  host call per query batch). Cheapest to build on a CPU.
 - `"brute"`: `BruteIndex`, every target point against every query, chunk by chunk.
 
 All but `"graph"` answer exactly (the nearest valid target point within the radius, up to ties,
