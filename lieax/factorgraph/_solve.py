@@ -72,6 +72,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from .. import _cpu_emitters as cpu_emitters
 from ..autodiff._tangents import manifold_leaves, rplus
 from ..groups._base import AbstractGroup
 from ..lstsq import Status, _iteration
@@ -371,4 +372,4 @@ def make_loop(graph, options):
         scalars = jnp.stack([cost, lam, *(a.astype(dtype) for a in (iterations, solves, status))])
         return values, jnp.concatenate([scalars, history])
 
-    return jax.jit(loop)
+    return cpu_emitters.jit(loop)
