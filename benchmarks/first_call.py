@@ -197,9 +197,9 @@ def icp_demo_build(data):
     """As `examples/icp_demo.py`: the clouds stay NumPy arrays until the registration."""
     import numpy as np
 
-    source, target, normals = data
-    extent = float(np.linalg.norm(np.max(target, 0) - np.min(target, 0)))
-    return np.asarray(source), np.asarray(target), normals, 0.05 * extent
+    source, target, normals = (np.asarray(cloud) for cloud in data)
+    extent = float(np.linalg.norm(target.max(0) - target.min(0)))
+    return source, target, normals, 0.05 * extent
 
 
 def icp_demo_call(problem):
