@@ -41,12 +41,9 @@ def enable_compilation_cache(path=None) -> pathlib.Path:
       GICP covariances found with `search="kdtree"` (the default on a CPU): the registrations of
       `examples/icp_demo.py` and of the LiDAR pairs; `search="grid"` (and `"graph"` for the
       normals) has no callback and is cached;
-    - `lieax.factorgraph` with `solver="cholesky"` (the host multifrontal Cholesky, which
-      `solver="auto"` picks for systems above 300–800 unknowns: a landmark graph of thousands of
-      poses, an IMU smoother of hundreds of keyframes) and `lieax.graph.optimize` (cholesky by
-      default): the solve loop; `"dense"` and `"cg"` are cached (the factor-graph example of
-      docs/factor-graphs.md, and bundle adjustment at Ladybug-49 size, whose reduced camera
-      system is dense);
+    - `lieax.factorgraph` with `solver="cholesky"` and `lieax.graph.optimize` (the host
+      multifrontal Cholesky) where the native library is not built or `LIEAX_NATIVE=0`: the
+      solve loop (with the native library, its custom call is cached like the rest);
     - a solver's `throw=True` inside your own `jit` (the error is raised from a callback in the
       compiled program); outside `jit` the status is read after the program returns, which
       keeps it cacheable, and `throw=False` never adds a callback;

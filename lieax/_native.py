@@ -19,7 +19,7 @@ import os
 import jax
 
 # handler symbol in the library -> name of the custom-call target registered with JAX
-_TARGETS = {"LieaxProbe": "lieax_probe"}
+_TARGETS = {"LieaxProbe": "lieax_probe", "LieaxCholeskySolve": "lieax_cholesky_solve"}
 
 
 @functools.cache

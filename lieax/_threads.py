@@ -1,8 +1,10 @@
 r"""How many threads lieax's work outside XLA's own thread pool uses, and the scopes that set them.
 
 Three kinds of lieax's work run on thread pools that XLA does not manage:
-- the host multifrontal Cholesky of `lieax.factorgraph` and `lieax.graph` (NumPy's OpenBLAS, and
-  SciPy's LAPACK for the small fronts), inside a host callback;
+- the host multifrontal Cholesky of `lieax.factorgraph` and `lieax.graph`: its native custom
+  call (SciPy's OpenBLAS for the larger fronts; the count is set per call on the calling thread
+  from the setting passed through `on_change`), or without the native library NumPy's
+  OpenBLAS, and SciPy's LAPACK for the small fronts, inside a host callback;
 - the host k-d tree's queries of `lieax.icp` (pykdtree's OpenMP), inside a host callback;
 - the dense Cholesky of `lieax.factorgraph`'s `solver="dense"` (bundle adjustment's reduced camera
   system), which XLA's CPU backend runs through LAPACK: jaxlib takes its LAPACK from SciPy's
@@ -90,6 +92,22 @@ def _from_environment():
 
 
 _SETTING = {"threads": _from_environment(), "source": ENVIRONMENT_VARIABLE}
+# functions told the setting whenever it changes (`on_change`)
+_LISTENERS = []
+
+
+def on_change(listener):
+    """Calls `listener(threads)` with the setting now and whenever it changes: for host work that
+    reads it outside Python (the native multifrontal Cholesky's BLAS calls, made on XLA's
+    threads inside a compiled program)."""
+    _LISTENERS.append(listener)
+    listener(_SETTING["threads"])
+
+
+def _update(**setting):
+    _SETTING.update(setting)
+    for listener in _LISTENERS:
+        listener(_SETTING["threads"])
 
 
 def _controller():
@@ -131,7 +149,7 @@ def set_threads(n: int | None) -> None:
     value = _parse(n, setting)
     if value is not None:
         _check_blas(setting)
-    _SETTING.update(threads=value, source=setting)
+    _update(threads=value, source=setting)
 
 
 def get_threads() -> int | None:
@@ -148,11 +166,11 @@ def threads(n: int | None):
     value = _parse(n, setting)
     if value is not None:
         _check_blas(setting)
-    _SETTING.update(threads=value, source=setting)
+    _update(threads=value, source=setting)
     try:
         yield
     finally:
-        _SETTING.update(previous)
+        _update(**previous)
 
 
 def threads_for(work, parallel_from):

@@ -17,7 +17,7 @@ import lieax
 from lieax import SE2, SE3, retractions
 from lieax import graph as lg
 from lieax.factorgraph import _graph as factorgraph_module
-from lieax.factorgraph import _sparse
+from lieax.factorgraph import _native_cholesky, _sparse
 from lieax.graph import _optimize
 
 jax.config.update("jax_enable_x64", True)
@@ -232,7 +232,7 @@ def test_block_cholesky_matches_dense(n, extra, d):
     np.testing.assert_allclose(x, expected, rtol=1e-7, atol=1e-9)
     # not positive definite: NaN, not an exception (the optimizer then raises the damping)
     assert np.all(np.isnan(plan.solve(-diag, off, rhs)))
-    # from traced code, through the host call, also under vmap (one host call per element)
+    # from traced code (the native custom call, or the host call without it), also under vmap
     args = jnp.asarray(diag), jnp.asarray(off)
     traced = jax.jit(lambda r: _sparse.cholesky_solve(plan, *args, r))(jnp.asarray(rhs))
     np.testing.assert_allclose(traced, expected, rtol=1e-9, atol=1e-12)
@@ -278,13 +278,16 @@ def test_block_cholesky_of_a_forest():
 
 
 def test_block_cholesky_keeps_one_work_array_per_thread(monkeypatch):
-    """The host solves of `optimize`'s loop run on XLA's threads, whose Python thread state
+    """The NumPy path's host solves of `optimize`'s loop run on XLA's threads, whose Python thread state
     (and a `threading.local`'s data) is dropped after each call: they must reuse their thread's
     work array, not allocate one per solve (a `threading.local` allocated 9 in these 3 calls). Python threads sharing a plan each get their own and the right answer."""
     import threading
 
     graph, _ = noisy_graph(SE3, n=30, loops=40, sigma=0.02, init_sigma=0.05, seed=4)
     monkeypatch.setattr(factorgraph_module, "_DENSE_LIMIT", 0)
+    # the NumPy path (as without the native library), in a loop traced for it
+    monkeypatch.setattr(_native_cholesky, "available", lambda: False)
+    monkeypatch.setattr(_optimize, "_CACHE", {})
     first = lg.optimize(graph)
     plan = _optimize._factor_graph(graph, exact=True).layout.plan()
     work_shape = (plan.work_rows, plan.pattern.block_size)

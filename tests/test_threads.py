@@ -9,7 +9,7 @@ import pytest
 
 import lieax
 from lieax import SE2, _threads
-from lieax.factorgraph import Factor, FactorGraph, Var, _sparse
+from lieax.factorgraph import Factor, FactorGraph, Var, _native_cholesky, _sparse
 
 
 def blas_counts():
@@ -96,6 +96,8 @@ def chain_system(n, d, seed=0):
 
 
 def test_host_cholesky_runs_on_one_blas_thread_and_restores(monkeypatch, two_blas_threads):
+    """The NumPy path (without the native library: the host callback)."""
+    monkeypatch.setattr(_native_cholesky, "available", lambda: False)
     pattern, diag, off, rhs = chain_system(40, 6)
     plan = _sparse.CholeskyPlan.analyze(pattern)
     seen = []
@@ -118,6 +120,19 @@ def test_host_cholesky_runs_on_one_blas_thread_and_restores(monkeypatch, two_bla
     solve_again = jax.jit(lambda d, o, r: _sparse.cholesky_solve(plan, d, o, r))
     solve_again(diag, off, rhs).block_until_ready()
     assert seen == [two_blas_threads]
+
+
+@pytest.mark.skipif(not _native_cholesky.available(), reason="the native library is not built")
+def test_native_cholesky_scopes_its_blas_calls(two_blas_threads):
+    """The native path sets OpenBLAS's thread-local count around its BLAS calls (found next to
+    SciPy's BLAS) and leaves the pools' counts as they were."""
+    assert _native_cholesky.scopes_threads()
+    pattern, diag, off, rhs = chain_system(40, 6)
+    plan = _sparse.CholeskyPlan.analyze(pattern)
+    x = jax.jit(lambda d, o, r: _sparse.cholesky_solve(plan, d, o, r))(diag, off, rhs)
+    dense = _sparse.dense_matrix(pattern, diag, off)
+    np.testing.assert_allclose(x.reshape(-1), np.linalg.solve(dense, rhs.reshape(-1)), rtol=1e-10)
+    assert blas_counts() == two_blas_threads
 
 
 def dense_chain_graph(n):

@@ -4,8 +4,9 @@ A system is `(diag, off, rhs)`: per variable kind `diag[k]` `(n_k, d_k, d_k)` an
 `(n_k, d_k)`, per pair of kinds (in the order of `layout.pairs`) `off[j]` `(p, d_a, d_b)`.
 
 - `"dense"`: the dense matrix and its Cholesky factor inside JAX (small problems).
-- `"cholesky"`: `lieax.graph`'s multifrontal block Cholesky on the host (`CholeskyPlan`,
-  through `host_call`), on the blocks padded to one size (see `_structure`).
+- `"cholesky"`: `lieax.graph`'s multifrontal block Cholesky on the host (`CholeskyPlan`; its
+  numeric phase a native custom call, or `host_call` without the native library), on the
+  blocks padded to one size (see `_structure`).
 - `"cg"`: conjugate gradients preconditioned by the inverse diagonal blocks, in JAX (the
   accelerator path; inexact steps).
 - Schur complement (`schur_solve`): with $H = [H_{rr}, H_{re}; H_{er}, H_{ee}]$ and $H_{ee}$
@@ -65,7 +66,8 @@ def solve_system(layout, method, diag, off, rhs, *, cg_tolerance=1e-8, cg_max_it
     if method == "dense":
         x = dense_solve(layout.pattern, d, o, r)
     elif method == "cholesky":
-        x = cholesky_solve(layout.plan, d, o, r)  # `Layout.start_plan` may still be analysing
+        # `Layout.start_plan` may still be analysing
+        x = cholesky_solve(layout.plan, d, o, r, pattern=layout.pattern)
     else:
         x, _ = pcg(
             layout.pattern, d, o, r, tolerance=cg_tolerance, max_iterations=cg_max_iterations

@@ -15,12 +15,17 @@ Three solvers work on these blocks:
   of JAX), or nested dissection (`nested_dissection_order`) where minimum degree's elimination
   tree is tall (a chain, such as an IMU smoother, whose batches are then mostly fixed cost), the
   elimination tree, supernodes with relaxed amalgamation, and a schedule that groups fronts of
-  the same height in the tree and similar size into batches. The numeric part runs on
-  the host with numpy and LAPACK (called from the jitted loop through `host_call`): per batch,
-  one sparse ±1 product assembles the fronts' pivot columns (original entries, less the update
-  products of descendants), then LAPACK factors the pivot blocks and one batched product forms
-  the front's update product (Duff and Reid's multifrontal method; Liu, "The multifrontal
-  method for sparse matrix solution", SIAM Review 1992).
+  the same height in the tree and similar size into batches. The numeric part (Duff and
+  Reid's multifrontal method; Liu, "The multifrontal method for sparse matrix solution", SIAM
+  Review 1992) runs in C++ behind an XLA custom call where the native library is built
+  (`_native_cholesky`: front by front in postorder, extend-add of the children's update
+  matrices, BLAS and LAPACK on the larger fronts; JAX's persistent cache keeps the programs
+  that call it), else on the host with numpy and LAPACK, called from the jitted loop through
+  `host_call`: per batch, one sparse ±1 product assembles the fronts' pivot columns (original
+  entries, less the update products of descendants), then LAPACK factors the pivot blocks and
+  one batched product forms the front's update product. Both read the same analysis; the
+  native one took 0.1-0.6x the NumPy one's time per solve on the g2o sets of
+  `benchmarks/pgo.py` (`benchmarks/cholesky.py`), so NumPy's is the fallback only.
 - `dense_solve`: the dense matrix and its Cholesky factor, inside JAX, for graphs of a few
   hundred unknowns (`lieax.graph.optimize` picks it below a measured crossover).
 - `pcg`: conjugate gradients preconditioned by the inverse diagonal blocks (block Jacobi), with
@@ -37,6 +42,7 @@ from jax import lax
 
 from .. import _threads
 from .._host_call import host_call
+from . import _native_cholesky
 
 # ---- the pattern and assembly -------------------------------------------------------------------
 
@@ -292,6 +298,9 @@ class _Symbolic:
         return len(self.batches) * _BATCH_SECONDS / self.seconds
 
 
+# `CholeskyPlan.analyze`'s options by default: `(order, max_pivots, zero_fraction)`
+_DEFAULT_ANALYSIS = (None, (2, 8, 32), (0.5, 0.1))
+
 # work arrays a plan keeps, one per thread that factors with it (`CholeskyPlan._work`)
 _MAX_BUFFERS = 4
 
@@ -327,19 +336,44 @@ class CholeskyPlan:
     for `_cholesky_solve`. The update products are written in place into the work array, which
     is kept between factorizations.
 
-    **Attributes:** `order` (the elimination order of the blocks), `stats` (the ordering, fronts,
+    With the native library the numeric phase is `_native_cholesky`'s (registered by
+    `analyze` under the plan's `key`), and the NumPy path's batches and assembly matrices, most
+    of the analysis' time, are built only when `factor` or `solve` first needs them
+    (`lieax.factorgraph.marginal_covariances`, tests).
+
+    **Attributes:** `order` (the elimination order of the blocks), `key` (the native registry's
+    key of the pattern and the analysis options), `stats` (the ordering, fronts,
     batches, tree height, multiply-adds of one factorization with and without padding, stored
     blocks of $L$).
     """
 
-    def __init__(self, pattern, order, batches, work_rows, stats):
+    def __init__(self, pattern, symbolic, ordering):
         self.pattern = pattern
-        self.order = order
-        self.batches = batches
-        self.work_rows = work_rows
-        self.stats = stats
+        self.order = symbolic.order
+        self.stats = _plan_stats(pattern, symbolic, ordering)
+        self._symbolic = symbolic
+        self._numpy = None  # `(batches, work_rows)`, built on first use (`_numpy_structures`)
+        self._numpy_lock = threading.Lock()
         self._buffers = {}  # thread id -> work array (see `_work`)
         self._buffers_lock = threading.Lock()
+
+    def _numpy_structures(self):
+        """The NumPy path's batches and work array size (`_numpy_batches`), built on first use:
+        most of the analysis' time, which the native path does not need."""
+        with self._numpy_lock:
+            if self._numpy is None:
+                self._numpy = _numpy_batches(self.pattern, self._symbolic)
+        return self._numpy
+
+    @property
+    def batches(self):
+        """The NumPy path's batches of fronts (`_Batch`)."""
+        return self._numpy_structures()[0]
+
+    @property
+    def work_rows(self):
+        """The rows of the NumPy path's work array."""
+        return self._numpy_structures()[1]
 
     def _work(self, dtype):
         """The work array, kept between factorizations (one per thread): a fresh one would cost
@@ -370,6 +404,7 @@ class CholeskyPlan:
         and nested dissection's plan is faster by the cost model `_batch_seconds`),
         amalgamation limits `max_pivots` (blocks) and `zero_fraction` (see `_amalgamate`)."""
         n, rows, cols = pattern.num_blocks, pattern.rows, pattern.cols
+        given = None if order is None else np.asarray(order).tolist()
         ordering = "given"
         if order is None:
             ordering = "minimum degree"
@@ -386,147 +421,14 @@ class CholeskyPlan:
             if order.shape != (n,) or np.any(np.sort(order) != np.arange(n)):
                 raise ValueError("order must be a permutation of the blocks.")
             symbolic = _Symbolic.of_order(pattern, order, max_pivots, zero_fraction)
-        return cls._numeric_plan(pattern, symbolic, ordering)
-
-    @classmethod
-    def _numeric_plan(cls, pattern, symbolic, ordering):
-        """The plan's assembly matrices and batches for the fronts of `symbolic`."""
-        from scipy.sparse import csr_matrix
-
-        n, d, p = pattern.num_blocks, pattern.block_size, pattern.num_pairs
-        rows, cols = pattern.rows, pattern.cols
-        order, position = symbolic.order, symbolic.position
-        piv, upd = symbolic.pivots, symbolic.updates
-        members_of = symbolic.batches
-        num_fronts = len(piv)
-        work = np.array([_front_work(len(a), len(b)) for a, b in zip(piv, upd)])
-
-        where = np.empty((num_fronts, 2), dtype=np.int64)  # front -> (batch, position)
-        shapes = []
-        work_rows = (n + 2 * p + 1) * d  # H's blocks, the identity (padding), update products
-        offsets = []
-        for g, members in enumerate(members_of):
-            where[members, 0] = g
-            where[members, 1] = np.arange(len(members))
-            bp = max(len(piv[k]) for k in members)
-            bu = max(len(upd[k]) for k in members)
-            shapes.append((len(members), bp, bu))
-            offsets.append(work_rows)
-            work_rows += len(members) * bu * d * bu
-        front_of = np.empty(n, dtype=np.int64)  # elimination position -> front
-        for k, a in enumerate(piv):
-            front_of[a] = k
-
-        def slots(k, positions):
-            """Rows of elimination positions in front k's layout [pivots (padded) | updates]."""
-            bp = shapes[where[k, 0]][1]
-            in_pivots = np.searchsorted(piv[k], positions)
-            in_pivots_clipped = np.minimum(in_pivots, len(piv[k]) - 1)
-            is_pivot = piv[k][in_pivots_clipped] == positions
-            return np.where(is_pivot, in_pivots, bp + np.searchsorted(upd[k], positions))
-
-        # every block is d segments (rows of d scalars) of the work array, at base + r * stride
-        dst = [[] for _ in members_of]
-        src = [[] for _ in members_of]
-        sign = [[] for _ in members_of]
-
-        def add(k, r, c, source_base, source_stride, value=1.0):
-            """Blocks (r, c) of front k from the work array, times `value`; only the lower block
-            triangle (r >= c) of the pivot columns (c < pivots) is assembled: the factorization
-            reads no other block."""
-            g, b = where[k]
-            s, bp = shapes[g][1] + shapes[g][2], shapes[g][1]
-            r, c = np.broadcast_arrays(np.asarray(r), np.asarray(c))
-            source = np.broadcast_to(np.asarray(source_base), r.shape)
-            lower = r >= c
-            r, c, source = r[lower], c[lower], source[lower]
-            base = ((b * s + r) * d) * bp + c
-            t = np.arange(d)
-            stride = np.broadcast_to(np.asarray(source_stride), lower.shape)[lower]
-            dst[g].append((base[..., None] + t * bp).ravel())
-            src[g].append((source[..., None] + t * stride[..., None]).ravel())
-            sign[g].append(np.full(dst[g][-1].shape, value))
-
-        # diagonal blocks of H, and the identity on padded pivots
-        for k in range(num_fronts):
-            s_piv = np.arange(len(piv[k]))
-            add(k, s_piv, s_piv, order[piv[k]] * d, 1)
-            s_pad = np.arange(len(piv[k]), shapes[where[k, 0]][1])
-            add(k, s_pad, s_pad, (n + 2 * p) * d, 1)
-        # off-diagonal blocks: in the front where the earlier of the two is a pivot
-        pa, pb = position[rows], position[cols]
-        owner = front_of[np.minimum(pa, pb)]
-        for k in np.unique(owner):
-            q = np.flatnonzero(owner == k)
-            sa, sb = slots(k, pa[q]), slots(k, pb[q])
-            add(k, sa, sb, (n + q) * d, 1)  # H[r, c]
-            add(k, sb, sa, (n + p + q) * d, 1)  # H[c, r] = H[r, c]^T
-        # the fronts' update products L21 L21^T, each block subtracted in the front where its
-        # column is a pivot (a descendant's update is never copied through the fronts between)
-        entries = []  # per front: (row position, column position, source row, stride)
-        for c in range(num_fronts):
-            u = upd[c]
-            if len(u):
-                gc, bc = where[c]
-                cu = shapes[gc][2]
-                t1, t2 = np.tril_indices(len(u))
-                source = offsets[gc] + (bc * cu + t1) * d * cu + t2
-                entries.append((u[t1], u[t2], source, np.full(len(t1), cu)))
-        if entries:
-            row_pos, col_pos, source, stride = map(np.concatenate, zip(*entries))
-            target = front_of[col_pos]
-            by_target = np.argsort(target, kind="stable")
-            bounds = np.searchsorted(target[by_target], np.arange(num_fronts + 1))
-            for k in range(num_fronts):
-                q = by_target[bounds[k] : bounds[k + 1]]
-                if len(q):
-                    add(k, slots(k, row_pos[q]), slots(k, col_pos[q]), source[q], stride[q], -1.0)
-
-        batches, flops = [], 0.0
-        for g, members in enumerate(members_of):
-            bsize, bp, bu = shapes[g]
-            s = bp + bu
-            pivot_index = np.full((bsize, bp), n, dtype=np.int64)
-            update_index = np.full((bsize, bu), n, dtype=np.int64)
-            for b, k in enumerate(members):
-                pivot_index[b, : len(piv[k])] = order[piv[k]]
-                update_index[b, : len(upd[k])] = order[upd[k]]
-            d_all, s_all = np.concatenate(dst[g]), np.concatenate(src[g])
-            assembly = csr_matrix(
-                (np.concatenate(sign[g]), (d_all, s_all)), shape=(bsize * s * d * bp, work_rows)
-            )
-            assembly.sum_duplicates()
-            slot = np.flatnonzero(update_index.ravel() < n)
-            targets, target = np.unique(update_index.ravel()[slot], return_inverse=True)
-            scatter = None
-            if len(targets) < len(slot):
-                scatter = csr_matrix(
-                    (np.ones(len(slot)), (target.ravel(), slot)),
-                    shape=(len(targets), update_index.size),
-                )
-            batches.append(
-                _Batch(
-                    pivot_index,
-                    update_index,
-                    assembly,
-                    offsets[g],
-                    targets,
-                    scatter,
-                )
-            )
-            flops += bsize * _front_work(bp, bu) * d**3
-        stats = {
-            "ordering": ordering,
-            "fronts": num_fronts,
-            "batches": len(batches),
-            "height": int(symbolic.height.max()) + 1,
-            "flops": flops,
-            "flops_unpadded": float(work.sum() * d**3),
-            "nnz_blocks": int(
-                sum(len(a) * (len(a) + 1) // 2 + len(a) * len(b) for a, b in zip(piv, upd))
-            ),
-        }
-        return cls(pattern, order, batches, work_rows, stats)
+        plan = cls(pattern, symbolic, ordering)
+        plan.key = _native_cholesky.analysis_key(pattern, (given, max_pivots, zero_fraction))
+        if _native_cholesky.available():
+            single = _threads.threads_for(plan.stats["flops"], _threads.PARALLEL_FLOPS) == 1
+            _native_cholesky.register(plan, plan.key, symbolic, single)
+        else:  # the NumPy path's structures, here where the analysis overlaps the compilation
+            plan._numpy_structures()
+        return plan
 
     # ---- numeric phase (numpy) -------------------------------------------------------------------
     def factor(self, diag, off):
@@ -605,12 +507,187 @@ class CholeskyPlan:
         return self.solve_factored(factors, np.asarray(rhs))
 
 
-def cholesky_solve(plan, diag, off, rhs):
-    """`plan.solve` from inside JAX (`jit`, `lax.while_loop`): a host callback (`host_call`), so
-    on an accelerator the blocks travel to the host and back. NaN when $H$ is not positive
-    definite. `plan` is a `CholeskyPlan`, or a function returning one, called when the solve runs
-    (not when it is traced: the analysis may still be running while the loop compiles)."""
-    plan_of = plan if callable(plan) else lambda: plan
+def _numpy_batches(pattern, symbolic):
+    """`(batches, work_rows)`: the NumPy path's batches of the fronts of `symbolic`, with their
+    assembly matrices, and the rows of its work array (see `CholeskyPlan`)."""
+    from scipy.sparse import csr_matrix
+
+    n, d, p = pattern.num_blocks, pattern.block_size, pattern.num_pairs
+    rows, cols = pattern.rows, pattern.cols
+    order, position = symbolic.order, symbolic.position
+    piv, upd = symbolic.pivots, symbolic.updates
+    members_of = symbolic.batches
+    num_fronts = len(piv)
+
+    where = np.empty((num_fronts, 2), dtype=np.int64)  # front -> (batch, position)
+    shapes = []
+    work_rows = (n + 2 * p + 1) * d  # H's blocks, the identity (padding), update products
+    offsets = []
+    for g, members in enumerate(members_of):
+        where[members, 0] = g
+        where[members, 1] = np.arange(len(members))
+        bp = max(len(piv[k]) for k in members)
+        bu = max(len(upd[k]) for k in members)
+        shapes.append((len(members), bp, bu))
+        offsets.append(work_rows)
+        work_rows += len(members) * bu * d * bu
+    front_of = np.empty(n, dtype=np.int64)  # elimination position -> front
+    for k, a in enumerate(piv):
+        front_of[a] = k
+
+    def slots(k, positions):
+        """Rows of elimination positions in front k's layout [pivots (padded) | updates]."""
+        bp = shapes[where[k, 0]][1]
+        in_pivots = np.searchsorted(piv[k], positions)
+        in_pivots_clipped = np.minimum(in_pivots, len(piv[k]) - 1)
+        is_pivot = piv[k][in_pivots_clipped] == positions
+        return np.where(is_pivot, in_pivots, bp + np.searchsorted(upd[k], positions))
+
+    # every block is d segments (rows of d scalars) of the work array, at base + r * stride
+    dst = [[] for _ in members_of]
+    src = [[] for _ in members_of]
+    sign = [[] for _ in members_of]
+
+    def add(k, r, c, source_base, source_stride, value=1.0):
+        """Blocks (r, c) of front k from the work array, times `value`; only the lower block
+        triangle (r >= c) of the pivot columns (c < pivots) is assembled: the factorization
+        reads no other block."""
+        g, b = where[k]
+        s, bp = shapes[g][1] + shapes[g][2], shapes[g][1]
+        r, c = np.broadcast_arrays(np.asarray(r), np.asarray(c))
+        source = np.broadcast_to(np.asarray(source_base), r.shape)
+        lower = r >= c
+        r, c, source = r[lower], c[lower], source[lower]
+        base = ((b * s + r) * d) * bp + c
+        t = np.arange(d)
+        stride = np.broadcast_to(np.asarray(source_stride), lower.shape)[lower]
+        dst[g].append((base[..., None] + t * bp).ravel())
+        src[g].append((source[..., None] + t * stride[..., None]).ravel())
+        sign[g].append(np.full(dst[g][-1].shape, value))
+
+    # diagonal blocks of H, and the identity on padded pivots
+    for k in range(num_fronts):
+        s_piv = np.arange(len(piv[k]))
+        add(k, s_piv, s_piv, order[piv[k]] * d, 1)
+        s_pad = np.arange(len(piv[k]), shapes[where[k, 0]][1])
+        add(k, s_pad, s_pad, (n + 2 * p) * d, 1)
+    # off-diagonal blocks: in the front where the earlier of the two is a pivot
+    pa, pb = position[rows], position[cols]
+    owner = front_of[np.minimum(pa, pb)]
+    for k in np.unique(owner):
+        q = np.flatnonzero(owner == k)
+        sa, sb = slots(k, pa[q]), slots(k, pb[q])
+        add(k, sa, sb, (n + q) * d, 1)  # H[r, c]
+        add(k, sb, sa, (n + p + q) * d, 1)  # H[c, r] = H[r, c]^T
+    # the fronts' update products L21 L21^T, each block subtracted in the front where its
+    # column is a pivot (a descendant's update is never copied through the fronts between)
+    entries = []  # per front: (row position, column position, source row, stride)
+    for c in range(num_fronts):
+        u = upd[c]
+        if len(u):
+            gc, bc = where[c]
+            cu = shapes[gc][2]
+            t1, t2 = np.tril_indices(len(u))
+            source = offsets[gc] + (bc * cu + t1) * d * cu + t2
+            entries.append((u[t1], u[t2], source, np.full(len(t1), cu)))
+    if entries:
+        row_pos, col_pos, source, stride = map(np.concatenate, zip(*entries))
+        target = front_of[col_pos]
+        by_target = np.argsort(target, kind="stable")
+        bounds = np.searchsorted(target[by_target], np.arange(num_fronts + 1))
+        for k in range(num_fronts):
+            q = by_target[bounds[k] : bounds[k + 1]]
+            if len(q):
+                add(k, slots(k, row_pos[q]), slots(k, col_pos[q]), source[q], stride[q], -1.0)
+
+    batches = []
+    for g, members in enumerate(members_of):
+        bsize, bp, bu = shapes[g]
+        s = bp + bu
+        pivot_index = np.full((bsize, bp), n, dtype=np.int64)
+        update_index = np.full((bsize, bu), n, dtype=np.int64)
+        for b, k in enumerate(members):
+            pivot_index[b, : len(piv[k])] = order[piv[k]]
+            update_index[b, : len(upd[k])] = order[upd[k]]
+        d_all, s_all = np.concatenate(dst[g]), np.concatenate(src[g])
+        assembly = csr_matrix(
+            (np.concatenate(sign[g]), (d_all, s_all)), shape=(bsize * s * d * bp, work_rows)
+        )
+        assembly.sum_duplicates()
+        slot = np.flatnonzero(update_index.ravel() < n)
+        targets, target = np.unique(update_index.ravel()[slot], return_inverse=True)
+        scatter = None
+        if len(targets) < len(slot):
+            scatter = csr_matrix(
+                (np.ones(len(slot)), (target.ravel(), slot)),
+                shape=(len(targets), update_index.size),
+            )
+        batches.append(
+            _Batch(
+                pivot_index,
+                update_index,
+                assembly,
+                offsets[g],
+                targets,
+                scatter,
+            )
+        )
+    return batches, work_rows
+
+
+def _plan_stats(pattern, symbolic, ordering):
+    """`CholeskyPlan.stats`: the ordering, fronts, batches, tree height, multiply-adds of one
+    factorization with and without the batches' padding, stored blocks of $L$."""
+    d, piv, upd = pattern.block_size, symbolic.pivots, symbolic.updates
+    padded = sum(
+        len(m) * _front_work(max(len(piv[k]) for k in m), max(len(upd[k]) for k in m))
+        for m in symbolic.batches
+    )
+    work = sum(_front_work(len(a), len(b)) for a, b in zip(piv, upd))
+    return {
+        "ordering": ordering,
+        "fronts": len(piv),
+        "batches": len(symbolic.batches),
+        "height": int(symbolic.height.max()) + 1,
+        "flops": float(padded * d**3),
+        "flops_unpadded": float(work * d**3),
+        "nnz_blocks": int(
+            sum(len(a) * (len(a) + 1) // 2 + len(a) * len(b) for a, b in zip(piv, upd))
+        ),
+    }
+
+
+def cholesky_solve(plan, diag, off, rhs, *, pattern=None):
+    """`plan.solve` from inside JAX (`jit`, `lax.while_loop`, `vmap`); NaN when $H$ is not
+    positive definite. `plan` is a `CholeskyPlan`, or a function returning the default analysis
+    of `pattern` (`CholeskyPlan.analyze(pattern)`), called when the solve runs, not when it is
+    traced: the analysis may still be running while the loop compiles (`Layout.start_plan`).
+
+    With the native library (`lieax._native.available()`) and JAX on the CPU, the numeric phase
+    is the C++ custom call of `_native_cholesky`, named by the plan's key, which JAX's
+    persistent compilation cache can keep; otherwise `plan.solve` in a host callback
+    (`host_call`; on an accelerator the blocks travel to the host and back), which it cannot
+    (the custom call is registered for the CPU only)."""
+    if not callable(plan) and not isinstance(plan, CholeskyPlan):
+        raise TypeError(f"plan must be a CholeskyPlan or a function returning one, got {plan!r}.")
+    if isinstance(plan, CholeskyPlan):
+        pattern = plan.pattern
+    elif pattern is None:
+        raise ValueError("cholesky_solve needs the pattern of a plan given as a function.")
+    expected = (pattern.num_blocks, pattern.block_size)
+    if rhs.shape[-2:] != expected or diag.shape[-3:] != (*expected, pattern.block_size):
+        raise ValueError(
+            f"cholesky_solve: diag {diag.shape} and rhs {rhs.shape} do not match the pattern's "
+            f"{pattern.num_blocks} blocks of size {pattern.block_size}."
+        )
+    if _native_cholesky.available() and jax.default_backend() == "cpu":
+        if isinstance(plan, CholeskyPlan):
+            key = plan.key
+        else:
+            key = _native_cholesky.analysis_key(pattern, _DEFAULT_ANALYSIS)
+            _native_cholesky.expect(key, plan)
+        return _native_cholesky.solve(key, diag, off, rhs)
+    plan_of = plan if callable(plan) and not isinstance(plan, CholeskyPlan) else lambda: plan
     result = jax.ShapeDtypeStruct(rhs.shape, rhs.dtype)
     _threads.prepare()  # (the thread pools listed here, not in the callback)
     return host_call(lambda *system: _host_solve(plan_of(), *system), result, diag, off, rhs)

@@ -10,9 +10,10 @@ semantics (the pose graph as a `lieax.factorgraph.FactorGraph` of between and pr
 solved by its loop) and returns an `OptimizeResult` whose `cost` is GTSAM's error $\tfrac12\sum r^\top\Omega r$.
 
 The linear solver by default is a multifrontal block Cholesky with a fixed symbolic analysis
-(`CholeskyPlan`: a minimum-degree ordering of the pose graph, supernodes and batched dense
-kernels, computed once per graph in numpy with SciPy, which JAX already depends on), called from
-the jitted loop on the host; `solver="cg"` keeps everything in JAX (block-Jacobi preconditioned
+(`CholeskyPlan`: a minimum-degree ordering of the pose graph and supernodes, computed once per
+graph in numpy with SciPy, which JAX already depends on), whose numeric phase the jitted loop
+calls on the host (a C++ custom call of lieax's native library, which JAX's persistent
+compilation cache keeps; without that library a NumPy host callback); `solver="cg"` keeps everything in JAX (block-Jacobi preconditioned
 conjugate gradients) for accelerators. Conventions: see docs/conventions.md (right
 perturbations, translation-first tangents; g2o's SE3 information, ordered translation then
 rotation, is used as read). Plot a graph with `lieax.viz.plot_pose_graph(graph, poses)`.

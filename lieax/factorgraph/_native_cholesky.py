@@ -1,0 +1,170 @@
+"""The numeric phase of the multifrontal `CholeskyPlan` in C++ (`csrc/cholesky.cc`), called from
+compiled programs as the XLA FFI target `lieax_cholesky_solve`, which JAX's persistent
+compilation cache can keep (a program holding the host callback of `_sparse.cholesky_solve`'s
+NumPy path is recompiled in every process).
+
+The plan is large host data that differs in nothing across processes but its address, so the
+program names it by a key: `analysis_key`, a 63-bit digest of the pattern and the analysis
+options, an attribute of the custom call. `register` hands the analysis (order, fronts, tree)
+to the library's registry under that key when `CholeskyPlan.analyze` ends; the registration
+holds as long as the plan object lives (a `weakref.finalize` releases it; plans of one pattern
+share the key, counted). A program loaded from the cache in a second process finds its plan
+because that process analyses the same pattern (`FactorGraph.solve` starts the analysis before
+it calls the loop).
+
+The analysis may still run in a background thread when a solve starts (`Layout.start_plan`
+overlaps it with the loop's compilation, and a cached program needs no compilation): a solve
+traced with a plan that is not analysed yet announces its key (`expect`) and the library's
+handler waits for the registration (a condition variable; an error after 600 s, or at once with
+the analysis' own message when it failed). A key that was never announced nor registered (the
+plan was collected, or never analysed in this process) is an error naming the key, not a crash.
+"""
+
+import concurrent.futures
+import ctypes
+import functools
+import hashlib
+import threading
+import weakref
+
+import jax
+import numpy as np
+
+from .. import _native, _threads
+
+TARGET = "lieax_cholesky_solve"
+# SciPy's BLAS and LAPACK functions handed to the library, in its order (see `csrc/cholesky.cc`)
+_FUNCTIONS = (("lapack", "potrf"), ("blas", "trsm"), ("blas", "syrk"), ("blas", "trsv"))
+
+
+def available() -> bool:
+    """Whether the native library is loaded (see `lieax._native`) and given SciPy's BLAS."""
+    return _initialized() is not None
+
+
+_INIT_LOCK = threading.Lock()  # the analysis thread and the caller's may both come first
+
+
+def _initialized():
+    """The library after `LieaxCholeskyInit` (the BLAS and LAPACK function pointers that SciPy's
+    `cython_blas` / `cython_lapack` export, as jaxlib takes its own), or None; once."""
+    with _INIT_LOCK:
+        return _initialize()
+
+
+@functools.cache
+def _initialize():
+    lib = _native.library()
+    if lib is None:
+        return None
+    from scipy.linalg import cython_blas, cython_lapack
+
+    modules = {"blas": cython_blas.__pyx_capi__, "lapack": cython_lapack.__pyx_capi__}
+    pointers = {
+        prefix: (ctypes.c_void_p * len(_FUNCTIONS))(
+            *(_capsule_pointer(modules[kind][prefix + name]) for kind, name in _FUNCTIONS)
+        )
+        for prefix in ("d", "s")
+    }
+    lib.LieaxCholeskyInit(pointers["d"], pointers["s"])
+    int64_p = ctypes.POINTER(ctypes.c_int64)
+    lib.LieaxCholeskyRegister.argtypes = (
+        [ctypes.c_int64] * 4 + [int64_p] * 3 + [ctypes.c_int64, *[int64_p] * 6, ctypes.c_int]
+    )
+    for name in ("Release", "Expect", "References"):
+        getattr(lib, "LieaxCholesky" + name).argtypes = [ctypes.c_int64]
+    lib.LieaxCholeskyFail.argtypes = [ctypes.c_int64, ctypes.c_char_p]
+    lib.LieaxCholeskySetThreads.argtypes = [ctypes.c_int]
+    _threads.on_change(lambda threads: lib.LieaxCholeskySetThreads(threads or 0))
+    return lib
+
+
+def _capsule_pointer(capsule):
+    get_name = ctypes.pythonapi.PyCapsule_GetName
+    get_name.restype, get_name.argtypes = ctypes.c_char_p, [ctypes.py_object]
+    get_pointer = ctypes.pythonapi.PyCapsule_GetPointer
+    get_pointer.restype, get_pointer.argtypes = ctypes.c_void_p, [ctypes.py_object, ctypes.c_char_p]
+    return get_pointer(capsule, get_name(capsule))
+
+
+def analysis_key(pattern, options):
+    """The plan key of `pattern` analysed with `options` (a tuple of the analysis' arguments): a
+    63-bit BLAKE2b digest of the block count and size, the pairs and the options."""
+    h = hashlib.blake2b(digest_size=8)
+    h.update(f"{pattern.num_blocks},{pattern.block_size},{options!r}".encode())
+    for a in (pattern.rows, pattern.cols):
+        h.update(np.ascontiguousarray(a, dtype=np.int64).tobytes())
+    return int.from_bytes(h.digest(), "little") & ((1 << 63) - 1)
+
+
+def register(plan, key, symbolic, single_thread):
+    """Registers `symbolic` (a `_sparse._Symbolic`) of `plan` under `key` for as long as `plan`
+    lives. `single_thread`: the library's BLAS calls for it run on the calling thread (OpenBLAS's
+    thread-local count, set and restored around each call), else on lieax's setting
+    (`lieax.set_threads`; `None`: the library's own), as `_sparse._host_solve` does."""
+    lib = _initialized()
+    pattern = plan.pattern
+
+    def ragged(lists):
+        start = np.zeros(len(lists) + 1, np.int64)
+        start[1:] = np.cumsum([len(a) for a in lists])
+        flat = np.concatenate([np.asarray(a, np.int64) for a in lists])
+        return start, np.ascontiguousarray(flat, dtype=np.int64)
+
+    arrays = [
+        np.ascontiguousarray(a, dtype=np.int64)
+        for a in (pattern.rows, pattern.cols, symbolic.order)
+    ]
+    fronts = [ragged(x) for x in (symbolic.pivots, symbolic.updates, symbolic.children)]
+    pointer = lambda a: a.ctypes.data_as(ctypes.POINTER(ctypes.c_int64))
+    status = lib.LieaxCholeskyRegister(
+        key, pattern.num_blocks, pattern.block_size, pattern.num_pairs,
+        *(pointer(a) for a in arrays), len(symbolic.pivots),
+        *(pointer(a) for start_flat in fronts for a in start_flat), int(single_thread),
+    )  # fmt: skip
+    if status != 0:
+        raise RuntimeError(
+            "lieax multifrontal Cholesky: the native library refused the analysis of a "
+            f"{pattern.num_blocks}-block pattern as inconsistent (a bug in the analysis)."
+        )
+    weakref.finalize(plan, lib.LieaxCholeskyRelease, key)
+
+
+def references(key):
+    """The live plan objects registered under `key` (tests)."""
+    return int(_initialized().LieaxCholeskyReferences(key))
+
+
+def scopes_threads():
+    """Whether the library found OpenBLAS's thread-local count next to SciPy's BLAS (else the
+    BLAS's own setting holds for its calls)."""
+    return bool(_initialized().LieaxCholeskyScopesThreads())
+
+
+# analyses a traced solve waits for when nothing else has started them
+_ANALYSES = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="lieax-native-plan")
+
+
+def expect(key, plan_of):
+    """Announces `key` (the handler waits for its registration) and makes sure that its analysis
+    runs: `plan_of()` (a `Layout.plan`: started or done already, it returns at once with the
+    analysis) on a background thread; its failure is passed to waiting solves."""
+    lib = _initialized()
+    lib.LieaxCholeskyExpect(key)
+
+    def analyse():
+        try:
+            plan_of()
+        except Exception as error:  # handed to the waiting solve, which raises it
+            lib.LieaxCholeskyFail(key, f"{type(error).__name__}: {error}".encode())
+
+    _ANALYSES.submit(analyse)
+
+
+def solve(key, diag, off, rhs):
+    r"""$H^{-1}$ `rhs` by the registered plan `key`, inside JAX; under `vmap` one call for the
+    batch (its systems factored one after another)."""
+    call = jax.ffi.ffi_call(
+        TARGET, jax.ShapeDtypeStruct(rhs.shape, rhs.dtype), vmap_method="broadcast_all"
+    )
+    return call(diag, off, rhs, key=np.int64(key))
