@@ -154,41 +154,22 @@ def readme_graph_setup(quick, data_dir):
     return ()
 
 
+def docs_graph_example():
+    """The factor-graph example of docs/factor-graphs.md (its first Python block), split into the
+    building (up to `FactorGraph(...)`) and the rest (the solve, the checks, a marginal)."""
+    import re
+
+    with open(os.path.join(ROOT, "docs", "factor-graphs.md"), encoding="utf-8") as file:
+        source = re.search(r"^```python\n(.*?)^```", file.read(), flags=re.S | re.M).group(1)
+    split = source.index("result = graph.solve(")
+    return source[:split], source[split:]
+
+
 def readme_graph_build(_):
-    """The README's factor-graph example up to `FactorGraph(...)`, as written there."""
-    import jax
-    import jax.numpy as jnp
-    import numpy as np
-
-    import lieax
-    from lieax import SE2
-    from lieax.factorgraph import Factor, FactorGraph, Var
-
-    truth = SE2.exp(jnp.array([[k, 0.1 * k, 0.2 * k] for k in range(5)], dtype=float))
-    marks = jnp.array([[1.0, 2.0], [3.0, -1.0], [4.5, 1.5]])
-    i, j = np.arange(4), np.arange(1, 5)
-    seen_by, seen = np.array([0, 1, 2, 2, 3, 4]), np.array([0, 0, 1, 2, 1, 2])
-    poses = Var(truth.rplus(0.1 * jnp.ones((5, 3))), name="poses")
-    points = Var(marks + 0.3, name="points")
-
-    def between(a, b, z):
-        return z.between(a.between(b)).log()
-
-    def prior(x, z):
-        return z.between(x).log()
-
-    def landmark(x, p, z):
-        return x.inverse() @ p - z
-
-    graph = FactorGraph([
-        Factor(between, (poses[i], poses[j]), truth[i].between(truth[j]),
-               sqrt_information=np.diag([10.0, 10.0, 20.0])),
-        Factor(prior, (poses[np.array([0])],), truth[:1], information=1e4 * np.eye(3)),
-        Factor(landmark, (poses[seen_by], points[seen]),
-               jax.vmap(lambda x, p: x.inverse() @ p)(truth[seen_by], marks[seen]),
-               loss=lieax.lstsq.Huber(0.5)),
-    ])  # fmt: skip
-    return graph, points, marks
+    """The docs' factor-graph example up to `FactorGraph(...)`, as written there."""
+    namespace = {"__name__": "docs_example"}
+    exec(compile(docs_graph_example()[0], "docs/factor-graphs.md", "exec"), namespace)
+    return namespace["graph"], namespace["points"], namespace["marks"]
 
 
 def readme_graph_call(problem):
@@ -213,12 +194,12 @@ def icp_demo_setup(quick, data_dir):
 
 
 def icp_demo_build(data):
-    import jax.numpy as jnp
+    """As `examples/icp_demo.py`: the clouds stay NumPy arrays until the registration."""
     import numpy as np
 
-    source, target, normals = data
-    extent = float(np.linalg.norm(np.max(target, 0) - np.min(target, 0)))
-    return jnp.asarray(source), jnp.asarray(target), normals, 0.05 * extent
+    source, target, normals = (np.asarray(cloud) for cloud in data)
+    extent = float(np.linalg.norm(target.max(0) - target.min(0)))
+    return source, target, normals, 0.05 * extent
 
 
 def icp_demo_call(problem):
@@ -451,9 +432,10 @@ def gicp_setup(quick, data_dir):
 
 
 def gicp_build(data):
-    import jax.numpy as jnp
+    """The clouds as NumPy arrays, as read (`gicp` transfers them)."""
+    import numpy as np
 
-    return tuple(jnp.asarray(cloud) for cloud in data)
+    return tuple(np.asarray(cloud) for cloud in data)
 
 
 def gicp_call(clouds):

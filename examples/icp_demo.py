@@ -136,7 +136,7 @@ def main(argv=None):
         with np.load(args.pair) as pair:
             source, target = pair["source"], pair["target"]
             if "T_target_source" in pair.files:
-                T_reference = lieax.SE3.from_matrix(jnp.asarray(pair["T_target_source"], dtype))
+                T_reference = lieax.SE3.from_matrix(np.asarray(pair["T_target_source"], dtype))
         origin = args.pair
     elif args.source:
         (source, _), (target, target_normals) = read_cloud(args.source), read_cloud(args.target)
@@ -150,12 +150,14 @@ def main(argv=None):
             f"generated scene, {args.points} points per cloud, independent samples, "
             f"noise {args.noise} m"
         )
-    source, target = jnp.asarray(source, dtype), jnp.asarray(target, dtype)
+    # NumPy until the registration: eager jax.numpy would compile a small program per operation
+    source, target = np.asarray(source, dtype), np.asarray(target, dtype)
     if args.voxel:
         source = icp.voxel_downsample(source, args.voxel)
         target = icp.voxel_downsample(target, args.voxel)
         target_normals = None  # estimated on the downsampled target
-    extent = float(jnp.linalg.norm(jnp.max(target, 0) - jnp.min(target, 0)))
+    corners = np.asarray(target)
+    extent = float(np.linalg.norm(corners.max(0) - corners.min(0)))
     max_distance = args.max_distance or 0.05 * extent
 
     def register():

@@ -122,12 +122,13 @@ def build_graph(data, pim, imu_params, covariance=None):
 
     n = len(data["fixes"])
     rotations, positions, velocities, biases = initial_guess(data["fixes"])
+    # constructors on NumPy input, NumPy values and data: building compiles nothing
     pose_values = lieax.SE3.from_rotation_and_translation(
-        jax.jit(lieax.SO3.from_matrix)(jnp.asarray(rotations)), jnp.asarray(positions)
+        lieax.SO3.from_matrix(rotations), positions
     )
     poses = Var(pose_values, name="poses")
-    vels = Var(jnp.asarray(velocities), name="velocities")
-    bias = Var(jnp.asarray(biases), name="biases")
+    vels = Var(velocities, name="velocities")
+    bias = Var(biases, name="biases")
     i, j, every = np.arange(n - 1), np.arange(1, n), np.arange(n)
     first = np.array([0])
     if covariance is None:
@@ -148,14 +149,14 @@ def build_graph(data, pim, imu_params, covariance=None):
         Factor(
             lambda x, z: x.translation() - z,
             (poses[every],),
-            jnp.asarray(data["fixes"]),
+            data["fixes"],
             sqrt_information=np.eye(3) / FIX_SIGMA,
             name="position_fix",
         ),
         Factor(
             lambda v, z: v - z,
             (vels[first],),
-            jnp.asarray(velocities[:1]),
+            velocities[:1],
             sqrt_information=np.eye(3) / 1.0,
             name="velocity_prior",
         ),

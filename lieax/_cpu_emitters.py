@@ -1,4 +1,5 @@
-"""`jit`: `jax.jit` compiled with XLA's classic CPU fusion emitters, for the point-cloud programs.
+"""`jit`: `jax.jit` compiled with XLA's classic CPU fusion emitters, for the point-cloud programs
+and the factor-graph loop.
 
 XLA's CPU backend emits each fused kernel through its newer MLIR "fusion emitters" by default.
 The point-cloud programs (the ICP loop, the normals, the GICP covariances) are long chains of
@@ -7,9 +8,19 @@ elementwise work and variadic reductions over the rows; with the classic emitter
 runs 2-9% faster, the others within noise (jaxlib 0.10.2, 2-core x86-64, the bunny, LiDAR and
 Kinect scans; `benchmarks/cpu_emitters.py` measures both in one process). The first
 point-to-plane call on a 25k-point LiDAR pair, target normals estimated, took 2.2-2.3 s against
-2.7-3.0 s without them (fresh processes, alternating). The pose-graph programs run slower with the classic emitters (tinyGrid3D
-0.78 -> 1.01x GTSAM's time, sphere2500 0.66 -> 0.74x), so the option is set per program, not
-for the process.
+2.7-3.0 s without them (fresh processes, alternating). The option is set per program, not for
+the process.
+
+The factor-graph loop (`lieax.factorgraph`'s `solve`, and `lieax.graph.optimize`, which runs it)
+and its marginal-covariance program use them too: their first calls are dominated by XLA's
+compilation, which the classic emitters cut by a third to a half, against a warm solve within
+about 10% either way (issue 30; measured 2026-12-04 on the 2-core machine under load 6-8,
+compile time, then the warm median of the two programs interleaved in one process,
+classic / default: the docs' five-pose factor graph 1.8-2.1 / 3.8 s; intel 2.8 / 4.1 s and
+1.11x; smallGrid3D 6.0 / 9.1 s and 0.84x; sphere2500 6.6 / 8.9 s and 1.07x; tinyGrid3D 4.3 /
+8.4 s and 1.11x (0.4 ms); M3500 3.7 / 4.7 s and 1.03x; Ladybug-49 bundle adjustment
+1.6 / 2.6 s, 0.15 s both. An earlier measurement, on the pose-graph loop of that time, had
+found tinyGrid3D 0.78 -> 1.01x GTSAM's time and sphere2500 0.66 -> 0.74x).
 
 The option is one of XLA's debug options, and an XLA that does not know it refuses to compile
 ("No such compile option"): `known()` compiles an empty program with it once, and where that
@@ -24,6 +35,7 @@ import functools
 
 import jax
 import numpy as np
+from jax._src import core as jax_core
 
 CLASSIC_CPU_EMITTERS = {"xla_cpu_use_fusion_emitters": False}
 
@@ -59,8 +71,13 @@ def jit(fun=None, **jit_options):
 
 def _traced(args, kwargs) -> bool:
     """Whether a call on `args` and `kwargs` is transformed or staged: an argument is traced, or a
-    program is being staged (JAX stages every operation then, one on a constant too)."""
+    program is being staged (JAX's trace state is not clean: `jax._src.core.trace_state_clean`;
+    where this JAX lacks it, JAX stages every operation then, one on a constant too, which
+    outside staging runs, compiling one small program)."""
     tracer = jax.core.Tracer
     if any(isinstance(leaf, tracer) for leaf in jax.tree.leaves((args, kwargs))):
         return True
-    return isinstance(jax.lax.neg(np.float32(0)), tracer)
+    clean = getattr(jax_core, "trace_state_clean", None)
+    if clean is not None:
+        return not clean()
+    return isinstance(jax.lax.neg(np.float32(0)), tracer)  # pragma: no cover - older JAX

@@ -74,7 +74,7 @@ def integrate(pim, gyro, accel, dt):
 
 def entrywise_over_intervals(monkeypatch, *args, **kwargs):
     """`vmap(preintegrate)` with the entrywise scan for any batch (`_dispatch_batched` chooses
-    it for $2^{17}$ samples or more): a fresh `jit`, traced with the threshold at zero."""
+    it for $2^{23}$ samples or more): a fresh `jit`, traced with the threshold at zero."""
     monkeypatch.setattr(_preintegration, "_ENTRYWISE_MIN_SAMPLES", 0)
     try:
         return jax.jit(jax.vmap(imu.preintegrate, in_axes=(None, None)))(*args, **kwargs)

@@ -1,10 +1,11 @@
-"""The first call (issue 30): building a problem compiles nothing, constructors on concrete inputs
-agree with the kernels, and `lieax.enable_compilation_cache` fills its directory.
+"""The first call (issue 30): building a problem compiles nothing, a first solve compiles a few
+programs (one per structure and options, and a couple of small ones), constructors on concrete
+inputs agree with the kernels, and `lieax.enable_compilation_cache` fills its directory.
 
 Compilations are counted with JAX's monitoring events (one `backend_compile_duration` per XLA
-program). The README's factor graph, a g2o file and a BAL problem are built in a fresh process
-(one for the module), where nothing is compiled yet: in this one, another test may already have
-compiled the same small programs."""
+program). The documented workflows are built and solved in a fresh process (one for the
+module), where nothing is compiled yet: in this one, another test may already have compiled the
+same small programs."""
 
 import contextlib
 import json
@@ -39,12 +40,14 @@ def compilations():
     found.extend(_COMPILED[start:])
 
 
-# The child: the README's factor graph, as written there up to `FactorGraph(...)`, then a g2o file
-# and a BAL problem; it prints the programs each build compiled, then enables the persistent cache
-# and runs one small jitted lieax program.
+# The child: in one fresh process, each documented workflow at a small size, built (which
+# compiles nothing) and solved (the programs counted): the README's first example, the docs'
+# factor graph as written there (docs/factor-graphs.md), a g2o pose graph, a BAL problem, the
+# IMU smoother of examples/inertial_navigation.py (intervals of different sample counts), ICP
+# and GICP; then it enables the persistent cache and runs one small jitted lieax program.
 CHILD = textwrap.dedent(
     """
-    import json, sys
+    import importlib.util, json, re, sys
     import jax
     compiled = []
     jax.monitoring.register_event_duration_secs_listener(
@@ -56,49 +59,34 @@ CHILD = textwrap.dedent(
         compiled.clear()
         return names
 
-    import jax.numpy as jnp
     import numpy as np
 
     import lieax
-    from lieax import SE2
-    from lieax.factorgraph import Factor, FactorGraph, Var
+    from lieax.factorgraph import Factor, FactorGraph, Var, marginal_covariances
 
+    folder, root = sys.argv[1], sys.argv[2]
     jax.config.update("jax_enable_x64", True)
     report = {"import": take()}
-
-    # The README's user code (eager jax.numpy: it compiles as any JAX code does).
-    truth = SE2.exp(jnp.array([[k, 0.1 * k, 0.2 * k] for k in range(5)], dtype=float))
-    marks = jnp.array([[1.0, 2.0], [3.0, -1.0], [4.5, 1.5]])
-    i, j = np.arange(4), np.arange(1, 5)
-    seen_by, seen = np.array([0, 1, 2, 2, 3, 4]), np.array([0, 0, 1, 2, 1, 2])
-    start_poses, start_points = truth.rplus(0.1 * jnp.ones((5, 3))), marks + 0.3
-    z_between, z_prior = truth[i].between(truth[j]), truth[:1]
-    z_landmark = jax.vmap(lambda x, p: x.inverse() @ p)(truth[seen_by], marks[seen])
+    lieax._cpu_emitters.known()  # its probe compiles one empty program, once per process
     take()
 
-    # lieax's building: Var, indexing, Factor, FactorGraph.
-    poses = Var(start_poses, name="poses")
-    points = Var(start_points, name="points")
+    def python_blocks(path):
+        with open(root + "/" + path, encoding="utf-8") as file:
+            return re.findall(r"^```python\\n(.*?)^```", file.read(), flags=re.S | re.M)
 
-    def between(a, b, z):
-        return z.between(a.between(b)).log()
+    exec(python_blocks("README.md")[0], {"__name__": "readme"})
+    report["readme_first"] = take()
 
-    def prior(x, z):
-        return z.between(x).log()
-
-    def landmark(x, p, z):
-        return x.inverse() @ p - z
-
-    graph = FactorGraph([
-        Factor(between, (poses[i], poses[j]), z_between,
-               sqrt_information=np.diag([10.0, 10.0, 20.0])),
-        Factor(prior, (poses[np.array([0])],), z_prior, information=1e4 * np.eye(3)),
-        Factor(landmark, (poses[seen_by], points[seen]), z_landmark,
-               loss=lieax.lstsq.Huber(0.5)),
-    ])
+    source = python_blocks("docs/factor-graphs.md")[0]
+    docs = {"__name__": "docs"}
+    exec(source[: source.index("result = graph.solve(")], docs)
     report["readme_graph"] = take()
+    graph, points = docs["graph"], docs["points"]
+    result = graph.solve(eliminate=points)
+    marginal_covariances(graph, result.values, points, [0])
+    report["readme_graph_solve"] = take()
 
-    g2o = sys.argv[1] + "/small.g2o"
+    g2o = folder + "/small.g2o"
     with open(g2o, "w") as file:
         file.write("VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\\n")
         file.write("VERTEX_SE3:QUAT 1 1 0.1 0 0 0 0.0998 0.995\\n")
@@ -109,25 +97,66 @@ CHILD = textwrap.dedent(
     pose_graph = lieax.graph.read_g2o(g2o)
     lieax.graph.to_factor_graph(pose_graph)
     report["g2o"] = take()
+    lieax.graph.optimize(pose_graph)
+    report["g2o_solve"] = take()
 
     generated = lieax.ba.synthetic_bal(3, 20, 60, seed=0).problem
-    lieax.ba.write_bal(sys.argv[1] + "/small.txt", generated)
-    problem = lieax.ba.read_bal(sys.argv[1] + "/small.txt")
-    pose, intrinsics = problem.camera_variables(jnp.float64)
+    lieax.ba.write_bal(folder + "/small.txt", generated)
+    problem = lieax.ba.read_bal(folder + "/small.txt")
+    pose, intrinsics = problem.camera_variables(np.float64)
     cameras = Var((pose, intrinsics), name="cameras")
     landmarks = Var(problem.points, name="points")
     reprojection = Factor(
         lieax.ba.camera_residual,
         (cameras[problem.camera_indices], landmarks[problem.point_indices]),
         problem.observations, jacobian_fn=lieax.ba.camera_jacobians, name="reprojection")
-    FactorGraph([reprojection], check_gauge=False)
+    bal_graph = FactorGraph([reprojection], check_gauge=False)
     report["bal"] = take()
+    bal_graph.solve(eliminate=landmarks, damping="marquardt", max_iterations=5)
+    report["bal_solve"] = take()
 
-    report["cache_dir"] = str(lieax.enable_compilation_cache(sys.argv[1] + "/cache"))
-    jax.block_until_ready(jax.jit(lambda x: lieax.SO3.exp(x).log())(jnp.ones(3)))
+    spec = importlib.util.spec_from_file_location(
+        "inertial_navigation", root + "/examples/inertial_navigation.py")
+    example = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(example)
+    data = example.simulate(7, np.random.default_rng(0), rate=20)
+    imu_params = example.params()
+    kept = [20, 18, 19, 20, 17, 16]  # samples per interval: a stream that drops some
+    streams = {name: [s[:n] for s, n in zip(data[name], kept)] for name in ("accel", "gyro")}
+    report["imu"] = take()
+    pim = lieax.imu.preintegrate_intervals(imu_params, dt=data["dt"], **streams)
+    imu_graph, _ = example.build_graph(data, pim, imu_params)
+    imu_graph.solve(max_iterations=5)
+    report["imu_solve"] = take()
+
+    source, target, normals, _ = lieax.icp.synthetic_pair(
+        300, rotation_deg=10.0, translation=0.1, noise=0.002, same_samples=False, seed=0)
+    report["icp"] = take()
+    lieax.icp.point_to_plane(source, target, target_normals=normals,
+                             max_correspondence_distance=0.2, max_iterations=10)
+    report["icp_solve"] = take()
+    lieax.icp.gicp(source, target, max_correspondence_distance=0.2, max_iterations=10)
+    report["gicp_solve"] = take()
+
+    report["cache_dir"] = str(lieax.enable_compilation_cache(folder + "/cache"))
+    jax.block_until_ready(jax.jit(lambda x: lieax.SO3.exp(x).log())(np.ones(3)))
     print("REPORT " + json.dumps(report))
     """
 )
+
+# The most XLA programs each workflow's first solve compiles at the child's sizes (a regression
+# that adds a program fails here): one program per (structure, options), plus the marginal
+# covariances' one, the IMU preintegration's and GICP's covariances'. The README's first example
+# is eager user code (each `jax.numpy` operation compiles its own program).
+PROGRAMS = {
+    "readme_first": 95,
+    "readme_graph_solve": 2,
+    "g2o_solve": 1,
+    "bal_solve": 1,
+    "imu_solve": 2,
+    "icp_solve": 1,
+    "gicp_solve": 2,
+}
 
 
 @pytest.fixture(scope="module")
@@ -138,19 +167,27 @@ def fresh_process(tmp_path_factory):
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     env["PYTHONPATH"] = os.pathsep.join(filter(None, [root, env.get("PYTHONPATH")]))
     done = subprocess.run(
-        [sys.executable, "-c", CHILD, str(folder)], capture_output=True, text=True, env=env
+        [sys.executable, "-c", CHILD, str(folder), root], capture_output=True, text=True, env=env
     )
     assert done.returncode == 0, done.stderr[-3000:]
     line = next(x for x in done.stdout.splitlines() if x.startswith("REPORT "))
     return folder, json.loads(line[len("REPORT ") :])
 
 
-@pytest.mark.parametrize("build", ["import", "readme_graph", "g2o", "bal"])
+@pytest.mark.parametrize("build", ["import", "readme_graph", "g2o", "bal", "imu", "icp"])
 def test_building_compiles_nothing(fresh_process, build):
-    """Importing lieax, and building the README's factor graph (from its user-computed data), a
-    g2o pose graph and a BAL problem, compile no XLA program."""
+    """Importing lieax, and building the docs' factor graph as written there, a g2o pose graph, a
+    BAL problem, the IMU smoother's data and generated ICP clouds, compile no XLA program."""
     _, report = fresh_process
     assert report[build] == []
+
+
+@pytest.mark.parametrize("workflow", sorted(PROGRAMS))
+def test_first_solve_compiles_few_programs(fresh_process, workflow):
+    """Each workflow's first call compiles at most its `PROGRAMS` count of XLA programs."""
+    _, report = fresh_process
+    names = report[workflow]
+    assert len(names) <= PROGRAMS[workflow], names
 
 
 def test_enable_compilation_cache_writes_entries(fresh_process):

@@ -309,12 +309,12 @@ def scan_carries(batch, samples):
 
 
 def test_batched_scan_dispatch():
-    """Under `vmap`, batches of fewer than $2^{17}$ samples run the 3×3-block scan (10 carried
+    """Under `vmap`, batches of fewer than $2^{23}$ samples run the 3×3-block scan (10 carried
     arrays; it compiles in a third of the time), larger ones the entrywise scan (99 scalars)."""
     assert scan_carries(3, 60) == [10]
-    assert scan_carries(512, 255) == [10]
-    assert scan_carries(512, 256) == [99]
-    assert scan_carries(1000, 200) == [99]
+    assert scan_carries(1000, 200) == [10]
+    assert scan_carries(32768, 255) == [10]
+    assert scan_carries(32768, 256) == [99]
 
 
 @pytest.mark.parametrize("with_arm", [False, True])

@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._checks import to_device
 from .._runtime_error import raise_if
 from .._threads import lapack_limited
 from ..autodiff._tangents import check_retraction, manifold_leaves
@@ -127,6 +128,7 @@ class FactorGraph:
             _CACHE[key] = cached
         self.layout, self.plans, self._schur, self._loops = cached
         self._cost = self._linearize = self._implicit = self._default_data = None
+        self._programs = {}  # other compiled programs of this graph, by name and form
         # what `solve` checks a call against: its options (to the loop), the values' leaves
         self._prepared = {}
         self._params = {}  # `solve`'s numeric options, as the loop's array (`_parameters`)
@@ -159,7 +161,7 @@ class FactorGraph:
             self._default_data = tuple(
                 (
                     f.data,
-                    None if f.sqrt_information is None else jnp.asarray(f.sqrt_information),
+                    None if f.sqrt_information is None else to_device(f.sqrt_information),
                     f.loss,
                 )
                 for f in self.factors

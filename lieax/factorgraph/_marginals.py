@@ -10,6 +10,8 @@ multifrontal `CholeskyPlan` and solve for the unit right-hand sides of the reque
 
 import numpy as np
 
+from .. import _cpu_emitters as cpu_emitters
+from ._assembly import linearize
 from ._linear import to_padded
 from ._sparse import dense_matrix
 
@@ -39,17 +41,16 @@ def marginal_covariances(graph, values, var, indices=None, *, data=None, method=
         raise ValueError(f"method must be 'auto', 'dense' or 'cholesky', got {method!r}.")
     if method == "auto":
         method = "dense" if layout.padded_unknowns <= _DENSE_LIMIT else "cholesky"
-    _, diag, off, grad = graph.linearize(tuple(values), data)
-    diag, off, _ = (np.asarray(a) for a in to_padded(layout, diag, off, grad))
+    system = padded_system(graph, method == "dense")(tuple(values), graph._data(data))
     D, d = layout.block_size, layout.dims[k]
     blocks = layout.offsets[k] + indices
     if method == "dense":
-        inverse = np.linalg.inv(np.asarray(dense_matrix(layout.pattern, diag, off)))
+        inverse = np.linalg.inv(np.asarray(system))
         rows = blocks[:, None] * D + np.arange(d)[None, :]
         result = inverse[rows[:, :, None], rows[:, None, :]]
     else:
         plan = layout.plan()
-        factors = plan.factor(diag, off)
+        factors = plan.factor(*(np.asarray(a) for a in system))
         result = np.empty((len(indices), d, d))
         for m, block in enumerate(blocks):
             for c in range(d):
@@ -58,3 +59,23 @@ def marginal_covariances(graph, values, var, indices=None, *, data=None, method=
                 result[m, :, c] = plan.solve_factored(factors, rhs)[block, :d]
     result[~layout.free[k][indices]] = 0.0
     return result
+
+
+def padded_system(graph, dense):
+    """The compiled `(values, data) ->` normal equations of `graph` on its padded pattern, the
+    dense matrix (`dense`) or `(diag, off)`: one program per graph and form (the linearization,
+    the padding and the dense matrix together; op by op they were some 40 small compilations on
+    a first call). XLA's classic CPU emitters (`lieax._cpu_emitters`) compile it in about half
+    the time; it runs once per call."""
+    graph._check_x64()
+    program = graph._programs.get(("padded_system", dense))
+    if program is None:
+        layout = graph.layout
+
+        def system(values, data):
+            _, diag, off, grad = linearize(layout, graph.factors, graph.plans, values, data)
+            diag, off, _ = to_padded(layout, diag, off, grad)
+            return dense_matrix(layout.pattern, diag, off) if dense else (diag, off)
+
+        program = graph._programs[("padded_system", dense)] = cpu_emitters.jit(system)
+    return program

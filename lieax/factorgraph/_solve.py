@@ -74,6 +74,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from .. import _cpu_emitters as cpu_emitters
 from ..autodiff._tangents import manifold_leaves, rplus
 from ..groups._base import AbstractGroup
 from ..lstsq import GaussNewton, LevenbergMarquardt, Status, _iteration
@@ -214,7 +215,7 @@ def make_loop(graph, options):
         scalars = jnp.stack([cost, lam, *(a.astype(dtype) for a in (iterations, solves, status))])
         return values, jnp.concatenate([scalars, history])
 
-    return jax.jit(loop)
+    return cpu_emitters.jit(loop)
 
 
 class _Phases:

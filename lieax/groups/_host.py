@@ -88,6 +88,22 @@ def quaternion_product(p, q):
     return np.concatenate([w, pw * qv + qw * pv + np.cross(pv, qv)], axis=-1)
 
 
+def so3_as_matrix(q):
+    r"""The rotation matrix of unit quaternions `q` `(..., 4)` (wxyz), $R = I + 2w[v]_\times +
+    2[v]_\times^2$ (Solà, "Quaternion kinematics for the error-state Kalman filter", eq. 115)."""
+    w, v = q[..., :1, None], q[..., 1:]
+    zero = np.zeros_like(v[..., 0])
+    skew = np.stack(
+        [
+            np.stack([zero, -v[..., 2], v[..., 1]], -1),
+            np.stack([v[..., 2], zero, -v[..., 0]], -1),
+            np.stack([-v[..., 1], v[..., 0], zero], -1),
+        ],
+        -2,
+    )
+    return np.eye(3, dtype=q.dtype) + 2 * w * skew + 2 * skew @ skew
+
+
 def so3_from_matrix(m):
     r"""`lieax.groups._so3._from_matrix`: Shepperd's method, the quaternion from the largest of
     $1 + \mathrm{tr} R$ and $1 + 2R_{ii} - \mathrm{tr} R$, normalized (a rotation for any input)."""

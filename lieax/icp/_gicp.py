@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _cpu_emitters as cpu_emitters
-from .._checks import as_float_array
+from .._checks import as_float_array, is_concrete, to_device
 from .._host_call import host_call
 from ..groups._se3 import SE3
 from . import _host_kdtree, _native_kdtree, _neighbors, _normals, _search
@@ -415,7 +415,10 @@ def _default_covariances(points, mask, k, buckets):
     if not buckets:
         return estimate_covariances(points, k=k, mask=mask)
     padded, padded_mask = pad_to_bucket(points, mask)
-    return estimate_covariances(padded, k=k, mask=padded_mask)[: points.shape[0]]
+    covariances = estimate_covariances(padded, k=k, mask=padded_mask)
+    if is_concrete(covariances):  # a transfer, not a compiled slice (`to_device`)
+        return to_device(np.asarray(covariances)[: points.shape[0]])
+    return covariances[: points.shape[0]]
 
 
 def _check_covariances(covariances, points, what):

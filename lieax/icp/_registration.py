@@ -59,7 +59,7 @@ import numpy as np
 from jax.scipy.linalg import cho_solve
 
 from .. import _cpu_emitters as cpu_emitters
-from .._checks import to_device
+from .._checks import is_concrete, to_device
 from .._linalg import quat_to_matrix
 from .._runtime_error import raise_if
 from ..groups._se3 import SE3
@@ -301,9 +301,7 @@ def _register(
     if step_tolerance is not None:  # (rotation, translation): see `_small_step`
         check_parameter(step_tolerance[0], "rotation_epsilon", positive=False)
         check_parameter(step_tolerance[1], "translation_epsilon", positive=False)
-        step_tolerance = _constant(
-            jnp.stack([jnp.asarray(x, source.dtype) for x in step_tolerance])
-        )
+        step_tolerance = _constant(_array_of(tuple(step_tolerance), source.dtype))
 
     search, prebuilt = _search.check_icp_search(search, target, max_distance)
     dynamic_loss, static_loss = _split_loss(loss)
@@ -321,13 +319,11 @@ def _register(
     (source_c, target_c, normals_c, covariances_c), init_c, max_distance_c, loss_c = constant
     loss_scale_c = None if loss_c is None else loss_c[1]
     dtype = source.dtype
-    fitness_c, rmse_c = (
-        jnp.asarray(_constant(x), dtype) for x in (relative_fitness, relative_rmse)
-    )
-    init_c = jnp.asarray(_IDENTITY, dtype) if init_c is None else init_c
+    fitness_c, rmse_c = (_array_of(_constant(x), dtype) for x in (relative_fitness, relative_rmse))
+    init_c = _array_of(_IDENTITY, dtype) if init_c is None else init_c
     result = _solve(
         source_c, source_mask, target_c, target_mask, normals_c, init_c, max_distance_c,
-        fitness_c, rmse_c, loss_scale_c, jnp.asarray(presampled), prebuilt, *covariances_c,
+        fitness_c, rmse_c, loss_scale_c, _array_of(presampled), prebuilt, *covariances_c,
         step_tolerance, options=options, static_loss=static_loss,
     )  # fmt: skip
     if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((data, dynamic_loss))):
@@ -443,6 +439,18 @@ def _positive(x):
 
 def _non_negative(x):
     return jnp.isfinite(x) & (x >= 0)
+
+
+def _array_of(values, dtype=None):
+    """`values` (a number, an array, or a tuple of numbers or scalars) as one array of `dtype`
+    (default its own): one transfer when concrete (`lieax._checks.to_device`), where
+    `jnp.asarray` and `jnp.stack` would compile a small program per shape and dtype on first
+    use (issue 30), else staged."""
+    if is_concrete(values):
+        return to_device(np.asarray(values, dtype))
+    if isinstance(values, tuple):
+        return jnp.stack([jnp.asarray(x, dtype) for x in values])
+    return jnp.asarray(values, dtype)
 
 
 def _constant(x):

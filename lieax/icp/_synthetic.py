@@ -5,6 +5,8 @@ exact normals, optional noise, and a pair of views related by a known rigid moti
 import jax.numpy as jnp
 import numpy as np
 
+from .._checks import to_device
+from ..groups import _host
 from ..groups._se3 import SE3
 
 # (kind, parameters): the floor z = 0 and walls x = -1, y = -1 over [-1, 1]^2 patches, a sphere and
@@ -84,7 +86,7 @@ def synthetic_scene(n=2000, *, noise=0.0, seed=0, dtype=jnp.float64):
         normals.append(nrm)
     points, normals = np.concatenate(points), np.concatenate(normals)
     points = points + noise * rng.normal(size=(n, 1)) * normals
-    return jnp.asarray(points, dtype), jnp.asarray(normals, dtype)
+    return to_device(points.astype(dtype)), to_device(normals.astype(dtype))
 
 
 def synthetic_pair(
@@ -120,6 +122,8 @@ def synthetic_pair(
     direction = rng.normal(size=3)
     direction /= np.linalg.norm(direction)
     tangent = np.concatenate([translation * direction, np.deg2rad(rotation_deg) * axis])
-    T_target_source = SE3.exp(jnp.asarray(tangent, dtype))
-    source = T_target_source.inverse() @ jnp.asarray(on_target, dtype)
-    return source, target, target_normals, T_target_source
+    T_target_source = SE3.exp(np.asarray(tangent, dtype))  # NumPy inside: nothing to compile
+    params = np.asarray(T_target_source.parameters())
+    rotation, translation = _host.so3_as_matrix(params[:4]), params[4:]
+    source = (on_target - translation) @ rotation  # T⁻¹ p = Rᵀ (p - t), on rows
+    return to_device(source.astype(dtype)), target, target_normals, T_target_source

@@ -704,7 +704,7 @@ def _dispatch(gyro, accel, dt, bias, params, keep):
 
 
 # Batches of fewer samples (intervals × samples per interval) than this run `_block_scan`.
-_ENTRYWISE_MIN_SAMPLES = 1 << 17
+_ENTRYWISE_MIN_SAMPLES = 1 << 23
 
 
 @_dispatch.def_vmap
@@ -715,11 +715,14 @@ def _dispatch_batched(axis_size, in_batched, gyro, accel, dt, bias, params, keep
     `_block_scan` for 1000 intervals of 200 samples; on a single interval it is 4.5× slower).
     Its program is 4× longer (~3000 StableHLO lines against ~700: every 3×3 product written
     out), and XLA compiles it in 3.6–4.0 s of CPU against 1.2–1.4 s, which only batches of many
-    samples repay (the warm gain is ~0.1–0.2 µs a sample: 2.5 s is ten million samples), so
-    batches under `_ENTRYWISE_MIN_SAMPLES` samples (2^17: 1000 intervals of 200 samples still
-    run entrywise) run `_block_scan` (measured 2026-12-04, 2-core machine under load: 512
-    intervals of 12 samples 3.9 ms warm against the entrywise 2.7 ms, 64 of 200 6.2 against
-    9.3 ms)."""
+    samples repay in one call: batches under `_ENTRYWISE_MIN_SAMPLES` samples ($2^{23}$, where
+    the warm gain of one call, ~0.3 µs a sample, reaches the extra compile time) run
+    `_block_scan`. Measured 2026-12-04 on the 2-core machine under load 6, compile / warm
+    median: 512 intervals of 256 samples 1.9 s / 152 ms by 3×3 blocks against 6.0 s / 156 ms
+    entrywise; 2048 of 256, 3.3 s / 0.68 s against 11.3 s / 0.51 s (the IMU smoother of 500
+    intervals of 200 samples compiled the entrywise scan with the threshold at $2^{17}$, its
+    first call 6.7 s, issue 30); 512 of 12, 3.9 ms against 2.7 ms; 64 of 200, 6.2 against
+    9.3 ms."""
     in_axes = jax.tree.map(lambda batched: 0 if batched else None, tuple(in_batched))
     small = axis_size * gyro.shape[-2] < _ENTRYWISE_MIN_SAMPLES
     scan = _block_scan if small else _entry_scan
@@ -771,12 +774,13 @@ def preintegrate(params: ImuParams, bias=None, *, accel, gyro, dt, mask=None) ->
     `PreintegratedImuMeasurements(params, bias).integrateMeasurement(accel[k], gyro[k], dt[k])`
     for $k = 0 \dots N-1$ (see `_tangent_step`). `vmap` it over intervals (e.g.
     `jax.vmap(lambda a, g, d: preintegrate(params, bias, accel=a, gyro=g, dt=d))`, or
-    `preintegrate_intervals` for intervals of different lengths): a batch of $2^{17}$ samples or
+    `preintegrate_intervals` for intervals of different lengths): a batch of $2^{23}$ samples or
     more then runs a scan elementwise over the intervals (`_entry_step`; measured,
     `benchmarks/imu.py`: 1000 intervals of 200 samples in float64 on one core, 1.7× faster than
     the batched 3×3 blocks and 7–8× faster than GTSAM's C++ loop called from Python, 5× once
     under heavy contention), a smaller one the batched 3×3 blocks, which compile in a third of
-    the time (`_dispatch_batched`).
+    the time: below $2^{23}$ samples one call's gain does not repay the compilation
+    (`_dispatch_batched`).
 
     **Arguments:**
 
