@@ -5,9 +5,8 @@
 // Plans live in a registry keyed by a digest of the pattern and the analysis options (a 63-bit
 // integer attribute of the custom call): Python registers a plan when its analysis ends and
 // releases it when the plan object is collected (reference counted per key, since two plan
-// objects of one pattern share a key). A key may be announced as expected (`Expect`) while the
-// analysis runs in a background thread; the handler then waits for it (condition variable, up
-// to `kWaitSeconds`). An unknown key, or an analysis that failed, is an error naming the key.
+// objects of one pattern share a key). A traced solve waits for its plan's analysis in Python, so
+// the plan is registered before the program runs; an unknown key is an error naming it.
 //
 // Numerics (Liu, "The multifrontal method for sparse matrix solution: theory and practice",
 // SIAM Review 34, 1992; Duff and Reid, ACM TOMS 9, 1983): fronts in postorder; each front F of
@@ -24,9 +23,7 @@
 
 #include <algorithm>
 #include <atomic>
-#include <chrono>
 #include <cmath>
-#include <condition_variable>
 #include <cstdint>
 #include <cstring>
 #include <limits>
@@ -190,38 +187,18 @@ struct Plan {
 struct Entry {
   std::shared_ptr<Plan> plan;
   int references = 0;  // plan objects registered under the key
-  bool expected = false;
-  std::string failure;  // the analysis' error, when it failed
 };
 
 std::mutex registry_mutex;
-std::condition_variable registry_changed;
 std::unordered_map<int64_t, Entry> registry;
-constexpr int kWaitSeconds = 600;
 
-// `key`'s plan into `plan`, waiting while its analysis runs.
+// `key`'s plan into `plan`.
 ffi::Error lookup(int64_t key, std::shared_ptr<Plan>* plan) {
-  std::unique_lock<std::mutex> lock(registry_mutex);
-  auto ready = [&] {
-    auto it = registry.find(key);
-    return it == registry.end() || it->second.plan || !it->second.failure.empty() ||
-           !it->second.expected;
-  };
-  if (!registry_changed.wait_for(lock, std::chrono::seconds(kWaitSeconds), ready)) {
-    return ffi::Error(ffi::ErrorCode::kDeadlineExceeded,
-                      "lieax multifrontal Cholesky: the symbolic analysis of plan key " +
-                          std::to_string(key) + " did not finish within " +
-                          std::to_string(kWaitSeconds) + " s.");
-  }
+  std::lock_guard<std::mutex> lock(registry_mutex);
   auto it = registry.find(key);
   if (it != registry.end() && it->second.plan) {
     *plan = it->second.plan;
     return ffi::Error::Success();
-  }
-  if (it != registry.end() && !it->second.failure.empty()) {
-    return ffi::Error(ffi::ErrorCode::kFailedPrecondition,
-                      "lieax multifrontal Cholesky: the symbolic analysis of plan key " +
-                          std::to_string(key) + " failed: " + it->second.failure);
   }
   return ffi::Error(
       ffi::ErrorCode::kNotFound,
@@ -693,10 +670,8 @@ LIEAX_EXPORT int LieaxCholeskyRegister(int64_t key, int64_t n, int64_t d, int64_
     std::lock_guard<std::mutex> lock(registry_mutex);
     Entry& entry = registry[key];
     if (!entry.plan) entry.plan = std::move(plan);
-    entry.failure.clear();
     ++entry.references;
   }
-  registry_changed.notify_all();
   return 0;
 }
 
@@ -705,23 +680,6 @@ LIEAX_EXPORT void LieaxCholeskyRelease(int64_t key) {
   std::lock_guard<std::mutex> lock(registry_mutex);
   auto it = registry.find(key);
   if (it != registry.end() && --it->second.references <= 0) registry.erase(it);
-}
-
-// Announces that `key`'s analysis is running: a solve waits for it instead of failing.
-LIEAX_EXPORT void LieaxCholeskyExpect(int64_t key) {
-  std::lock_guard<std::mutex> lock(registry_mutex);
-  Entry& entry = registry[key];
-  if (!entry.plan) entry.expected = true;
-}
-
-// The analysis announced under `key` failed with `message` (solves waiting for it fail).
-LIEAX_EXPORT void LieaxCholeskyFail(int64_t key, const char* message) {
-  {
-    std::lock_guard<std::mutex> lock(registry_mutex);
-    Entry& entry = registry[key];
-    if (!entry.plan) entry.failure = message;
-  }
-  registry_changed.notify_all();
 }
 
 // The plan objects registered under `key` (0 when none).

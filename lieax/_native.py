@@ -52,4 +52,3 @@ def library():
 def available() -> bool:
     """Whether the native library is built, enabled and registered."""
     return library() is not None
-

@@ -12,15 +12,13 @@ share the key, counted). A program loaded from the cache in a second process fin
 because that process analyses the same pattern (`FactorGraph.solve` starts the analysis before
 it calls the loop).
 
-The analysis may still run in a background thread when a solve starts (`Layout.start_plan`
-overlaps it with the loop's compilation, and a cached program needs no compilation): a solve
-traced with a plan that is not analysed yet announces its key (`expect`) and the library's
-handler waits for the registration (a condition variable; an error after 600 s, or at once with
-the analysis' own message when it failed). A key that was never announced nor registered (the
-plan was collected, or never analysed in this process) is an error naming the key, not a crash.
+A solve traced with a plan given as a function (`Layout.plan`, whose analysis
+`Layout.start_plan` began in the background) waits for the analysis at trace time and names its
+key, so the plan is registered before the program runs. A key not registered when the program
+runs (its plan was collected, or never analysed in this process) is an error naming the key, not
+a crash.
 """
 
-import concurrent.futures
 import ctypes
 import functools
 import hashlib
@@ -71,9 +69,8 @@ def _initialize():
     lib.LieaxCholeskyRegister.argtypes = (
         [ctypes.c_int64] * 4 + [int64_p] * 3 + [ctypes.c_int64, *[int64_p] * 6, ctypes.c_int]
     )
-    for name in ("Release", "Expect", "References"):
+    for name in ("Release", "References"):
         getattr(lib, "LieaxCholesky" + name).argtypes = [ctypes.c_int64]
-    lib.LieaxCholeskyFail.argtypes = [ctypes.c_int64, ctypes.c_char_p]
     lib.LieaxCholeskySetThreads.argtypes = [ctypes.c_int]
     _threads.on_change(lambda threads: lib.LieaxCholeskySetThreads(threads or 0))
     return lib
@@ -139,26 +136,6 @@ def scopes_threads():
     """Whether the library found OpenBLAS's thread-local count next to SciPy's BLAS (else the
     BLAS's own setting holds for its calls)."""
     return bool(_initialized().LieaxCholeskyScopesThreads())
-
-
-# analyses a traced solve waits for when nothing else has started them
-_ANALYSES = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="lieax-native-plan")
-
-
-def expect(key, plan_of):
-    """Announces `key` (the handler waits for its registration) and makes sure that its analysis
-    runs: `plan_of()` (a `Layout.plan`: started or done already, it returns at once with the
-    analysis) on a background thread; its failure is passed to waiting solves."""
-    lib = _initialized()
-    lib.LieaxCholeskyExpect(key)
-
-    def analyse():
-        try:
-            plan_of()
-        except Exception as error:  # handed to the waiting solve, which raises it
-            lib.LieaxCholeskyFail(key, f"{type(error).__name__}: {error}".encode())
-
-    _ANALYSES.submit(analyse)
 
 
 def solve(key, diag, off, rhs):

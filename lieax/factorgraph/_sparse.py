@@ -298,9 +298,6 @@ class _Symbolic:
         return len(self.batches) * _BATCH_SECONDS / self.seconds
 
 
-# `CholeskyPlan.analyze`'s options by default: `(order, max_pivots, zero_fraction)`
-_DEFAULT_ANALYSIS = (None, (2, 8, 32), (0.5, 0.1))
-
 # work arrays a plan keeps, one per thread that factors with it (`CholeskyPlan._work`)
 _MAX_BUFFERS = 4
 
@@ -356,6 +353,18 @@ class CholeskyPlan:
         self._numpy_lock = threading.Lock()
         self._buffers = {}  # thread id -> work array (see `_work`)
         self._buffers_lock = threading.Lock()
+        self._registered = False
+
+    def native_key(self):
+        """`key`, with this plan registered in the native library's registry (once; `analyze`
+        registers where the library is available, so this registers only a plan analysed
+        without it)."""
+        with self._numpy_lock:
+            if not self._registered:
+                single = _threads.threads_for(self.stats["flops"], _threads.PARALLEL_FLOPS) == 1
+                _native_cholesky.register(self, self.key, self._symbolic, single)
+                self._registered = True
+        return self.key
 
     def _numpy_structures(self):
         """The NumPy path's batches and work array size (`_numpy_batches`), built on first use:
@@ -424,8 +433,7 @@ class CholeskyPlan:
         plan = cls(pattern, symbolic, ordering)
         plan.key = _native_cholesky.analysis_key(pattern, (given, max_pivots, zero_fraction))
         if _native_cholesky.available():
-            single = _threads.threads_for(plan.stats["flops"], _threads.PARALLEL_FLOPS) == 1
-            _native_cholesky.register(plan, plan.key, symbolic, single)
+            plan.native_key()
         else:  # the NumPy path's structures, here where the analysis overlaps the compilation
             plan._numpy_structures()
         return plan
@@ -660,8 +668,11 @@ def _plan_stats(pattern, symbolic, ordering):
 def cholesky_solve(plan, diag, off, rhs, *, pattern=None):
     """`plan.solve` from inside JAX (`jit`, `lax.while_loop`, `vmap`); NaN when $H$ is not
     positive definite. `plan` is a `CholeskyPlan`, or a function returning the default analysis
-    of `pattern` (`CholeskyPlan.analyze(pattern)`), called when the solve runs, not when it is
-    traced: the analysis may still be running while the loop compiles (`Layout.start_plan`).
+    of `pattern` (`CholeskyPlan.analyze(pattern)`; a `Layout.plan`). The native path calls it
+    when the solve is traced (the custom call names the plan's key, and the plan must be
+    registered when the program runs; `Layout.start_plan` begins the analysis before the loop is
+    traced); the host callback calls it when the solve runs, so that its analysis overlaps the
+    loop's compilation.
 
     With the native library (`lieax._native.available()`) and JAX on the CPU, the numeric phase
     is the C++ custom call of `_native_cholesky`, named by the plan's key, which JAX's
@@ -681,12 +692,9 @@ def cholesky_solve(plan, diag, off, rhs, *, pattern=None):
             f"{pattern.num_blocks} blocks of size {pattern.block_size}."
         )
     if _native_cholesky.available() and jax.default_backend() == "cpu":
-        if isinstance(plan, CholeskyPlan):
-            key = plan.key
-        else:
-            key = _native_cholesky.analysis_key(pattern, _DEFAULT_ANALYSIS)
-            _native_cholesky.expect(key, plan)
-        return _native_cholesky.solve(key, diag, off, rhs)
+        if not isinstance(plan, CholeskyPlan):
+            plan = plan()  # the analysis, waited for here (`Layout.start_plan` began it)
+        return _native_cholesky.solve(plan.native_key(), diag, off, rhs)
     plan_of = plan if callable(plan) and not isinstance(plan, CholeskyPlan) else lambda: plan
     result = jax.ShapeDtypeStruct(rhs.shape, rhs.dtype)
     _threads.prepare()  # (the thread pools listed here, not in the callback)
