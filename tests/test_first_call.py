@@ -112,7 +112,7 @@ CHILD = textwrap.dedent(
         problem.observations, jacobian_fn=lieax.ba.camera_jacobians, name="reprojection")
     bal_graph = FactorGraph([reprojection], check_gauge=False)
     report["bal"] = take()
-    bal_graph.solve(eliminate=landmarks, damping="marquardt", max_iterations=5)
+    bal_graph.solve(eliminate=landmarks, solver=lieax.lstsq.LevenbergMarquardt.gtsam(scaling="clipped"), max_iterations=5)
     report["bal_solve"] = take()
 
     spec = importlib.util.spec_from_file_location(
