@@ -3,15 +3,13 @@ handler runs inside `jit`, and a program that calls it is served by JAX's persis
 cache in a second process (the reason it exists: JAX never caches a program with a Python host
 callback)."""
 
-import os
-import subprocess
-import sys
 import textwrap
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _child import child_output
 
 from lieax import _native
 
@@ -50,12 +48,6 @@ CHILD = textwrap.dedent(
 
 
 def test_program_with_native_call_is_cached(tmp_path):
-    run = lambda: subprocess.run(
-        [sys.executable, "-c", CHILD, str(tmp_path)],
-        capture_output=True,
-        text=True,
-        check=True,
-        env={**os.environ, "JAX_PLATFORMS": "cpu"},
-    ).stdout.split()[-1]
+    run = lambda: child_output(CHILD, tmp_path).split()[-1]
     assert run() == "0"  # first process: compiled and written
     assert int(run()) >= 1  # second process: read back

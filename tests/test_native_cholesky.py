@@ -7,9 +7,6 @@ persistent compilation cache without compiling any."""
 
 import dataclasses
 import gc
-import os
-import subprocess
-import sys
 import textwrap
 import threading
 import time
@@ -18,6 +15,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _child import child_output
+from test_sparse_multifrontal import system_on_edges
 
 from lieax.factorgraph import _native_cholesky, _sparse
 
@@ -48,13 +47,7 @@ def system(kind, n, d, seed=0):
     matrix and a right-hand side."""
     rng = np.random.default_rng(seed)
     i, j = edges_of(kind, n, rng) if n > 1 else (np.zeros(0, int), np.zeros(0, int))
-    pattern, _, _ = _sparse.BlockPattern.from_edges(n, d, i, j)
-    off = 0.3 * rng.normal(size=(pattern.num_pairs, d, d))
-    a = rng.normal(size=(n, d, d))
-    degree = np.bincount(np.concatenate([pattern.rows, pattern.cols]), minlength=n)
-    diag = a @ np.swapaxes(a, 1, 2) + (2.0 * d * (degree + 1))[:, None, None] * np.eye(d)
-    dense = np.asarray(_sparse.dense_matrix(pattern, jnp.asarray(diag), jnp.asarray(off)))
-    return pattern, diag, off, dense, rng.normal(size=(n, d))
+    return system_on_edges(n, d, i, j, rng)
 
 
 CASES = [
@@ -241,13 +234,7 @@ CHILD = textwrap.dedent(
 
 
 def test_second_process_compiles_nothing(tmp_path):
-    run = lambda: subprocess.run(
-        [sys.executable, "-c", CHILD, str(tmp_path)],
-        capture_output=True,
-        text=True,
-        check=True,
-        env={**os.environ, "JAX_PLATFORMS": "cpu"},
-    ).stdout.split()[-2:]
+    run = lambda: child_output(CHILD, tmp_path).split()[-2:]
     compiled, loaded = run()
     assert int(compiled) > 0 and loaded == "0"  # first process: compiled and written
     assert run() == ["0", compiled]  # second process: every program read back

@@ -5,15 +5,13 @@ float32 and float64, batched under `vmap` (one custom call), on empty, fully mas
 targets; ICP with either tree; and the ICP demo's registration and a GICP served from JAX's
 persistent compilation cache in a second process."""
 
-import os
-import subprocess
-import sys
 import textwrap
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _child import child_output
 
 from lieax import _native, icp
 from lieax.icp import _gicp, _host_kdtree, _native_kdtree, _search
@@ -278,12 +276,6 @@ def test_icp_and_gicp_programs_are_served_from_the_persistent_cache(tmp_path):
     """The ICP demo's registration (point-to-plane, defaults: the k-d tree search) and a GICP
     (covariances and matches by the k-d tree) compile nothing in a second process: their
     programs hold custom calls, not Python callbacks, and JAX's persistent cache keeps them."""
-    run = lambda: subprocess.run(
-        [sys.executable, "-c", CHILD, str(tmp_path)],
-        capture_output=True,
-        text=True,
-        check=True,
-        env={**os.environ, "JAX_PLATFORMS": "cpu"},
-    ).stdout.split()[-1]
+    run = lambda: child_output(CHILD, tmp_path).split()[-1]
     assert int(run()) > 0  # first process: compiled and written
     assert run() == "0"  # second process: every program read back

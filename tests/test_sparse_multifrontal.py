@@ -16,7 +16,13 @@ def random_system(n, extra, d, seed):
     i = np.concatenate([np.arange(n - 1), rng.integers(0, n, extra)])
     j = np.concatenate([np.arange(1, n), rng.integers(0, n, extra)])
     keep = i != j
-    pattern, _, _ = _sparse.BlockPattern.from_edges(n, d, i[keep], j[keep])
+    return system_on_edges(n, d, i[keep], j[keep], rng)
+
+
+def system_on_edges(n, d, i, j, rng):
+    """The pattern of the block pairs `(i, j)`, a diagonally dominant (positive definite) system
+    on it, its dense matrix and a right-hand side: `(pattern, diag, off, dense, rhs)`."""
+    pattern, _, _ = _sparse.BlockPattern.from_edges(n, d, i, j)
     off = 0.3 * rng.normal(size=(pattern.num_pairs, d, d))
     a = rng.normal(size=(n, d, d))
     degree = np.bincount(np.concatenate([pattern.rows, pattern.cols]), minlength=n)
