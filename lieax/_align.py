@@ -3,8 +3,7 @@ with scale), the same as `SE3.align` / `Sim3.align`. The solution, its implicit 
 input checks live beside the groups, in `lieax.groups._procrustes`.
 """
 
-from .groups._se3 import SE3
-from .groups._sim3 import Sim3
+from .groups import SE3, Sim3
 
 
 def align(points_a, points_b, weights=None, *, with_scale: bool = False) -> SE3 | Sim3:

@@ -27,11 +27,7 @@ import numpy as np
 
 from ._checks import as_float_array, check_last_axis
 from ._linalg import cross, dot, matvec, quat_conjugate, quat_multiply, rotate_back
-from .groups import _s2 as s2
-from .groups import _so3 as so3
-from .groups._se3 import SE3
-from .groups._sim3 import Sim3
-from .groups._so3 import SO3
+from .groups import S2, SE3, SO3, Sim3, kernels
 
 __all__ = [
     "ceres_quaternion_minus",
@@ -210,20 +206,20 @@ def s2_gtsam_basis(p):
 
 def _s2_rotation(p):
     r"""$C_p = B_{p,\mathrm{lieax}}^\top B_{p,\mathrm{gtsam}}$ (2×2, orthogonal): $\xi_{lieax} = C_p \xi_{gtsam}$."""
-    return jnp.swapaxes(s2.basis(p), -1, -2) @ s2_gtsam_basis(p)
+    return jnp.swapaxes(kernels.s2_basis(p), -1, -2) @ s2_gtsam_basis(p)
 
 
 def s2_tangent_to_gtsam(direction, xi):
     r"""lieax S2 tangent coordinates at `direction` (an `S2` or unit vectors) to GTSAM `Unit3`'s:
     $\xi_g = C_p^\top \xi$ (both bases span the tangent plane, so they differ by a 2×2 rotation
     or reflection $C_p$)."""
-    p = direction.parameters() if isinstance(direction, s2.S2) else direction
+    p = direction.parameters() if isinstance(direction, S2) else direction
     return matvec(jnp.swapaxes(_s2_rotation(p), -1, -2), check_last_axis(xi, 2, "S2 tangent"))
 
 
 def s2_tangent_from_gtsam(direction, xi_gtsam):
     r"""GTSAM `Unit3` tangent coordinates at `direction` to lieax's: $\xi = C_p \xi_g$."""
-    p = direction.parameters() if isinstance(direction, s2.S2) else direction
+    p = direction.parameters() if isinstance(direction, S2) else direction
     return matvec(_s2_rotation(p), check_last_axis(xi_gtsam, 2, "Unit3 tangent"))
 
 
@@ -284,7 +280,7 @@ def ceres_quaternion_plus(q, delta):
     q = check_last_axis(q, 4, "quaternion", "wxyz")
     delta = check_last_axis(delta, 3, "Ceres quaternion delta")
     # (cos|δ|, sin|δ|/|δ| δ), NaN-free at 0; to_parameters: raw derivatives, not SO3's carrier
-    q_delta = so3.to_parameters(so3.exp(2.0 * delta))
+    q_delta = kernels.so3_to_parameters(kernels.so3_exp(2.0 * delta))
     return quat_multiply(q_delta, q)
 
 

@@ -36,7 +36,7 @@ import optax  # the optax package (absolute import; this module is lieax.optax)
 
 from .autodiff._jacobian import value_and_grad
 from .autodiff._tangents import check_retraction, manifold_leaves, rplus, zero_tangents
-from .groups._base import AbstractManifold
+from .groups import AbstractManifold
 from .retractions import Retraction, exp
 
 __all__ = ["MinimizeResult", "apply_updates", "minimize", "on_manifold"]

@@ -36,11 +36,7 @@ from collections.abc import Callable
 import jax.numpy as jnp
 
 from ._checks import check_last_axis
-from .groups import _se3 as se3
-from .groups import _so3 as so3
-from .groups._base import AbstractManifold
-from .groups._se3 import SE3
-from .groups._so3 import SO3, cayley_quaternion, cayley_quaternion_inverse
+from .groups import SE3, SO3, AbstractManifold, kernels
 
 __all__ = ["Retraction", "cayley", "exp", "first_order"]
 
@@ -89,18 +85,18 @@ exp = Retraction("exp", _exp_rplus, _exp_rminus)  # the default everywhere
 def _so3_cayley_rplus(x, omega):
     r"""$R\,\mathrm{cay}(\omega)$."""
     omega = check_last_axis(omega, 3, "SO3 tangent")
-    return x.compose(SO3._wrap(cayley_quaternion(omega)))
+    return x.compose(kernels.element(SO3, kernels.so3_cayley(omega)))
 
 
 def _so3_cayley_rminus(y, x):
     r"""$\mathrm{cay}^{-1}(R_x^\top R_y)$."""
     x._check_same_group(y, "rminus")
-    return cayley_quaternion_inverse(x.between(y)._params)
+    return kernels.so3_cayley_inverse(kernels.carrier(x.between(y)))
 
 
 def _se3_increment(rotation_q, v):
     """The SE3 element $(Q, v)$ from a quaternion kernel output and a translation."""
-    return SE3._wrap(se3.join(rotation_q, v))
+    return kernels.element(SE3, kernels.se3_join(rotation_q, v))
 
 
 def _se3_rplus(rotation_kernel):
@@ -144,13 +140,13 @@ cayley = _dispatch(
     {
         SO3: (_so3_cayley_rplus, _so3_cayley_rminus),
         SE3: (
-            _se3_rplus(cayley_quaternion),
-            _se3_rminus(lambda rotation: cayley_quaternion_inverse(rotation._params)),
+            _se3_rplus(kernels.so3_cayley),
+            _se3_rminus(lambda rotation: kernels.so3_cayley_inverse(kernels.carrier(rotation))),
         ),
     },
 )
 
 first_order = _dispatch(
     "first_order",
-    {SE3: (_se3_rplus(so3.exp), _se3_rminus(lambda rotation: rotation.log()))},
+    {SE3: (_se3_rplus(kernels.so3_exp), _se3_rminus(lambda rotation: rotation.log()))},
 )

@@ -18,7 +18,7 @@ from collections.abc import Callable, Sequence
 import jax
 import jax.numpy as jnp
 
-from ..groups._base import AbstractManifold
+from ..groups import AbstractManifold, kernels
 from ._tangents import (
     leaf_array,
     leaf_local_from_tangent,
@@ -177,7 +177,7 @@ def grad(f: Callable, argnums: int | Sequence[int] = 0, *, has_aux: bool = False
 
 
 def _rebuild(leaf, array):
-    return type(leaf)._wrap(array) if isinstance(leaf, AbstractManifold) else array
+    return kernels.element(type(leaf), array) if isinstance(leaf, AbstractManifold) else array
 
 
 def _transpose_local_from_tangent(leaf, local_cotangent):

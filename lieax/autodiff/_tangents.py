@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import check_not_foreign, foreign_conversion, to_device
-from ..groups._base import AbstractManifold
+from ..groups import AbstractManifold, kernels
 from ..retractions import Retraction, exp
 
 
@@ -53,20 +53,20 @@ def leaf_tangent_shape(leaf) -> tuple:
 def leaf_local_from_tangent(leaf, tangent):
     """Right-local tangent of the JAX tangent of `leaf_array(leaf)` (see `AbstractGroup`)."""
     if isinstance(leaf, AbstractManifold):
-        return leaf._local_from_tangent(leaf._params, tangent)
+        return leaf._local_from_tangent(kernels.carrier(leaf), tangent)
     return tangent
 
 
 def leaf_tangent_from_local(leaf, local):
     """The JAX tangent of `leaf_array(leaf)` that moves `leaf` along a right-local tangent."""
     if isinstance(leaf, AbstractManifold):
-        return leaf._tangent_from_local(leaf._params, local)
+        return leaf._tangent_from_local(kernels.carrier(leaf), local)
     return local
 
 
 def leaf_array(leaf):
     """The array that carries a leaf's derivatives: a group's parameter leaf, or the array."""
-    return leaf._params if isinstance(leaf, AbstractManifold) else leaf
+    return kernels.carrier(leaf) if isinstance(leaf, AbstractManifold) else leaf
 
 
 def check_retraction(retraction) -> Retraction:

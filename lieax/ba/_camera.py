@@ -11,8 +11,7 @@ import numpy as np
 
 from .._checks import broadcast_batch, check_last_axis, is_concrete, to_device
 from ..cameras._snavely import check_pose as _check_pose
-from ..groups._se3 import SE3
-from ..groups._so3 import SO3
+from ..groups import SE3, SO3
 
 
 def bal_to_camera(cameras):

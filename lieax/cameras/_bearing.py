@@ -22,8 +22,7 @@ chained with $\partial P / \partial \xi = [-I, [P]_\times]$ and $\partial P / \p
 import jax.numpy as jnp
 
 from .._linalg import dot
-from ..groups import _s2 as s2
-from ..groups._s2 import S2
+from ..groups import S2, kernels
 from ._frame import check_camera_inputs, in_camera, in_camera_jacobians
 
 # below this angle θ/sin θ and its derivative use their series (the closed form loses
@@ -74,7 +73,7 @@ def _angle_factor(m, q, projected):
 
 
 def _error_values(m, q):
-    basis_m = s2.basis(m)
+    basis_m = kernels.s2_basis(m)
     projected = jnp.einsum("...ij,...i->...j", basis_m, q)
     f, df, _, antipodal = _angle_factor(m, q, projected)
     stand_in = jnp.stack([jnp.pi * jnp.ones_like(f), jnp.zeros_like(f)], -1)

@@ -17,8 +17,7 @@ order; Solà et al., "A micro Lie theory", eq. 181-182 for the inverse action).
 import jax.numpy as jnp
 
 from .._checks import broadcast_batch, check_last_axis
-from ..groups._se3 import SE3
-from ..groups._so3 import SO3
+from ..groups import SE3, SO3
 
 
 def check_pose(pose, what="T_world_camera"):

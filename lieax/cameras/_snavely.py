@@ -21,8 +21,7 @@ from `lieax.ba`, which re-exports these functions under their old names.
 import jax.numpy as jnp
 
 from .._checks import broadcast_batch, check_last_axis
-from ..groups._se3 import SE3
-from ..groups._so3 import SO3
+from ..groups import SE3, SO3
 
 
 def check_pose(pose):

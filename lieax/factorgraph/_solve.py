@@ -76,7 +76,7 @@ from jax import lax
 
 from .. import _cpu_emitters as cpu_emitters
 from ..autodiff._tangents import manifold_leaves, rplus
-from ..groups._base import AbstractGroup
+from ..groups import AbstractGroup
 from ..lstsq import GaussNewton, LevenbergMarquardt, Status, _iteration
 from ..lstsq import _trust_region as trust_region
 from ..retractions import exp
@@ -172,12 +172,7 @@ class _Decision(NamedTuple):
 
 def _normalized(tree):
     leaves, treedef = manifold_leaves(tree, "value")
-    return treedef.unflatten(
-        [
-            type(x)._wrap(type(x)._normalize(x._params)) if isinstance(x, AbstractGroup) else x
-            for x in leaves
-        ]
-    )
+    return treedef.unflatten([x.normalize() if isinstance(x, AbstractGroup) else x for x in leaves])
 
 
 def retract(variables, values, delta, retraction=exp):

@@ -34,13 +34,7 @@ import numpy as np
 from .._linalg import dot
 from ..factorgraph import Factor
 from ..factorgraph._variables import VarRef
-from ..groups import _s2 as s2
-from ..groups import _se2 as se2
-from ..groups._bearing_range import unit_and_length
-from ..groups._s2 import S2
-from ..groups._se2 import SE2
-from ..groups._se3 import SE3
-from ..groups._so2 import SO2, perp, rotate
+from ..groups import S2, SE2, SE3, SO2, kernels
 
 # θ/sin θ = asin(s)/s = Σ (2k)! / (4^k (k!)² (2k + 1)) s^(2k) for cos θ > 0, summed in s² below
 # _SERIES_LIMIT (the next term, 0.0115 s^16, is below 1.2e-18 there); above, atan2(s, c) / s, whose
@@ -61,7 +55,7 @@ def direction_error(measured, predicted):
     $\sin^2\theta = 10^{-2}$. At $b = -m$ (to rounding: $\sin\theta \le \epsilon$), where the
     logarithm has no direction, it is $(\pi, 0)$ (GTSAM's `Unit3::localCoordinates` returns the
     same there) with derivative 0; near it the derivative grows like $1 / \sin\theta$."""
-    projected = s2.error(measured, predicted)  # B_m^T b
+    projected = kernels.s2_error(measured, predicted)  # B_m^T b
     sine_squared = dot(projected, projected)[..., None]  # |b|² sin² θ
     cosine = dot(measured, predicted)[..., None]  # |b| cos θ
     series = (sine_squared < _SERIES_LIMIT * (sine_squared + cosine**2)) & (cosine > 0)
@@ -98,10 +92,10 @@ def bearing_range_jacobians_2d(pose, landmark, measured):
     and its closed-form blocks `(2, 3)` and `(2, 2)` (module docstring)."""
     error = bearing_range_error(pose, landmark, measured)
     params = pose.parameters()
-    local = se2.transform_to(params, landmark)  # d
-    u, length, nonzero = unit_and_length(local)  # d / r, r (1 and the x axis at d = 0)
+    local = kernels.se2_transform_to(params, landmark)  # d
+    u, length, nonzero = kernels.unit_and_length(local)  # d / r, r (1 and the x axis at d = 0)
     nonzero = nonzero[0]
-    bearing_row = jnp.where(nonzero, perp(u) / length, 0.0)  # (J d)^T / q
+    bearing_row = jnp.where(nonzero, kernels.so2_perp(u) / length, 0.0)  # (J d)^T / q
     range_row = jnp.where(nonzero, u, 0.0)  # d^T / r
     J_e_pose = jnp.stack(
         [
@@ -110,7 +104,9 @@ def bearing_range_jacobians_2d(pose, landmark, measured):
         ]
     )
     # row^T R^T = (R row)^T: the landmark blocks are the rows rotated into the world frame
-    J_e_landmark = jnp.stack([rotate(params[:2], bearing_row), rotate(params[:2], range_row)])
+    J_e_landmark = jnp.stack(
+        [kernels.so2_rotate(params[:2], bearing_row), kernels.so2_rotate(params[:2], range_row)]
+    )
     return error, (J_e_pose, J_e_landmark)
 
 

@@ -40,8 +40,7 @@ from typing import NamedTuple
 import numpy as np
 
 from .._checks import to_device
-from ..groups._se2 import SE2
-from ..groups._se3 import SE3
+from ..groups import SE2, SE3, kernels
 from ._graph import BetweenFactors, PoseGraph, square_root_information
 
 # tag -> (dimension, kind, number of fields after the tag)
@@ -200,10 +199,10 @@ def read_g2o(path, *, information="nearest", dtype=None) -> PoseGraph:
     to_dtype = (
         (lambda x: to_device(x)) if dtype is None else (lambda x: to_device(np.asarray(x, dtype)))
     )
-    measured = group._wrap(to_dtype(measured))
+    measured = kernels.element(group, to_dtype(measured))
     between = BetweenFactors(index[:, 0].copy(), index[:, 1].copy(), measured, to_dtype(root))
     if has_vertices:
-        poses = group._wrap(to_dtype(poses))
+        poses = kernels.element(group, to_dtype(poses))
     else:
         from ._init import spanning_tree_poses
 

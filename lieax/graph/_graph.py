@@ -14,9 +14,7 @@ import numpy as np
 
 from ..factorgraph._factors import square_root_information
 from ..factorgraph._structure import connected_components
-from ..groups._base import AbstractGroup
-from ..groups._se2 import SE2
-from ..groups._se3 import SE3
+from ..groups import SE2, SE3, AbstractGroup, kernels
 
 GROUPS = {2: SE2, 3: SE3}
 
@@ -207,8 +205,9 @@ class PoseGraph:
                 f"measured must be {self.group.__name__}, got {type(measured).__name__}."
             )
         else:
-            measured = self.group._wrap(
-                jnp.broadcast_to(measured.parameters(), (index.size, self.group.parameters_dim))
+            measured = kernels.element(
+                self.group,
+                jnp.broadcast_to(measured.parameters(), (index.size, self.group.parameters_dim)),
             )
         d = self.poses.tangent_dim
         info = np.eye(d) if information is None else np.asarray(information, dtype=np.float64)
@@ -223,8 +222,8 @@ class PoseGraph:
                 raise ValueError("all priors of a graph share one loss; pass the same loss.")
             priors = PriorFactors(
                 np.concatenate([old.index, index]),
-                self.group._wrap(
-                    jnp.concatenate([old.measured.parameters(), measured.parameters()])
+                kernels.element(
+                    self.group, jnp.concatenate([old.measured.parameters(), measured.parameters()])
                 ),
                 jnp.concatenate([old.sqrt_information, root]),
                 loss,

@@ -66,8 +66,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..factorgraph._factors import square_root_information
-from ..groups._se2 import SE2
-from ..groups._se3 import SE3
+from ..groups import SE2, SE3, kernels
 from ._graph import BetweenFactors, PoseGraph
 
 _POSE2 = ("VERTEX2", "VERTEX", "VERTEX_SE2")
@@ -462,10 +461,12 @@ def _read_2d(lines, path, noise_format, to_dtype):
     between = BetweenFactors(
         _index(edges[:, 0], ids),
         _index(edges[:, 1], ids),
-        SE2._wrap(to_dtype(measured)),
+        kernels.element(SE2, to_dtype(measured)),
         to_dtype(root),
     )
-    pose_params = SE2._wrap(to_dtype(np.asarray([poses[v] for v in ids.tolist()], np.float64)))
+    pose_params = kernels.element(
+        SE2, to_dtype(np.asarray([poses[v] for v in ids.tolist()], np.float64))
+    )
     if not landmarks:
         return PoseGraph(pose_params, ids, between)
     landmark_ids = np.asarray(sorted(landmarks), dtype=np.int64)
@@ -537,7 +538,7 @@ def _read_3d(lines, path, to_dtype):
     between = BetweenFactors(
         index[:, 0].copy(),
         index[:, 1].copy(),
-        SE3._wrap(to_dtype(_se3_rows(edge_values[:, :6]))),
+        kernels.element(SE3, to_dtype(_se3_rows(edge_values[:, :6]))),
         to_dtype(root),
     )
-    return PoseGraph(SE3._wrap(to_dtype(poses)), ids, between)
+    return PoseGraph(kernels.element(SE3, to_dtype(poses)), ids, between)

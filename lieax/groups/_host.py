@@ -13,6 +13,8 @@ them to rounding (`tests/test_first_call.py`).
 
 import numpy as np
 
+from ._series import exp_coefficients
+
 
 def identity(parameters_dim, batch_shape, dtype):
     """The identity's parameters: one in the first slot, zeros elsewhere, for every lieax group
@@ -46,25 +48,17 @@ def so2_nearest_rotation(m):
 
 def so3_exp(omega):
     r"""$\mathrm{Exp}(\omega) = (\cos\tfrac\theta2,\ \tfrac{\sin(\theta/2)}{\theta}\,\omega)$, the
-    coefficients of `lieax.groups._so3.exp_coefficients` (series below its limit)."""
+    coefficients of `lieax.groups._series.exp_coefficients` (series below its limit)."""
     s = np.sum(omega * omega, axis=-1, keepdims=True)
-    half_cos, half_sinc, *_ = _exp_coefficients(s)
+    half_cos, half_sinc, *_ = exp_coefficients(s, np)
     return np.concatenate([half_cos, half_sinc * omega], axis=-1).astype(omega.dtype)
-
-
-def _exp_coefficients(s):
-    r"""`lieax.groups._so3.exp_coefficients` in NumPy: $(\cos\tfrac\theta2, \sin(\theta/2)/\theta,
-    g_1, g_2, g_3)$ of $s = \theta^2$."""
-    from ._so3 import exp_coefficients  # (`_so3` builds its class with this module)
-
-    return exp_coefficients(s, xp=np)
 
 
 def se2_exp(xi):
     r"""`lieax.groups._se2`'s $\mathrm{Exp}(v, \omega) = (\cos\omega, \sin\omega, V v)$,
     $V = g_1 I + \omega g_2 J$ (Solà App. C), with $\cos\omega = 2\cos^2\tfrac\omega2 - 1$."""
     v, w = xi[..., :2], xi[..., 2:]
-    half_cos, _, g1, g2, _ = _exp_coefficients(w * w)
+    half_cos, _, g1, g2, _ = exp_coefficients(w * w, np)
     perp_v = np.stack([-v[..., 1], v[..., 0]], axis=-1)
     params = [2 * half_cos * half_cos - 1, w * g1, g1 * v + w * g2 * perp_v]
     return np.concatenate(params, axis=-1).astype(xi.dtype)
@@ -75,7 +69,7 @@ def se3_exp(xi):
     \omega \times v + g_3\, \omega \times (\omega \times v))$ (Solà App. D)."""
     v, omega = xi[..., :3], xi[..., 3:]
     s = np.sum(omega * omega, axis=-1, keepdims=True)
-    half_cos, half_sinc, _, g2, g3 = _exp_coefficients(s)
+    half_cos, half_sinc, _, g2, g3 = exp_coefficients(s, np)
     wv = np.cross(omega, v)
     t = v + g2 * wv + g3 * np.cross(omega, wv)
     return np.concatenate([half_cos, half_sinc * omega, t], axis=-1).astype(xi.dtype)

@@ -16,7 +16,6 @@ Formulas: Solà, Deray, Atchuthan, "A micro Lie theory for state estimation in r
 Sec. IV-B and App. B; the coefficients are the $g_n$ of `lieax.groups._series`.
 """
 
-import math
 import sys
 from typing import Self
 
@@ -45,7 +44,12 @@ from .._linalg import (
 )
 from . import _generic, _host, _rules
 from ._base import AbstractGroup
-from ._series import g
+from ._series import (
+    HALF_ANGLE_SERIES_LIMIT,
+    exp_coefficients,
+    g,
+    jr_inverse_d_series,
+)
 
 
 def carrier_from_raw(q, q_dot):
@@ -116,77 +120,12 @@ def apply_right_jacobian_inverse(omega, x):
 
 # ---- fused closed forms: Exp with J_r, Log with J_r^{-1}, one set of coefficients ---------------
 
-# θ² below which the fused forms sum Taylor series (7 terms, 9 for D: below 3e-16 relative there
-# in float64), above which they use the half-angle closed forms (their cancellation, in g3 and D,
-# costs at most 12 eps / θ² = 1e-14 relative at the switch, and nothing in J_r or J_r^{-1}, where
-# the coefficient multiplies [ω]×², |[ω]×²| = θ²; float32 loses as much in its own eps)
-_FUSED_SERIES_LIMIT = 0.25
-# cos(θ/2), sin(θ/2)/θ and g3 = (θ - sin θ)/θ³ in s = θ²
-_HALF_COS = tuple((-1) ** k / (4**k * math.factorial(2 * k)) for k in range(7))
-_HALF_SINC = tuple((-1) ** k / (2 * 4**k * math.factorial(2 * k + 1)) for k in range(7))
-_G3 = tuple((-1) ** k / math.factorial(2 * k + 3) for k in range(7))
-# D(θ) = 1/θ² - cot(θ/2)/(2θ) = Σ_{k≥1} |B_2k| θ^(2k-2) / (2k)! (B_2k the Bernoulli numbers)
-_D = (
-    1 / 12,
-    1 / 720,
-    1 / 30240,
-    1 / 1209600,
-    1 / 47900160,
-    691 / 1307674368000,
-    1 / 74724249600,
-    3617 / 10670622842880000,
-    43867 / 5109094217170944000,
-)
-_D_PRIME = tuple(k * c for k, c in enumerate(_D[1:], start=1))  # dD/ds term by term
-
-
-def _horner(coefficients, s, xp=jnp):
-    result = xp.full_like(s, coefficients[-1])
-    for c in reversed(coefficients[:-1]):
-        result = result * s + c
-    return result
-
-
-def exp_coefficients(s, xp=jnp):
-    r"""$(\cos\tfrac\theta2,\ \sin(\theta/2)/\theta,\ g_1,\ g_2,\ g_3)$ of $s = \theta^2$ (shape of
-    `s`) from one cosine and one sine (`exp_and_right_jacobian`'s docstring), in the array namespace
-    `xp` (`jax.numpy`, or `numpy` for host-side data)."""
-    small = s < _FUSED_SERIES_LIMIT
-    s_safe = xp.where(small, 1.0, s)
-    theta = xp.sqrt(s_safe)
-    half_cos = xp.where(small, _horner(_HALF_COS, s, xp), xp.cos(0.5 * theta))
-    half_sinc = xp.where(small, _horner(_HALF_SINC, s, xp), xp.sin(0.5 * theta) / theta)
-    g1 = 2.0 * half_sinc * half_cos
-    g2 = 2.0 * half_sinc * half_sinc
-    g3 = xp.where(small, _horner(_G3, s, xp), (1.0 - g1) / s_safe)
-    return half_cos, half_sinc, g1, g2, g3
-
 
 def _square_skew(omega, s):
     r"""$[\omega]_\times^2 = \omega\omega^\top - \theta^2 I$ written out (no 3×3 product)."""
     return omega[..., :, None] * omega[..., None, :] - s[..., None, None] * jnp.eye(
         3, dtype=omega.dtype
     )
-
-
-def jr_inverse_coefficients(s, half_cos, half_sinc, xp=jnp):
-    r"""$(D, D')$ of $s = \theta^2$, $D = 1/\theta^2 - \cot(\theta/2)/(2\theta)$ the coefficient
-    of $[\omega]_\times^2$ in $J_r^{-1}$ (`jr_inverse_coefficient`) and $D' = dD/ds$, from
-    `exp_coefficients`' $\cos\tfrac\theta2$ and $h = \sin(\theta/2)/\theta$:
-    $\cot\tfrac\theta2 = \cos\tfrac\theta2 / (\theta h)$ and
-    $\csc^2\tfrac\theta2 = 1/(\theta h)^2$ give
-    $D = (1 - \cos\tfrac\theta2 / (2h)) / s$ and
-    $D' = -1/s^2 + (\theta\csc^2\tfrac\theta2 + 2\cot\tfrac\theta2)/(8\theta^3)
-    = ((1 + 2h\cos\tfrac\theta2)/(8h^2) - 1)/s^2$ (exact at $\pi$, where
-    $\cos\tfrac\theta2 = 0$); below $s = 0.25$ their series $\sum_{k\ge1}|B_{2k}|s^{k-1}/(2k)!$
-    and its term-by-term derivative (9 terms: below 3e-16 relative; the closed form of $D'$ loses
-    $16\epsilon / D' \approx 3\cdot10^{-12}$ relative at the switch, $D'$ multiplies
-    $O(\theta^3)$ terms). In the array namespace `xp`."""
-    small = s < _FUSED_SERIES_LIMIT
-    s_safe = xp.where(small, 1.0, s)
-    d = xp.where(small, _horner(_D, s, xp), (1.0 - 0.5 * half_cos / half_sinc) / s_safe)
-    closed_prime = ((1.0 + 2.0 * half_sinc * half_cos) / (8.0 * half_sinc**2) - 1.0) / s_safe**2
-    return d, xp.where(small, _horner(_D_PRIME, s, xp), closed_prime)
 
 
 @jax.custom_jvp
@@ -241,11 +180,11 @@ def log_and_right_jacobian_inverse(q):
     omega = jnp.where(w < 0, -scale, scale)[..., None] * u
     theta = 2.0 * half
     s = theta * theta
-    small = s < _FUSED_SERIES_LIMIT
+    small = s < HALF_ANGLE_SERIES_LIMIT
     theta_safe = jnp.where(small, 1.0, theta)
     d = jnp.where(
         small,
-        _horner(_D, s),
+        jr_inverse_d_series(s),
         (1.0 - 0.5 * theta_safe * abs_w / jnp.where(small, 1.0, norm_u))
         / (theta_safe * theta_safe),
     )

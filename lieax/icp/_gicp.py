@@ -21,7 +21,7 @@ import numpy as np
 from .. import _cpu_emitters as cpu_emitters
 from .._checks import as_float_array, is_concrete, to_device
 from .._host_call import host_call
-from ..groups._se3 import SE3
+from ..groups import SE3, kernels
 from . import _host_kdtree, _native_kdtree, _neighbors, _normals, _search
 from ._batch import pad_to_bucket
 from ._checks import check_cloud, check_count, check_mask, check_parameter
@@ -264,7 +264,7 @@ def gicp_normal_equations(params, source, matched, source_covariances, target_co
 
     **Returns:** `(H (6, 6), g (6,), costs (n,))`.
     """
-    rotation = SE3._wrap(params).rotation().as_matrix()
+    rotation = kernels.element(SE3, params).rotation().as_matrix()
     m = _mahalanobis(rotation.T, target_covariances, source_covariances)  # R^T M R
     s = [source[:, k] for k in range(3)]
     gap = [params[4 + a] - matched[:, a] for a in range(3)]
@@ -302,7 +302,7 @@ def gicp_step(
         lambda costs: inliers.astype(params.dtype) * loss_weights(costs),
     )  # fmt: skip
     step = -_solve_spd(hessian, gradient)
-    return SE3._wrap(params).rplus(step).parameters()
+    return kernels.element(SE3, params).rplus(step).parameters()
 
 
 # ---- entry point --------------------------------------------------------------------------------

@@ -51,7 +51,7 @@ import jax
 import jax.numpy as jnp
 
 from .._linalg import quat_to_matrix
-from ..groups._se3 import SE3
+from ..groups import SE3, kernels
 from ..lstsq._solution import Status
 from ._centring import centred_pose, centroid, uncentred_tangent
 from ._checks import ICPError
@@ -69,7 +69,7 @@ def with_implicit_derivatives(kind, static_loss, throw, result, data, fixed):
         kind, static_loss, throw, result.transform.parameters(), result.inlier_rmse, data,
         (result.correspondences, result.status, *fixed),
     )  # fmt: skip
-    return result._replace(transform=SE3._wrap(params), inlier_rmse=rmse)
+    return result._replace(transform=kernels.element(SE3, params), inlier_rmse=rmse)
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2))
@@ -120,7 +120,7 @@ def _tangents(params, rmse, data, fixed, data_dot, *, kind, static_loss):
         source, target = data[:2]
         source = jnp.where(inliers[:, None], source - source_centre, 0.0)
         matched = jnp.where(inliers[:, None], target[index] - target_centre, 0.0)
-        pose = SE3._wrap(centred).rplus(delta).parameters()
+        pose = kernels.element(SE3, centred).rplus(delta).parameters()
         moved = jnp.matmul(source, quat_to_matrix(pose[:4]).T, precision="highest") + pose[4:]
         return jnp.where(inliers[:, None], moved - matched, 0.0)
 

@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..groups._se3 import SE3
+from ..groups import SE3, kernels
 from ._checks import ICPInputError, check_cloud, check_count, check_mask
 from ._downsample import voxel_downsample
 from ._gicp import gicp
@@ -127,7 +127,7 @@ def _unless_finite(finite, result, init):
     start = (SE3.identity(dtype=dtype) if init is None else init).parameters().astype(dtype)
     keep = lambda new, old: jnp.where(finite, new, old)
     return result._replace(
-        transform=SE3._wrap(keep(result.transform.parameters(), start)),
+        transform=kernels.element(SE3, keep(result.transform.parameters(), start)),
         fitness=keep(result.fitness, 0.0).astype(dtype),
         inlier_rmse=keep(result.inlier_rmse, 0.0).astype(dtype),
         iterations=keep(result.iterations, 0),

@@ -62,7 +62,7 @@ from .. import _cpu_emitters as cpu_emitters
 from .._checks import is_concrete, to_device
 from .._linalg import quat_to_matrix
 from .._runtime_error import raise_if
-from ..groups._se3 import SE3
+from ..groups import SE3, kernels
 from ..lstsq._solution import SolverResult, Status, is_failure
 from . import _host_kdtree, _neighbors, _search
 from ._batch import chunked_on_cpu, pad_to_bucket
@@ -424,7 +424,7 @@ def _small_step(params, updated, source_centre, tolerance):
     `registration/termination_criteria.hpp`) tests the parts of the tangent $\delta$,
     $D = \mathrm{Exp}(\delta)$: the same angle, and a translation within a factor
     $1 + O(\theta)$ of this one (no logarithm to compile here)."""
-    step = (SE3._wrap(params).inverse() @ SE3._wrap(updated)).parameters()
+    step = (kernels.element(SE3, params).inverse() @ kernels.element(SE3, updated)).parameters()
     angle = 2 * jnp.arctan2(jnp.linalg.norm(step[1:4]), jnp.abs(step[0]))
     turned = jnp.matmul(
         quat_to_matrix(step[:4]), source_centre, precision=jax.lax.Precision.HIGHEST
@@ -748,7 +748,7 @@ def _loop(
     params = jnp.where(finite, centred_pose(state.params, -source_centre, -target_centre), init)
     zero = jnp.zeros((), dtype)
     return ICPResult(
-        SE3._wrap(params),
+        kernels.element(SE3, params),
         jnp.where(finite, state.fitness, zero),
         jnp.where(finite, state.rmse, zero),
         jnp.maximum(state.iterations, 0) + presampled_iterations,
@@ -817,7 +817,7 @@ def _plane_step(params, source, matched, normals, inliers, loss_weights):
     `(6, n)` array is written, where the matrix products of the weighted rows had two. Five
     steps with their gathers, float64: 13 ms against 29 at 160k rows, 0.66 against 0.79 ms at
     10k, half the temporary memory (jaxlib 0.10.2, CPU)."""
-    pose = SE3._wrap(params)
+    pose = kernels.element(SE3, params)
     moved = _transformed_columns(params, source)
     residuals = sum(normals[:, a] * (moved[a] - matched[:, a]) for a in range(3))
     weights = inliers.astype(params.dtype) * loss_weights(residuals * residuals)
@@ -876,4 +876,4 @@ def _point_step(params, source, matched, inliers, loss_weights):
             axis=0,
         )
     )
-    return (delta @ SE3._wrap(params)).parameters()
+    return (delta @ kernels.element(SE3, params)).parameters()

@@ -6,8 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import to_device
-from ..groups import _host
-from ..groups._se3 import SE3
+from ..groups import SE3, kernels
 
 # (kind, parameters): the floor z = 0 and walls x = -1, y = -1 over [-1, 1]^2 patches, a sphere and
 # a vertical cylinder standing on the floor. Together they constrain all six degrees of freedom of
@@ -124,6 +123,6 @@ def synthetic_pair(
     tangent = np.concatenate([translation * direction, np.deg2rad(rotation_deg) * axis])
     T_target_source = SE3.exp(np.asarray(tangent, dtype))  # NumPy inside: nothing to compile
     params = np.asarray(T_target_source.parameters())
-    rotation, translation = _host.so3_as_matrix(params[:4]), params[4:]
+    rotation, translation = kernels.host_so3_as_matrix(params[:4]), params[4:]
     source = (on_target - translation) @ rotation  # T⁻¹ p = Rᵀ (p - t), on rows
     return to_device(source.astype(dtype)), target, target_normals, T_target_source

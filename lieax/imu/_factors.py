@@ -36,9 +36,7 @@ import numpy as np
 
 from .._linalg import cross, dot, skew
 from ..factorgraph._factors import Factor, square_root_information
-from ..groups import _so3 as so3
-from ..groups._se23 import SE23
-from ..groups._so3 import SO3
+from ..groups import SE23, SO3, kernels
 from ._preintegration import ImuError, ImuParams, Preintegrated, predict
 
 ERROR_MODES = ("logmap", "component_wise")
@@ -210,8 +208,8 @@ def _logmap_from_component_wise(residual, jr_inv, blocks):
     the $J_r^{-1}$ twin)."""
     theta, c_p, c_v = residual[0:3], residual[3:6], residual[6:9]
     s = dot(theta, theta)
-    half_cos, half_sinc, *_ = so3.exp_coefficients(s)
-    d, d_prime = so3.jr_inverse_coefficients(s, half_cos, half_sinc)
+    half_cos, half_sinc, *_ = kernels.so3_exp_coefficients(s)
+    d, d_prime = kernels.so3_jr_inverse_coefficients(s, half_cos, half_sinc)
     eye = jnp.eye(3, dtype=theta.dtype)
     jl_inv = jr_inv.T
 
@@ -246,7 +244,7 @@ def _residual_coordinates_host(theta, bias_size=0):
     coefficients of `lieax.groups._so3.exp_coefficients`."""
     theta = np.asarray(theta, dtype=np.float64)
     s = np.einsum("...i,...i->...", theta, theta)
-    _, _, g1, g2, g3 = so3.exp_coefficients(s, np)
+    _, _, g1, g2, g3 = kernels.so3_exp_coefficients(s, np)
     x, y, z = theta[..., 0], theta[..., 1], theta[..., 2]
     zero = np.zeros_like(x)
     w = np.stack([np.stack(r, -1) for r in ((zero, -z, y), (z, zero, -x), (-y, x, zero))], -2)

@@ -25,10 +25,7 @@ import numpy as np
 
 from .._checks import as_float_array, is_concrete, to_device
 from .._linalg import cross, dot, matvec, skew
-from ..groups import _so3 as so3
-from ..groups._se3 import SE3
-from ..groups._series import g
-from ..groups._so3 import SO3
+from ..groups import SE3, SO3, kernels
 
 
 class ImuError(ValueError):
@@ -95,10 +92,10 @@ def residual_coordinates(theta, bias_size=0):
     residual's as $M \Sigma M^\top$: GTSAM 4.3's `PreintegratedImuMeasurements::residualCovariance`
     (9×9) and `PreintegratedCombinedMeasurements::residualCovariance` (15×15, whose $M$ ends in
     $-I_6$ for its $b_i - b_j$, so its navigation-bias cross blocks have the opposite sign)."""
-    rotation_t = jnp.swapaxes(so3.as_matrix(so3.exp(theta)), -1, -2)
+    rotation_t = jnp.swapaxes(kernels.so3_as_matrix(kernels.so3_exp(theta)), -1, -2)
     size = 9 + bias_size
     m = jnp.zeros((*theta.shape[:-1], size, size), theta.dtype)
-    m = m.at[..., 0:3, 0:3].set(so3.right_jacobian(theta))
+    m = m.at[..., 0:3, 0:3].set(kernels.so3_right_jacobian(theta))
     m = m.at[..., 3:6, 3:6].set(rotation_t).at[..., 6:9, 6:9].set(rotation_t)
     if bias_size:
         m = m.at[..., 9:, 9:].set(jnp.eye(bias_size, dtype=theta.dtype))
@@ -319,8 +316,8 @@ def _so3_at(theta, omega):
     eye = jnp.eye(3, dtype=theta.dtype)
     w = skew(theta)
     w2 = jnp.outer(theta, theta) - s * eye
-    half_cos, half_sinc, g1, g2, g3 = so3.exp_coefficients(s)
-    d, d_prime = so3.jr_inverse_coefficients(s, half_cos, half_sinc)
+    half_cos, half_sinc, g1, g2, g3 = kernels.so3_exp_coefficients(s)
+    d, d_prime = kernels.so3_jr_inverse_coefficients(s, half_cos, half_sinc)
     rotation = eye + g1 * w + g2 * w2
     jr = eye - g2 * w + g3 * w2
     jr_inv = eye + 0.5 * w + d * w2
@@ -524,8 +521,8 @@ def _entry_step(carry, sample, noise, d_aa):
     theta, p, v = x[0:3], x[3:6], x[6:9]
     t0, t1, t2 = theta
     s = t0 * t0 + t1 * t1 + t2 * t2
-    half_cos, half_sinc, g1, g2, g3 = so3.exp_coefficients(s)
-    d, d_prime = so3.jr_inverse_coefficients(s, half_cos, half_sinc)
+    half_cos, half_sinc, g1, g2, g3 = kernels.so3_exp_coefficients(s)
+    d, d_prime = kernels.so3_jr_inverse_coefficients(s, half_cos, half_sinc)
     s, g1, g2, g3, d, d_prime = _materialize((s, g1, g2, g3, d, d_prime))
     delta = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
     w = ((0.0, -t2, t1), (t2, 0.0, -t0), (-t1, t0, 0.0))
@@ -976,7 +973,7 @@ def _sample_increment(gyro, accel, dt, bias, params):
     $-J_r(\omega\delta t)\delta t\,\delta\omega$, $-U_R^\top(\tfrac12\delta t^2, \delta t)\,\delta a$."""
     acc, omega, d = _corrected(accel, gyro, bias, params)
     zero = jnp.zeros((3, 3), dtype=acc.dtype)
-    rotation = so3.as_matrix(so3.exp(omega * dt))
+    rotation = kernels.so3_as_matrix(kernels.so3_exp(omega * dt))
     rt = rotation.T
     u_v, u_p = acc * dt, 0.5 * acc * dt * dt
     a = jnp.block(
@@ -987,7 +984,7 @@ def _sample_increment(gyro, accel, dt, bias, params):
         ]
     )
     g_acc = jnp.concatenate([zero, -rt * (0.5 * dt * dt), -rt * dt])
-    g_gyro = jnp.concatenate([-so3.right_jacobian(omega * dt) * dt, zero, zero])
+    g_gyro = jnp.concatenate([-kernels.so3_right_jacobian(omega * dt) * dt, zero, zero])
     if d is not None:
         d_aa, d_aw, d_ww = d
         g_acc, g_gyro = g_acc @ d_aa, g_acc @ d_aw + g_gyro @ d_ww
@@ -1039,9 +1036,9 @@ def preintegrate_associative(
             jax.tree.map(lambda x: x[0::2], level), jax.tree.map(lambda x: x[1::2], level)
         )
     total = jax.tree.map(lambda x: x[0], level)
-    theta = so3.log(so3.from_matrix(total.rotation))
+    theta = kernels.so3_log(kernels.so3_from_matrix(total.rotation))
     to_tangent = jax.scipy.linalg.block_diag(
-        so3.right_jacobian_inverse(theta), total.rotation, total.rotation
+        kernels.so3_right_jacobian_inverse(theta), total.rotation, total.rotation
     )
     cov = to_tangent @ total.q @ to_tangent.T
     x = jnp.concatenate([theta, total.p, total.v])
@@ -1097,8 +1094,12 @@ def predict(pim: Preintegrated, pose_i: SE3, velocity_i, bias, params: ImuParams
     s, w = dot(phi, phi), skew(phi)
     w2 = w @ w
     eye = jnp.eye(3, dtype=phi.dtype)
-    gamma_v = eye + g(2, s) * w + g(3, s) * w2
-    gamma_p = 0.5 * eye + (g(2, s) - g(3, s)) * w + (g(3, s) - g(4, s)) * w2
+    gamma_v = eye + kernels.g(2, s) * w + kernels.g(3, s) * w2
+    gamma_p = (
+        0.5 * eye
+        + (kernels.g(2, s) - kernels.g(3, s)) * w
+        + (kernels.g(3, s) - kernels.g(4, s)) * w2
+    )
     earth = SO3.exp(phi)
     transported = velocity_i + cross(omega, position_i)
     position_z = position_i + transported * t + rotation_i @ corrected[3:6]

@@ -35,7 +35,7 @@ from ..autodiff._tangents import (
     tangent_dim,
     unflatten_tangents,
 )
-from ..groups._base import AbstractManifold
+from ..groups import AbstractManifold, kernels
 from ._normal_equations import cholesky_with_fallback, solve_factored
 from ._problem import cost
 
@@ -68,7 +68,7 @@ def local_to_tangents(leaves, treedef, local):
     `leaf_tangent_from_local` (the tangent carrier), an array's as it is."""
     return treedef.unflatten(
         [
-            type(leaf)._wrap(leaf_tangent_from_local(leaf, d))
+            kernels.element(type(leaf), leaf_tangent_from_local(leaf, d))
             if isinstance(leaf, AbstractManifold)
             else d.astype(leaf.dtype)
             for leaf, d in zip(leaves, local)

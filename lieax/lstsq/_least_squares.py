@@ -33,7 +33,7 @@ from ..autodiff._tangents import (
     tangent_dim,
     unflatten_tangents,
 )
-from ..groups._base import AbstractManifold
+from ..groups import AbstractManifold
 from ..retractions import Retraction, exp
 from . import _iteration
 from . import _trust_region as trust_region

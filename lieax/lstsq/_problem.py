@@ -18,7 +18,7 @@ import jax.numpy as jnp
 
 from ..autodiff._jacobian import value_and_jacobian
 from ..autodiff._tangents import manifold_leaves
-from ..groups._base import AbstractManifold
+from ..groups import AbstractManifold
 from ._losses import AbstractLoss
 from ._normal_equations import normal_equations
 

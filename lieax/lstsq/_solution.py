@@ -9,7 +9,7 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
-from ..groups._base import AbstractManifold
+from ..groups import AbstractManifold, kernels
 
 
 class Status(enum.IntEnum):
@@ -75,7 +75,7 @@ def nonfinite_leaves(tree):
     is_group = lambda node: isinstance(node, AbstractManifold)  # noqa: E731
     for path, leaf in jax.tree_util.tree_flatten_with_path(tree, is_leaf=is_group)[0]:
         kind = f" ({type(leaf).__name__})" if is_group(leaf) else ""
-        leaf = leaf._params if is_group(leaf) else leaf
+        leaf = kernels.carrier(leaf) if is_group(leaf) else leaf
         if isinstance(leaf, jax.core.Tracer) or not hasattr(leaf, "dtype"):
             continue
         array = np.asarray(leaf)
