@@ -52,6 +52,7 @@ from .._checks import (
     match_dtype,
     to_device,
 )
+from .._eager import compiled_when_eager
 from . import _host
 
 # The kernel namespace of a group: these names, bound to the class as `_exp`, `_log`, ...
@@ -171,7 +172,10 @@ class AbstractGroup(AbstractManifold):
                 "lieax.groups._base.KERNELS."
             )
         for name in KERNELS:
-            setattr(cls, _ATTRIBUTES.get(name, f"_{name}"), staticmethod(getattr(kernels, name)))
+            kernel = getattr(kernels, name)
+            if name != "sample_uniform":  # (its shape and dtype arguments are static)
+                kernel = compiled_when_eager(kernel)
+            setattr(cls, _ATTRIBUTES.get(name, f"_{name}"), staticmethod(kernel))
 
     # ---- construction ------------------------------------------------------------------------
     @classmethod
