@@ -49,7 +49,7 @@ import open3d as o3d
 from scipy.spatial import cKDTree
 
 from lieax import SE3, icp
-from lieax.icp import _host_kdtree, _neighbors, _registration, _search
+from lieax.icp import _coordinates, _host_kdtree, _neighbors, _plane_step, _search
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
@@ -259,15 +259,15 @@ def component_timings(source, target, normals, reference, rounds):
     params = SE3.from_matrix(jnp.asarray(reference, jnp.float32)).parameters()
     build = neighbors.builder("kdtree pykdtree", MAX_DISTANCE)
     index = build(t)
-    queries = _registration.transform_points(params, s)
+    queries = _coordinates.transform_points(params, s)
     cold = neighbors.matcher("kdtree", MAX_DISTANCE, warm=False)
     warm = neighbors.matcher("kdtree", MAX_DISTANCE)
     slot, d2 = cold(index, queries, None)
     inliers = d2 <= MAX_DISTANCE**2
     normals_slots = n[index.order]
     step = jax.jit(
-        lambda p, m, w: _registration._plane_step(
-            p, s, index.points[m], normals_slots[m], w, lambda x: jnp.ones_like(x)
+        lambda p, m, w: _plane_step.plane_step(
+            p, s, None, index.points[m], normals_slots[m], w, lambda x: jnp.ones_like(x)
         )
     )
     variants = {
@@ -420,8 +420,8 @@ def scan_profile(name, clouds, rounds):
     inliers = d2 <= radius**2
     matched_normals = jnp.asarray(normals)[index.order]
     step = jax.jit(
-        lambda p, sl, w: _registration._plane_step(
-            p, s, index.points[sl], matched_normals[sl], w, lambda x: jnp.ones_like(x)
+        lambda p, sl, w: _plane_step.plane_step(
+            p, s, None, index.points[sl], matched_normals[sl], w, lambda x: jnp.ones_like(x)
         )
     )
     params = jnp.asarray([1.0, 0, 0, 0, 0, 0, 0])
