@@ -13,9 +13,9 @@ every call.
 `"auto"` picks `"kdtree"` on a CPU: in ICP (`benchmarks/icp.py`, "Every kind of scan") it is the
 fastest backend on the object scans, the LiDAR scans and the Kinect frame alike, and `"grid"` is
 2-9x slower on a CPU. (A warm-started descent on a k-nearest-neighbour graph, `search="graph"`,
-was removed: it was 3.5-8x slower than the k-d tree per registration on all four of the
-benchmark's scans, its build alone 0.03-6 s, and 1.3-3x slower with its index prebuilt and
-reused, see the changelog.) Elsewhere it picks `"brute"` for targets of at most `BRUTE_MAX_TARGET` points and
+was removed: per registration it was 4.5-12.5x slower than the k-d tree on the four scans of
+`benchmarks/icp.py`, its build alone 0.03-6 s, and with its index prebuilt and reused 2-6x
+slower on three of them and 9% faster on the full bunny; see the changelog.) Elsewhere it picks `"brute"` for targets of at most `BRUTE_MAX_TARGET` points and
 `"grid"` above (`"brute"` when no radius is given): a rule not yet measured on an accelerator.
 """
 
