@@ -118,9 +118,8 @@ def loop(
         jnp.asarray(x).astype(dtype) for x in (max_distance, relative_fitness, relative_rmse)
     )
     source_rows, target_rows = jax.tree.map(lambda x: x.astype(dtype), (source_rows, target_rows))
-    loss = (
-        None if loss is None else (options.loss_kind, loss)
-    )  # (the kind static, the scale traced)
+    # (the loss's kind static, its scale traced)
+    loss = None if loss is None else (options.loss_kind, loss)
     source_ok = _finite_rows(source, source_rows)
     target_ok = _finite_rows(target, target_rows)
     init_finite = jnp.all(jnp.isfinite(init))
@@ -137,7 +136,7 @@ def loop(
     start = jnp.where(init_finite, init, jnp.asarray(IDENTITY, dtype))
     if index is None:
         index = options.matcher.build(target, target_mask, max_distance)
-    goal = _target(index, target, target_mask, target_rows, max_distance, dtype)
+    goal = _target(index, target, target_mask, target_rows, max_distance)
     start_status = jnp.where(
         valid, jnp.where(finite, Status.RUNNING, Status.NONFINITE), Status.INVALID
     ).astype(jnp.int32)
@@ -175,7 +174,7 @@ def loop(
     )  # fmt: skip
 
 
-def _target(index, target, target_mask, target_rows, max_distance, dtype):
+def _target(index, target, target_mask, target_rows, max_distance):
     """The `_Target` of an index built on `target` (as given)."""
     centre = centroid(target, target_mask)
     points = index.points - centre.astype(index.points.dtype)
