@@ -53,6 +53,7 @@ import ctypes
 import os
 import sys
 import threading
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -160,7 +161,7 @@ def get_threads() -> int | None:
 
 
 @contextlib.contextmanager
-def threads(n: int | None):
+def threads(n: int | None) -> Iterator[None]:
     """`set_threads(n)` for the calls inside the `with` block, the previous setting restored after
     it (on every thread: lieax's host work runs on XLA's threads, not the caller's)."""
     previous = dict(_SETTING)
