@@ -35,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._linalg import cross, dot, skew
-from ..factorgraph._factors import Factor, square_root_information
+from ..factorgraph import Factor, square_root_information
 from ..groups import SE23, SO3, kernels
 from ._params import ImuError, ImuParams
 from ._predict import predict
