@@ -150,6 +150,10 @@ def _block_scan(gyro, accel, dt, bias, params, keep):
         accel,
         dt,
     )
+    return x, _covariance(s), jnp.concatenate(j)
+
+
+def _covariance(s):
+    """The symmetric 9×9 covariance from its six upper 3×3 blocks `(θθ, θp, θv, pp, pv, vv)`."""
     tt, tp, tv, pp, pv, vv = s
-    cov = jnp.block([[tt, tp, tv], [tp.T, pp, pv], [tv.T, pv.T, vv]])
-    return x, cov, jnp.concatenate(j)
+    return jnp.block([[tt, tp, tv], [tp.T, pp, pv], [tv.T, pv.T, vv]])

@@ -6,7 +6,7 @@ random walk (`BiasRandomWalk`), by a sequential `lax.scan` over `_block_scan`'s 
 import jax
 import jax.numpy as jnp
 
-from ._block_scan import _kinematics, _propagate, _times_a
+from ._block_scan import _covariance, _kinematics, _propagate, _times_a
 from ._params import BiasRandomWalk, ImuError, ImuParams
 from ._preintegrated import _result
 from ._samples import _check_samples, _delta_t, _samples_by_keyword, _scanned
@@ -97,8 +97,7 @@ def preintegrate_combined(
         accel,
         dt,
     )
-    tt, tp, tv, pp, pv, vv = s
-    nav = jnp.block([[tt, tp, tv], [tp.T, pp, pv], [tv.T, pv.T, vv]])
+    nav = _covariance(s)
     x_nb = jnp.concatenate(cross_nb)
     covariance = jnp.block([[nav, x_nb], [x_nb.T, s_bb]])
     pim = _result(x, _delta_t(dt, keep), nav, jnp.concatenate(j), bias, ok)

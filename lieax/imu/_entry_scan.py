@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..groups import kernels
+from ._block_scan import _covariance
 from ._samples import _corrected, _scanned
 
 _UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))  # a symmetric 3×3 block's entries
@@ -275,8 +276,7 @@ def _entry_scan(gyro, accel, dt, bias, params, keep):
         d_aw,
         dt,
     )
-    tt, tp, tv, pp, pv, vv = (_stacked(_full(b) if len(b) == 6 else b) for b in s)
-    cov = jnp.block([[tt, tp, tv], [tp.T, pp, pv], [tv.T, pv.T, vv]])
+    cov = _covariance([_stacked(_full(b) if len(b) == 6 else b) for b in s])
     j_t, j_p, j_v = j
     jac = jnp.block(
         [
