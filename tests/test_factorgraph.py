@@ -19,9 +19,9 @@ import pytest
 from lieax import SE2, SE3, lstsq
 from lieax import graph as lg
 from lieax.factorgraph import Factor, FactorGraph, Var, marginal_covariances
+from lieax.factorgraph._block_pattern import dense_matrix
 from lieax.factorgraph._linear import to_padded
 from lieax.factorgraph._solve import retract
-from lieax.factorgraph._sparse import dense_matrix
 
 jax.config.update("jax_enable_x64", True)
 

@@ -20,6 +20,7 @@ from ..autodiff._tangents import check_retraction, manifold_leaves
 from ..lstsq import LevenbergMarquardt, NonFiniteStartError, SolveError, Status
 from ..lstsq._solution import SolveResult, is_failure, nonfinite_leaves
 from ..retractions import exp
+from ._dense_solve import dense_threads
 from ._elimination import (
     candidates,
     elimination_cost,
@@ -30,7 +31,6 @@ from ._elimination import (
 from ._factors import Factor, linearize_one, residual_one, variables_dtype
 from ._implicit import solve_implicit
 from ._solve import PARAMETERS, make_loop, numeric_options, static_options
-from ._sparse import dense_threads
 from ._structure import analyze, digest, schur_layout
 from ._variables import Var, instance
 
