@@ -33,7 +33,6 @@ from jax.typing import ArrayLike
 
 from .._typing import PyTree
 from ..factorgraph import Factor, FactorGraph
-from ..factorgraph._variables import VarRef
 from ..groups import S2, SE3
 from ._bearing import bearing_error, bearing_error_jacobians
 from ._calibration import calibration_size, pixel
