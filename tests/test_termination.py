@@ -93,10 +93,6 @@ def test_each_door_refuses_what_it_does_not_run(graph):
             graph.solve(termination=ls.Termination.gtsam(**{name: 1e-8}))
     with pytest.raises(ValueError, match="needs a value of Termination.function_tolerance"):
         graph.solve(termination=ls.Termination.gtsam(function_tolerance=None))
-    with pytest.raises(ValueError, match="LevenbergMarquardt.scaling"):
-        graph.solve(solver=ls.LevenbergMarquardt())
-    with pytest.raises(ValueError, match="LevenbergMarquardt.damping_update"):
-        graph.solve(solver=ls.LevenbergMarquardt.gtsam(damping_update="minpack"))
 
 
 def test_the_comparisons_are_options():

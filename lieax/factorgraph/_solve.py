@@ -122,14 +122,14 @@ def static_options(solver):
         )
     if solver.scaling not in SCALINGS:
         raise ValueError(
-            f"FactorGraph.solve supports LevenbergMarquardt.scaling in {SCALINGS}, got "
-            f"{solver.scaling!r} (its "
-            "running column norms are least_squares' only)."
+            f"FactorGraph.solve supports the scalings {SCALINGS} (LevenbergMarquardt.scaling), "
+            f"got {solver.scaling!r} (its running column norms are least_squares' only)."
         )
     if solver.damping_update not in DAMPING_UPDATES:
         raise ValueError(
-            f"FactorGraph.solve supports LevenbergMarquardt.damping_update in {DAMPING_UPDATES}, got "
-            f"{solver.damping_update!r} (MINPACK's radius needs least_squares' dense solves)."
+            f"FactorGraph.solve supports the damping updates {DAMPING_UPDATES} "
+            f"(LevenbergMarquardt.damping_update), got {solver.damping_update!r} (MINPACK's radius "
+            "needs least_squares' dense solves)."
         )
     return (
         False,
