@@ -11,6 +11,8 @@ import pytest
 
 jax.config.update("jax_enable_x64", True)
 
+from test_first_call import compilations  # noqa: E402
+
 import lieax.lstsq as ls  # noqa: E402
 from lieax.factorgraph import Factor, FactorGraph, Var  # noqa: E402
 from lieax.lstsq import _least_squares  # noqa: E402
@@ -38,15 +40,17 @@ def graph():
 
 
 def test_a_new_tolerance_reuses_the_compiled_least_squares():
-    """Two tolerances, one trace and one compilation; the looser stops earlier. Under `jit` the
-    tolerance may be traced."""
-    data = (jnp.ones(()),)
-    tight = ls.least_squares(rosenbrock, jnp.asarray(START), data)
-    traced, compiled = len(TRACES), _least_squares._solve._cache_size()
-    loose = ls.least_squares(
-        rosenbrock, jnp.asarray(START), data, termination=ls.Termination(function_tolerance=0.3)
-    )
-    assert (len(TRACES), _least_squares._solve._cache_size()) == (traced, compiled)
+    """Two tolerances, one trace and one compilation (XLA programs counted as
+    `test_first_call` counts them); the looser stops earlier. Under `jit` the tolerance may be
+    traced."""
+    data, start = (jnp.ones(()),), jnp.asarray(START)
+    loose_termination = ls.Termination(function_tolerance=0.3)
+    tight = ls.least_squares(rosenbrock, start, data)
+    traced, cached = len(TRACES), _least_squares._solve._cache_size()
+    with compilations() as compiled:
+        loose = ls.least_squares(rosenbrock, start, data, termination=loose_termination)
+    assert compiled == []
+    assert (len(TRACES), _least_squares._solve._cache_size()) == (traced, cached)
     assert tight.converged and loose.converged
     assert int(loose.iterations) < int(tight.iterations)
 
@@ -59,9 +63,12 @@ def test_a_new_tolerance_reuses_the_compiled_least_squares():
 
 
 def test_a_new_tolerance_reuses_the_graph_loop(graph):
+    loose_termination = ls.Termination.gtsam(function_tolerance=0.3, max_iterations=90)
     tight = graph.solve(termination=ls.Termination.gtsam(function_tolerance=1e-12))
     loops, traced = dict(graph._loops), len(TRACES)
-    loose = graph.solve(termination=ls.Termination.gtsam(function_tolerance=0.3))
+    with compilations() as compiled:  # a new limit of the same power of two too
+        loose = graph.solve(termination=loose_termination)
+    assert compiled == []
     assert graph._loops == loops and len(TRACES) == traced
     assert tight.converged and loose.converged
     assert int(loose.iterations) < int(tight.iterations)
