@@ -55,6 +55,7 @@ _DEFAULT_TOLERANCE = {np.dtype(np.float64): 1e-10, np.dtype(np.float32): 1e-6}
 _DIFFERENTIATION = ("implicit", "unrolled")
 _LEVENBERG_MARQUARDT = LevenbergMarquardt()  # the default solver (immutable, so shared)
 _TERMINATION = Termination()  # the default stopping rules (immutable, so shared)
+_RESOLVED = {}  # (termination, dtype) -> termination with the dtype's default tolerances
 
 
 def least_squares(
@@ -186,7 +187,21 @@ def _check_arguments(residual_fn, solver, termination, differentiation, loss):
 
 def _with_default_tolerances(termination, dtype) -> Termination:
     """`termination` with its `None` tolerances set to the dtype's default ($10^{-10}$ in
-    float64, $10^{-6}$ otherwise)."""
+    float64, $10^{-6}$ otherwise), kept by `(termination, dtype)` (building one takes tens of
+    microseconds, a lookup one: a loop of small solves calls this every time)."""
+    try:
+        return _RESOLVED[termination, dtype]
+    except KeyError:
+        pass
+    except TypeError:  # an array tolerance: not hashable, built every time
+        return _resolve(termination, dtype)
+    if len(_RESOLVED) >= 64:
+        _RESOLVED.clear()
+    resolved = _RESOLVED[termination, dtype] = _resolve(termination, dtype)
+    return resolved
+
+
+def _resolve(termination, dtype) -> Termination:
     default = _DEFAULT_TOLERANCE.get(dtype, _DEFAULT_TOLERANCE[np.dtype(np.float32)])
     names = ("function_tolerance", "gradient_tolerance", "parameter_tolerance")
     unset = {name: default for name in names if getattr(termination, name) is None}

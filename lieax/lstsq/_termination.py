@@ -141,11 +141,11 @@ class Termination:
                 f"Termination: counting must be one of {_COUNTINGS}, got {self.counting!r}."
             )
         for name in _TOLERANCES:
-            value = getattr(self, name)
-            if _concrete(value) and not np.all(np.asarray(value) >= 0):
+            value = _concrete(getattr(self, name))
+            if value is not None and not value >= 0:
                 raise ValueError(
                     f"Termination: {name} must be non-negative (0 turns the test off), got "
-                    f"{value!r}."
+                    f"{getattr(self, name)!r}."
                 )
 
     def require(self, door: str, counting: str, zero=(), given=()):
@@ -159,7 +159,7 @@ class Termination:
             )
         for name in zero:
             value = getattr(self, name)
-            if value is None or (_concrete(value) and np.any(np.asarray(value) != 0)):
+            if value is None or _concrete(value) != 0:
                 raise ValueError(
                     f"{door} has no such test: Termination.{name} must be 0, got {value!r}."
                 )
@@ -168,12 +168,16 @@ class Termination:
                 raise ValueError(f"{door} needs a value of Termination.{name}, got None.")
 
 
-def _concrete(value) -> bool:
-    """Whether `value` is a number that can be checked now (not `None`, not traced, not a
-    placeholder of a pytree transformation)."""
-    if isinstance(value, (jax.Array, np.ndarray)):
-        return not isinstance(value, jax.core.Tracer) and value.ndim == 0
-    return isinstance(value, (int, float, np.number)) and not isinstance(value, bool)
+def _concrete(value):
+    """`value` as a Python float when it can be checked now, else `None` (`None` itself, a
+    traced value, an array of several entries, a placeholder of a pytree transformation)."""
+    if isinstance(value, (float, int)) and not isinstance(value, bool):
+        return float(value)
+    if isinstance(value, (np.ndarray, np.number)) or (
+        isinstance(value, jax.Array) and not isinstance(value, jax.core.Tracer)
+    ):
+        return float(np.asarray(value)) if np.ndim(value) == 0 else None
+    return None
 
 
 jax.tree_util.register_dataclass(
