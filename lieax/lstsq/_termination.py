@@ -88,10 +88,10 @@ class Termination:
     """
 
     max_iterations: int = 100
-    function_tolerance: object = None
-    absolute_function_tolerance: object = 0.0
-    gradient_tolerance: object = None
-    parameter_tolerance: object = None
+    function_tolerance: float | jax.Array | None = None
+    absolute_function_tolerance: float | jax.Array = 0.0
+    gradient_tolerance: float | jax.Array | None = None
+    parameter_tolerance: float | jax.Array | None = None
     counting: str = "trials"
 
     @classmethod
