@@ -290,11 +290,12 @@ def ba_build(problem):
 
 
 def ba_call(problem):
-    from lieax.lstsq import LevenbergMarquardt
+    from lieax.lstsq import LevenbergMarquardt, Termination
 
     graph, points = problem
     marquardt = LevenbergMarquardt.gtsam(scaling="clipped", damping_update="nielsen")
-    return _ready(graph.solve(eliminate=points, solver=marquardt, max_iterations=20))
+    termination = Termination.gtsam(max_iterations=20)
+    return _ready(graph.solve(eliminate=points, solver=marquardt, termination=termination))
 
 
 def imu_setup(quick, data_dir):
@@ -330,7 +331,9 @@ def imu_call(problem):
     )
     if "graph" not in problem:
         problem["graph"], _ = problem["example"].build_graph(data, pim, imu_params)
-    return _ready(problem["graph"].solve(max_iterations=50))
+    from lieax.lstsq import Termination
+
+    return _ready(problem["graph"].solve(termination=Termination.gtsam(max_iterations=50)))
 
 
 def landmarks_setup(quick, data_dir):

@@ -27,6 +27,7 @@ from lieax.factorgraph import (
 )
 from lieax.factorgraph import _graph as factorgraph_module
 from lieax.graph import _optimize
+from lieax.lstsq import Termination
 
 jax.config.update("jax_enable_x64", True)
 
@@ -379,7 +380,11 @@ def gradient_norm(graph, poses):
 def test_optimize_generated_2d_cholesky_and_cg_agree():
     graph, truth = noisy_graph(SE2, n=40, loops=20, seed=3)
     initial_cost = float(lg.cost(graph))
-    tight = {"relative_tolerance": 1e-12, "absolute_tolerance": 1e-12}
+    tight = {
+        "termination": Termination.gtsam(
+            function_tolerance=1e-12, absolute_function_tolerance=1e-12
+        )
+    }
     result = lg.optimize(graph, **tight)
     assert result.status == lieax.Status.CONVERGED
     assert result.cost < 1e-2 * initial_cost
@@ -393,7 +398,7 @@ def test_optimize_generated_2d_cholesky_and_cg_agree():
     assert relative_close(cg.cost, result.cost, 1e-9)
     # the same structure with other values reuses the compiled loop
     count = len(_optimize._CACHE)
-    again = lg.optimize(graph.with_poses(truth), max_iterations=3)
+    again = lg.optimize(graph.with_poses(truth), termination=Termination.gtsam(max_iterations=3))
     assert len(_optimize._CACHE) == count and again.iterations <= 3
 
 
@@ -409,7 +414,10 @@ def test_optimize_generated_3d_with_prior_and_robust_loss():
         )
     )
     anchored = outlier.with_prior(0, truth[0], np.eye(6) * 1e6).with_loss(Huber(3.0))
-    result = lg.optimize(anchored, relative_tolerance=1e-10, absolute_tolerance=1e-10)
+    result = lg.optimize(
+        anchored,
+        termination=Termination.gtsam(function_tolerance=1e-10, absolute_function_tolerance=1e-10),
+    )
     assert result.status == lieax.Status.CONVERGED
     # the prior replaces the gauge: pose 0 may move, but stays at the prior
     np.testing.assert_allclose(result.poses[0].rminus(truth[0]), 0.0, atol=1e-3)
@@ -428,7 +436,11 @@ def test_optimize_generated_3d_with_prior_and_robust_loss():
 def test_retractions_reach_the_same_optimum():
     # Cayley and first-order steps take other paths to the same stationary point
     graph, _ = noisy_graph(SE3, n=30, loops=40, sigma=0.02, init_sigma=0.05, seed=4)
-    tight = {"relative_tolerance": 1e-12, "absolute_tolerance": 1e-12}
+    tight = {
+        "termination": Termination.gtsam(
+            function_tolerance=1e-12, absolute_function_tolerance=1e-12
+        )
+    }
     reference = lg.optimize(graph, **tight)
     for retraction in (retractions.cayley, retractions.first_order):
         result = lg.optimize(graph, retraction=retraction, **tight)
@@ -448,9 +460,15 @@ def test_dense_and_multifrontal_steps_agree(monkeypatch):
     graph, _ = noisy_graph(SE3, n=30, loops=40, sigma=0.02, init_sigma=0.05, seed=4)
     graph = graph.with_loss(Huber(3.0))
     assert graph.num_poses * 6 <= factorgraph_module._DENSE_LIMIT
-    dense = lg.optimize(graph, relative_tolerance=1e-10, absolute_tolerance=1e-10)
+    dense = lg.optimize(
+        graph,
+        termination=Termination.gtsam(function_tolerance=1e-10, absolute_function_tolerance=1e-10),
+    )
     monkeypatch.setattr(factorgraph_module, "_DENSE_LIMIT", 0)
-    sparse = lg.optimize(graph, relative_tolerance=1e-10, absolute_tolerance=1e-10)
+    sparse = lg.optimize(
+        graph,
+        termination=Termination.gtsam(function_tolerance=1e-10, absolute_function_tolerance=1e-10),
+    )
     methods = {key[2] for key in _optimize._factor_graph(graph, exact=True)._loops}
     assert methods == {"dense", "cholesky"}
     assert sparse.iterations == dense.iterations
