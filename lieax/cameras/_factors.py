@@ -32,7 +32,7 @@ import numpy as np
 from jax.typing import ArrayLike
 
 from .._typing import PyTree
-from ..factorgraph import Factor, FactorGraph
+from ..factorgraph import Factor, FactorGraph, VarRef
 from ..groups import S2, SE3
 from ._bearing import bearing_error, bearing_error_jacobians
 from ._calibration import calibration_size, pixel
