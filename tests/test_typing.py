@@ -29,10 +29,13 @@ ANNOTATED = [
     "lieax.cameras",
     "lieax.conventions",
     "lieax.groups",
+    "lieax.icp",
     "lieax.io",
     "lieax.lstsq._losses",
     "lieax.optax",
+    "lieax.retractions",
     "lieax.sharding",
+    "lieax.viz",
 ]
 
 # the special methods that are part of a class's API (operators, construction, calls)

@@ -17,6 +17,7 @@ import math
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 
 from .. import _cpu_emitters as cpu_emitters
 from .._checks import as_float_array, is_concrete, to_device
@@ -29,6 +30,8 @@ from ._checks import check_cloud, check_count, check_mask, check_parameter
 from ._normals import _UPPER, offset_covariances, smallest_eigenvector
 from ._parts import Step
 from ._registration import ICPResult, _register
+from ._robust import WeightedLoss
+from ._search import NeighbourIndex
 
 EPSILON = 1e-3  # the smallest regularized eigenvalue (GICP, fast_gicp, small_gicp)
 ROTATION_EPSILON = 0.1 * math.pi / 180  # small_gicp's default step tolerance, 0.1°
@@ -41,7 +44,13 @@ MIN_NEIGHBOURS = 5  # fewer valid neighbours give the identity (small_gicp's rul
 # ---- covariances --------------------------------------------------------------------------------
 
 
-def estimate_covariances(points, *, k=20, mask=None, search="auto"):
+def estimate_covariances(
+    points: ArrayLike,
+    *,
+    k: int | np.integer = 20,
+    mask: ArrayLike | None = None,
+    search: str = "auto",
+) -> jax.Array:
     r"""Regularized local covariances of a point cloud, shape `(n, 3, 3)`.
 
     The sample covariance of each point and its `k - 1` nearest neighbours, eigen-decomposed as
@@ -316,27 +325,27 @@ GICP = Step("gicp", gicp_step)
 
 
 def gicp(
-    source,
-    target,
+    source: ArrayLike,
+    target: ArrayLike,
     *,
-    max_correspondence_distance,
-    source_covariances=None,
-    target_covariances=None,
-    init=None,
-    max_iterations=30,
-    relative_fitness=1e-6,
-    relative_rmse=1e-6,
-    rotation_epsilon=ROTATION_EPSILON,
-    translation_epsilon=None,
-    loss=None,
-    source_mask=None,
-    target_mask=None,
-    exact=True,
-    covariances_k=20,
-    verbose=False,
-    throw=True,
-    search="auto",
-    buckets=True,
+    max_correspondence_distance: ArrayLike,
+    source_covariances: ArrayLike | None = None,
+    target_covariances: ArrayLike | None = None,
+    init: SE3 | None = None,
+    max_iterations: int | np.integer = 30,
+    relative_fitness: ArrayLike = 1e-6,
+    relative_rmse: ArrayLike = 1e-6,
+    rotation_epsilon: ArrayLike = ROTATION_EPSILON,
+    translation_epsilon: ArrayLike | None = None,
+    loss: WeightedLoss | None = None,
+    source_mask: ArrayLike | None = None,
+    target_mask: ArrayLike | None = None,
+    exact: bool = True,
+    covariances_k: int | np.integer = 20,
+    verbose: bool = False,
+    throw: bool = True,
+    search: str | NeighbourIndex = "auto",
+    buckets: bool = True,
 ) -> ICPResult:
     r"""Generalized ICP: minimize
     $\sum_i \rho\big(r_i^\top (C^d_i + R C^s_i R^\top)^{-1} r_i\big)$, $r_i = T s_i - d_i$,

@@ -7,20 +7,82 @@ overall shape with a wide capture distance; fine levels refine on the full detai
 """
 
 import math
+from collections.abc import Iterable
+from typing import Any, Literal, overload
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 
 from ..groups import SE3, kernels
 from ._checks import ICPInputError, check_cloud, check_count, check_mask
 from ._downsample import voxel_downsample
 from ._gicp import gicp
-from ._registration import ICPError, Status, _raise_on_failure, point_to_plane, point_to_point
+from ._registration import (
+    ICPError,
+    ICPResult,
+    Status,
+    _raise_on_failure,
+    point_to_plane,
+    point_to_point,
+)
+from ._robust import WeightedLoss
 
 _METHODS = {"point_to_point": point_to_point, "point_to_plane": point_to_plane, "gicp": gicp}
 
 
+@overload
+def multi_scale(
+    source: ArrayLike,
+    target: ArrayLike,
+    *,
+    voxel_sizes: Iterable[ArrayLike | None],
+    max_correspondence_distances: Iterable[ArrayLike],
+    max_iterations: int | np.integer | Iterable[int | np.integer] = 30,
+    method: str = "point_to_plane",
+    init: SE3 | None = None,
+    loss: WeightedLoss | None = None,
+    source_mask: ArrayLike | None = None,
+    target_mask: ArrayLike | None = None,
+    return_levels: Literal[False] = False,
+    throw: bool = True,
+    **options: Any,
+) -> ICPResult: ...
+@overload
+def multi_scale(
+    source: ArrayLike,
+    target: ArrayLike,
+    *,
+    voxel_sizes: Iterable[ArrayLike | None],
+    max_correspondence_distances: Iterable[ArrayLike],
+    max_iterations: int | np.integer | Iterable[int | np.integer] = 30,
+    method: str = "point_to_plane",
+    init: SE3 | None = None,
+    loss: WeightedLoss | None = None,
+    source_mask: ArrayLike | None = None,
+    target_mask: ArrayLike | None = None,
+    return_levels: Literal[True],
+    throw: bool = True,
+    **options: Any,
+) -> tuple[ICPResult, list[ICPResult]]: ...
+@overload
+def multi_scale(
+    source: ArrayLike,
+    target: ArrayLike,
+    *,
+    voxel_sizes: Iterable[ArrayLike | None],
+    max_correspondence_distances: Iterable[ArrayLike],
+    max_iterations: int | np.integer | Iterable[int | np.integer] = 30,
+    method: str = "point_to_plane",
+    init: SE3 | None = None,
+    loss: WeightedLoss | None = None,
+    source_mask: ArrayLike | None = None,
+    target_mask: ArrayLike | None = None,
+    return_levels: bool,
+    throw: bool = True,
+    **options: Any,
+) -> ICPResult | tuple[ICPResult, list[ICPResult]]: ...
 def multi_scale(
     source,
     target,
