@@ -340,7 +340,6 @@ def gicp(
     loss: WeightedLoss | None = None,
     source_mask: ArrayLike | None = None,
     target_mask: ArrayLike | None = None,
-    exact: bool = True,
     covariances_k: int | np.integer = 20,
     verbose: bool = False,
     throw: bool = True,
@@ -387,7 +386,6 @@ def gicp(
     - `loss`: robust loss with a `weight(s)` method of the squared Mahalanobis residual (the
       `lieax.lstsq` losses); default least squares.
     - `source_mask`, `target_mask`: `(n,)`, `(m,)` bools, False for padding (see `pad_clouds`).
-    - `exact`: accepted for compatibility and ignored (as for `point_to_plane`).
     - `covariances_k`: neighbours for the default covariances (small_gicp's default, 20), found
       as `search` says (`"auto"`: see `estimate_covariances`).
     - `verbose`: print the fitness and inlier RMSE after every iteration.

@@ -117,7 +117,7 @@ def multi_scale(
       that fails hands its last pose on. A valid input point that is not finite makes the result
       `NONFINITE` (with `init`), whatever the levels (whose voxels drop such points) reached.
     - `options`: further keyword arguments of the method (`relative_fitness`, `normals_k`,
-      `covariances_k`, `exact`, ...), the same at every level.
+      `covariances_k`, ...), the same at every level.
 
     Called eagerly, each level's clouds are the occupied voxels' centroids, padded (masked) to a
     power-of-two row count shared by both clouds (fewer compilations). Under `jit` or

@@ -138,7 +138,6 @@ def point_to_plane(
     loss: WeightedLoss | None = None,
     source_mask: ArrayLike | None = None,
     target_mask: ArrayLike | None = None,
-    exact: bool = True,
     normals_k: int | np.integer = 30,
     verbose: bool = False,
     throw: bool = True,
@@ -163,8 +162,6 @@ def point_to_plane(
     - `loss`: robust loss with a `weight(s)` method of the squared residual `s` (the
       `lieax.lstsq` losses: `Huber`, `Cauchy`, `Tukey`, `GemanMcClure`); default least squares.
     - `source_mask`, `target_mask`: `(n,)`, `(m,)` bools, False for padding (see `pad_clouds`).
-    - `exact`: accepted for compatibility and ignored: every search is exact in every iteration
-      (it verified the matches of the removed `search="graph"`).
     - `normals_k`: neighbours for the default normals.
     - `verbose`: print the fitness and inlier RMSE after every iteration, from inside the compiled
       loop (`jax.debug.print`; under `vmap` one line per problem).
@@ -222,7 +219,6 @@ def point_to_point(
     loss: WeightedLoss | None = None,
     source_mask: ArrayLike | None = None,
     target_mask: ArrayLike | None = None,
-    exact: bool = True,
     verbose: bool = False,
     throw: bool = True,
     search: str | NeighbourIndex = "auto",
