@@ -35,6 +35,11 @@ NORMAL_SEARCHES = ("auto", "kdtree", "graph")
 _UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
 
+def upper_entry(upper, a, b):
+    """Entry `(a, b)` of a symmetric 3x3 matrix given as its six upper entries (`_UPPER`'s order)."""
+    return upper[_UPPER.index((min(a, b), max(a, b)))]
+
+
 def estimate_normals(
     points: ArrayLike,
     *,
