@@ -28,9 +28,12 @@ ANNOTATED = [
     "lieax.ba",
     "lieax.cameras",
     "lieax.conventions",
+    "lieax.factorgraph",
+    "lieax.graph",
     "lieax.groups",
+    "lieax.imu",
     "lieax.io",
-    "lieax.lstsq._losses",
+    "lieax.lstsq",
     "lieax.optax",
     "lieax.sharding",
 ]
