@@ -32,7 +32,9 @@ Conventions: docs/conventions.md.
 
 import dataclasses
 from collections.abc import Callable
+from typing import Any
 
+import jax
 import jax.numpy as jnp
 
 from ._checks import check_last_axis
@@ -56,10 +58,12 @@ class Retraction:
     """
 
     name: str
-    rplus: Callable
-    rminus: Callable
+    # (x: a manifold element or an array, delta) -> the moved x, of x's type
+    rplus: Callable[[Any, Any], Any]
+    # (y, x) -> the tangent array
+    rminus: Callable[[Any, Any], jax.Array]
 
-    def __repr__(self):
+    def __repr__(self) -> str:
         return f"lieax.retractions.{self.name}"
 
 
@@ -119,7 +123,7 @@ def _se3_rminus(rotation_inverse):
     return rminus
 
 
-def _dispatch(name, rules):
+def _dispatch(name, rules) -> Retraction:
     """A `Retraction` using `rules[type(x)]` for the listed groups and `exp` for anything else."""
 
     def rplus(x, delta):

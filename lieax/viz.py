@@ -11,7 +11,19 @@ its translation, with its rotation's columns (the body axes expressed in the wor
 x, y, z axes in red, green and blue.
 """
 
+from collections.abc import Iterable
+from typing import TYPE_CHECKING, Protocol
+
 import numpy as np
+from jax.typing import ArrayLike
+
+from .groups import SE3, AbstractGroup
+
+if TYPE_CHECKING:  # matplotlib is optional: imported inside the functions that draw
+    from matplotlib.axes import Axes
+    from matplotlib.typing import ColorType
+
+    from .graph import PoseGraph
 
 __all__ = [
     "plot_cost",
@@ -23,6 +35,13 @@ __all__ = [
 ]
 
 AXIS_COLORS = ("tab:red", "tab:green", "tab:blue")
+
+
+class _CostHistory(Protocol):
+    """A result with a cost history (`lieax.lstsq.Solution`, `lieax.graph.OptimizeResult`)."""
+
+    @property
+    def cost_history(self) -> ArrayLike: ...
 
 
 # ---- helpers ----------------------------------------------------------------------------------
@@ -56,7 +75,7 @@ def _segments(starts, ends):
     return np.stack([starts, ends, gap], axis=1).reshape(-1, starts.shape[-1])
 
 
-def set_axes_equal(ax):
+def set_axes_equal(ax: "Axes") -> "Axes":
     """Equal scale on every axis: 2D axes get an equal aspect; 3D axes get a cube around all the
     data drawn so far (call it again after adding data)."""
     if getattr(ax, "name", "") != "3d":
@@ -100,17 +119,17 @@ def _rotations_and_positions(frames, positions):
 
 
 def plot_frames(
-    frames,
+    frames: AbstractGroup,
     *,
-    ax=None,
-    length=None,
-    positions=None,
-    linewidth=1.5,
-    alpha=1.0,
-    origin_color=None,
-    labels=None,
-    equal=True,
-):
+    ax: "Axes | None" = None,
+    length: float | None = None,
+    positions: ArrayLike | None = None,
+    linewidth: float = 1.5,
+    alpha: float = 1.0,
+    origin_color: "ColorType | None" = None,
+    labels: Iterable[object] | None = None,
+    equal: bool = True,
+) -> "Axes":
     """Draw each element of a batch of poses (`SE2`, `SE3`) or rotations (`SO2`, `SO3`) as a
     triad of axes: x red, y green (and z blue in 3D), from the frame's origin.
 
@@ -159,18 +178,18 @@ def _subsample(points, max_points, seed, mask=None):
 
 
 def plot_points(
-    points,
+    points: ArrayLike,
     *,
-    ax=None,
-    max_points=5000,
-    mask=None,
-    seed=0,
-    size=1.0,
-    color=None,
-    alpha=0.8,
-    label=None,
-    equal=True,
-):
+    ax: "Axes | None" = None,
+    max_points: int | None = 5000,
+    mask: ArrayLike | None = None,
+    seed: int = 0,
+    size: float = 1.0,
+    color: "ColorType | None" = None,
+    alpha: float = 0.8,
+    label: str | None = None,
+    equal: bool = True,
+) -> "Axes":
     """Scatter a point cloud `(n, 3)` in 3D (or `(n, 2)` in 2D), randomly subsampled to at most
     `max_points` points (reproducibly, from `seed`; `None` keeps all). `mask` drops padded rows
     (`False`), as `lieax.icp.pad_clouds` makes them.
@@ -192,17 +211,17 @@ def plot_points(
 
 
 def plot_registration(
-    source,
-    target,
-    transform=None,
+    source: ArrayLike,
+    target: ArrayLike,
+    transform: SE3 | None = None,
     *,
-    ax=None,
-    max_points=3000,
-    size=1.0,
-    source_color="tab:orange",
-    target_color="tab:blue",
-    title=None,
-):
+    ax: "Axes | None" = None,
+    max_points: int | None = 3000,
+    size: float = 1.0,
+    source_color: "ColorType" = "tab:orange",
+    target_color: "ColorType" = "tab:blue",
+    title: str | None = None,
+) -> "Axes":
     """The target cloud and the source cloud mapped into the target frame by `transform`
     (`T_target_source`, an `SE3`; `None` draws the source as given), in one 3D scatter.
 
@@ -236,21 +255,21 @@ def plot_registration(
 
 
 def plot_pose_graph(
-    graph,
-    poses=None,
+    graph: "PoseGraph | AbstractGroup",
+    poses: AbstractGroup | None = None,
     *,
-    edges=None,
-    ax=None,
-    odometry=True,
-    loop_closures=True,
-    frames=0.0,
-    color="tab:blue",
-    odometry_color="0.55",
-    loop_color="tab:red",
-    linewidth=0.6,
-    label=None,
-    equal=True,
-):
+    edges: ArrayLike | None = None,
+    ax: "Axes | None" = None,
+    odometry: bool = True,
+    loop_closures: bool = True,
+    frames: float = 0.0,
+    color: "ColorType" = "tab:blue",
+    odometry_color: "ColorType" = "0.55",
+    loop_color: "ColorType" = "tab:red",
+    linewidth: float = 0.6,
+    label: str | None = None,
+    equal: bool = True,
+) -> "Axes":
     """Draw a 2D or 3D pose graph: the poses' positions joined in index order (odometry edges,
     `|i - j| = 1`) and the other edges (loop closures) as segments.
 
@@ -293,7 +312,16 @@ def plot_pose_graph(
 # ---- cost curves ------------------------------------------------------------------------------
 
 
-def plot_cost(history, *, ax=None, label=None, log=True, marker="o", color=None, alpha=1.0):
+def plot_cost(
+    history: ArrayLike | _CostHistory,
+    *,
+    ax: "Axes | None" = None,
+    label: str | None = None,
+    log: bool = True,
+    marker: str | None = "o",
+    color: "ColorType | None" = None,
+    alpha: float = 1.0,
+) -> "Axes":
     """Cost per iteration: `history` is a cost history array `(iterations + 1,)` (NaN padding
     after the last iteration is dropped), a batch of them `(b, iterations + 1)` (one line each,
     as a vmapped solve returns them), or anything with a `cost_history` attribute

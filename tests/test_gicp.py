@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from lieax import SE3, icp
-from lieax.icp import _gicp, _host_kdtree, _normals
+from lieax.icp import _covariances, _gicp, _host_kdtree, _normals
 from lieax.lstsq import Cauchy
 
 ROWS = 400
@@ -128,7 +128,7 @@ def test_host_covariances_differentiate_and_batch_as_the_jax_path():
     found = _normals.neighbourhoods(cloud, mask, 20, search="kdtree")
 
     def jax_path(c):
-        return _gicp._covariances_of_neighbours(c, mask, found)
+        return _covariances._covariances_of_neighbours(c, mask, found)
 
     def host_path(c):
         return icp.estimate_covariances(c, k=20, mask=mask, search="kdtree")

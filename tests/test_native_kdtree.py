@@ -14,7 +14,7 @@ import pytest
 from _child import child_output
 
 from lieax import _native, icp
-from lieax.icp import _gicp, _host_kdtree, _native_kdtree, _search
+from lieax.icp import _covariances, _host_kdtree, _native_kdtree, _search
 
 pytestmark = pytest.mark.skipif(
     not _native.available(), reason="the native library is not built (see setup.py)"
@@ -155,7 +155,7 @@ def test_neighbourhoods_spacing_and_covariances_equal_brute_force(dtype):
     np.testing.assert_allclose(spacing[valid], np.sqrt(expected[:, 1]), rtol=0, atol=1e-6)
     assert np.all(spacing[~valid] == 0)
     entries = np.asarray(_native_kdtree.covariance_entries(jnp.asarray(points), valid, 20))
-    host = _gicp._host_covariance_entries(points, valid, 20, HOST)
+    host = _covariances._host_covariance_entries(points, valid, 20, HOST)
     np.testing.assert_allclose(entries, host, rtol=0, atol=1e-12 if dtype == np.float64 else 1e-7)
 
 

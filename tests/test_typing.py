@@ -31,11 +31,14 @@ ANNOTATED = [
     "lieax.factorgraph",
     "lieax.graph",
     "lieax.groups",
+    "lieax.icp",
     "lieax.imu",
     "lieax.io",
     "lieax.lstsq",
     "lieax.optax",
+    "lieax.retractions",
     "lieax.sharding",
+    "lieax.viz",
 ]
 
 # the special methods that are part of a class's API (operators, construction, calls)

@@ -18,8 +18,9 @@ docs/conventions.md.
 """
 
 from ._batch import pad_clouds
+from ._covariances import estimate_covariances
 from ._downsample import voxel_downsample
-from ._gicp import estimate_covariances, gicp
+from ._gicp import gicp
 from ._grid import GridIndex
 from ._host_kdtree import KDTreeIndex
 from ._multiscale import multi_scale

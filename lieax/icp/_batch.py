@@ -3,14 +3,19 @@ array, so that pairs batch under `vmap`; `bucket_size` / `pad_to_bucket` pad one
 capacity bucket (four sizes per doubling, at most 25% padded rows), so that ICP on clouds of a new
 size reuses a loop compiled for an earlier size of the same bucket."""
 
+from collections.abc import Iterable
+
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike, DTypeLike
 
 from .._checks import to_device
 
 
-def pad_clouds(clouds, size=None, *, dtype=None):
+def pad_clouds(
+    clouds: Iterable[ArrayLike], size: int | None = None, *, dtype: DTypeLike | None = None
+) -> tuple[jax.Array, jax.Array]:
     """Stack clouds of different sizes into `(points (b, size, 3), mask (b, size))`.
 
     Each cloud fills the first rows of its slice; the rest is zero and masked out. Every lieax.icp

@@ -2,12 +2,28 @@
 `voxel_down_sample`: voxels of side `voxel_size` anchored at the cloud's minimum minus half a
 voxel)."""
 
+from typing import overload
+
 import jax
 import jax.numpy as jnp
+import numpy as np
+from jax.typing import ArrayLike
 
 from ._checks import check_cloud, check_count, check_mask, check_parameter
 
 
+@overload
+def voxel_downsample(
+    points: ArrayLike, voxel_size: ArrayLike, *, mask: ArrayLike | None = None, size: None = None
+) -> jax.Array: ...
+@overload
+def voxel_downsample(
+    points: ArrayLike,
+    voxel_size: ArrayLike,
+    *,
+    mask: ArrayLike | None = None,
+    size: int | np.integer,
+) -> tuple[jax.Array, jax.Array]: ...
 def voxel_downsample(points, voxel_size, *, mask=None, size=None):
     """Replace the points in each voxel of side `voxel_size` by their centroid.
 

@@ -11,183 +11,27 @@ Conventions (right perturbation, translation-first tangents, `T_a_b` maps b into
 docs/conventions.md.
 """
 
-import functools
 import math
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 
-from .. import _cpu_emitters as cpu_emitters
-from .._checks import as_float_array, is_concrete, to_device
-from .._host_call import host_call
 from ..groups import SE3, kernels
 from ..lstsq._normal_equations import solve_spd
-from . import _host_kdtree, _native_kdtree, _neighbors, _normals, _search
-from ._batch import pad_to_bucket
-from ._checks import check_cloud, check_count, check_mask, check_parameter
-from ._normals import _UPPER, offset_covariances, smallest_eigenvector
+from ._checks import check_cloud, check_mask, check_parameter
+from ._covariances import check_covariances, default_covariances
+from ._normals import _UPPER, upper_entry
 from ._parts import Step
 from ._registration import ICPResult, _register
+from ._robust import WeightedLoss
+from ._search import NeighbourIndex
 
-EPSILON = 1e-3  # the smallest regularized eigenvalue (GICP, fast_gicp, small_gicp)
 ROTATION_EPSILON = 0.1 * math.pi / 180  # small_gicp's default step tolerance, 0.1°
 # The default translation tolerance per unit of max_correspondence_distance: small_gicp's 1 mm at
 # its default distance, 1 m.
 TRANSLATION_EPSILON_PER_DISTANCE = 1e-3
-MIN_NEIGHBOURS = 5  # fewer valid neighbours give the identity (small_gicp's rule)
-
-
-# ---- covariances --------------------------------------------------------------------------------
-
-
-def estimate_covariances(points, *, k=20, mask=None, search="auto"):
-    r"""Regularized local covariances of a point cloud, shape `(n, 3, 3)`.
-
-    The sample covariance of each point and its `k - 1` nearest neighbours, eigen-decomposed as
-    $U \Lambda U^\top$ (eigenvalues ascending), is replaced by
-    $C = U\,\mathrm{diag}(\varepsilon, 1, 1)\,U^\top = I - (1 - \varepsilon)\,n n^\top$
-    with $\varepsilon = 10^{-3}$ and $n$ the eigenvector of the smallest eigenvalue: the "plane"
-    regularization of Segal et al. (2009, section III.B), as small_gicp's `CovarianceSetter` and
-    fast_gicp's `PLANE` method. Neighbourhoods of fewer than 5 valid points get the identity
-    (small_gicp's rule).
-
-    **Arguments:**
-
-    - `points`: shape `(n, 3)`.
-    - `k`: neighbourhood size, the point itself included (small_gicp's default, 20).
-    - `mask`: `(n,)` bools, False for padding; those rows get the identity.
-    - `search`: how the neighbours are found, as for `estimate_normals`: `"kdtree"`, a k-d tree
-      (the native library's, else pykdtree's or SciPy's on the host; exact; CPU only; the sums
-      over each neighbourhood are made beside it, see `_kdtree_covariances`), `"graph"`, the
-      fixed-shape neighbour graph (any backend;
-      99.96% of the bunny's neighbourhoods exact), or `"auto"` (`"kdtree"` on a CPU, else
-      `"graph"`).
-
-    Runs under `jit` and `vmap`.
-    """
-    points = check_cloud(points, "points")
-    mask = check_mask(mask, points, "mask")
-    k = check_count(k, "k", minimum=MIN_NEIGHBOURS)
-    if search not in ("auto", "graph", "kdtree"):
-        raise ValueError(f"search must be 'auto', 'graph' or 'kdtree', got {search!r}.")
-    if search == "auto":
-        search = "kdtree" if _search.platform_of(points) == "cpu" else "graph"
-    if search == "kdtree":
-        _host_kdtree.check_on_host(points, "the points")
-        return _kdtree_covariances(points, mask, k, _host_kdtree.default_library(points.dtype))
-    return _estimate(points, mask, k=k)
-
-
-@cpu_emitters.jit(static_argnames=("k",))
-def _estimate(points, mask, *, k):
-    safe = jnp.where(mask[:, None] & jnp.isfinite(points), points, 0.0)
-    # 16 adjacent leaves of 16 points: 99.96% of the bunny's 20-neighbourhoods are exact (24 leaves:
-    # 99.97%, at twice the build time; the rest swap a far neighbour for an almost as near one).
-    index = _neighbors.build_index(safe, mask, degree=k - 1, adjacent_leaves=16)
-    centre = index.points  # slot order
-    neighbours = jnp.concatenate([centre[:, :, None], index.graph_points], axis=2)  # (slots, 3, k)
-    # Clouds of fewer valid points than k fill the graph with invalid slots, the point itself and
-    # (fewer slots than k - 1) repeats: count each valid neighbour once.
-    others = index.valid[index.graph] & (index.graph != jnp.arange(index.graph.shape[0])[:, None])
-    if index.graph.shape[0] < k - 1:
-        earlier = jnp.tril(jnp.ones((k - 1, k - 1), bool), -1)
-        repeated = jnp.any((index.graph[:, :, None] == index.graph[:, None, :]) & earlier, axis=2)
-        others = others & ~repeated
-    inside = jnp.concatenate([index.valid[:, None], others], axis=1)
-    regularized = _regularized(centre, neighbours, inside, index.valid)
-    slots = jnp.where(index.valid, index.order, points.shape[0])
-    identities = jnp.broadcast_to(jnp.eye(3, dtype=points.dtype), (points.shape[0], 3, 3))
-    return identities.at[slots].set(regularized, mode="drop")
-
-
-@cpu_emitters.jit
-def _covariances_of_neighbours(points, mask, found):
-    """The covariances over the neighbourhoods `found` (`-1` for none) of `_normals.neighbourhoods`
-    (the host k-d tree's: exact)."""
-    valid = mask & jnp.all(jnp.isfinite(points), axis=1)
-    safe = jnp.where(valid[:, None], points, 0.0)
-    neighbours = jnp.transpose(safe[jnp.maximum(found, 0)], (0, 2, 1))  # (n, 3, k)
-    return _regularized(safe, neighbours, found >= 0, valid)
-
-
-@functools.partial(jax.custom_jvp, nondiff_argnums=(2, 3))
-def _kdtree_covariances(points, mask, k, library):
-    """`estimate_covariances(search="kdtree")`: the neighbours' sums beside the k-d tree, in the
-    native library's custom call (`lieax.icp._native_kdtree.covariance_entries`) or the host
-    tree's callback (`_host_covariance_entries`), the eigenvector and the regularization in JAX.
-
-    Either skips what the JAX path of `_covariances_of_neighbours` pays for: the `(n, k)`
-    indices' trip back to XLA and XLA's gather of `(n, 3, k)` copies (on the Kinect cloud of
-    `benchmarks/gicp.py`, 67k points, about 2x the time of the NumPy sums). Derivatives (the
-    neighbourhoods held fixed) are those of `_covariances_of_neighbours`, the JVP rule below."""
-    return _kdtree_covariances_primal(points, mask, k=k, library=library)
-
-
-@cpu_emitters.jit(static_argnames=("k", "library"))
-def _kdtree_covariances_primal(points, mask, *, k, library):
-    valid = mask & jnp.all(jnp.isfinite(points), axis=1)
-    if library == "native":
-        entries = _native_kdtree.covariance_entries(points, valid, k)
-    else:
-        host = functools.partial(_host_covariance_entries, k=k, library=library)
-        result = jax.ShapeDtypeStruct((points.shape[0], 6), points.dtype)
-        entries = host_call(host, result, points, valid)
-    upper = [entries[:, j] for j in range(6)]
-    covariance = jnp.stack(
-        [jnp.stack([_entry(upper, a, b) for b in range(3)], -1) for a in range(3)], -2
-    )
-    count = jnp.minimum(k, jnp.sum(valid))  # every valid point has min(k, valid points) members
-    return _plane_regularized(covariance, count, valid)
-
-
-@_kdtree_covariances.defjvp
-def _kdtree_covariances_jvp(k, library, primals, tangents):
-    points, mask = primals
-    found = _normals.neighbourhoods(points, mask, k, search="kdtree")
-    return jax.jvp(lambda p: _covariances_of_neighbours(p, mask, found), (points,), tangents[:1])
-
-
-def _host_covariance_entries(points, valid, k, library):
-    r"""Host side of `_kdtree_covariances`: the six upper entries `(00, 01, 02, 11, 12, 22)` of
-    the sample covariance of each valid row of `points` `(n, 3)` and its `k - 1` nearest valid
-    rows (fewer where there are fewer), `(n, 6)` in the points' dtype, 0 in the rows not `valid`.
-
-    The neighbourhoods are `_host_kdtree.valid_row_neighbours`'; then, in float64 with the
-    offsets $o_j = p_j - p$ from the point, $\frac1c \sum_j o_j o_j^\top - \bar o \bar o^\top$
-    (small_gicp's sums, about the point rather than the origin), one coordinate at a time: three
-    `(n, k)` gathers, no `(n, k, 3)` copy."""
-    out = np.zeros((points.shape[0], 6), points.dtype)
-    rows, cloud, nearest = _host_kdtree.valid_row_neighbours(points, valid, k, library)
-    if nearest is None:
-        return out
-    count = nearest.shape[1]
-    columns = np.ascontiguousarray(cloud.T, np.float64)
-    offsets = [np.take(column, nearest) - column[:, None] for column in columns]
-    means = [np.sum(offset, axis=1) / count for offset in offsets]
-    entries = np.empty((rows.size, 6), np.float64)
-    for j, (a, b) in enumerate(_UPPER):
-        products = np.einsum("ij,ij->i", offsets[a], offsets[b]) / count
-        entries[:, j] = products - means[a] * means[b]
-    out[slice(None) if rows.size == out.shape[0] else rows] = entries  # (no scatter: usual)
-    return out
-
-
-def _regularized(centre, neighbours, inside, valid):
-    r"""$I - (1 - \varepsilon) n n^\top$ from the sample covariance of `neighbours` `(n, 3, k)`
-    where `inside` `(n, k)`; the identity where fewer than 5 are inside or `valid` is False."""
-    covariance, count = offset_covariances(neighbours - centre[:, :, None], inside)
-    return _plane_regularized(covariance, count, valid)
-
-
-def _plane_regularized(covariance, count, valid):
-    r"""$I - (1 - \varepsilon) n n^\top$, $n$ the eigenvector of the smallest eigenvalue of each
-    `(n, 3, 3)` covariance of `count` points; the identity where `count` is below 5 or `valid`
-    is False."""
-    normal = smallest_eigenvector(covariance)
-    eye = jnp.eye(3, dtype=covariance.dtype)
-    regularized = eye - (1.0 - EPSILON) * normal[:, :, None] * normal[:, None, :]
-    return jnp.where((valid & (count >= MIN_NEIGHBOURS))[:, None, None], regularized, eye)
 
 
 # ---- the update ---------------------------------------------------------------------------------
@@ -198,10 +42,6 @@ def _symmetric(matrix):
     return [matrix[:, a, b] for a, b in _UPPER]
 
 
-def _entry(upper, a, b):
-    return upper[_UPPER.index((min(a, b), max(a, b)))]
-
-
 def _mahalanobis(rotation, source_covariances, target_covariances):
     r"""$M_i = (C^d_i + R C^s_i R^\top)^{-1}$ as six `(n,)` entries, written out elementwise: the
     rotated covariance entry by entry, then the symmetric inverse by cofactors,
@@ -209,9 +49,9 @@ def _mahalanobis(rotation, source_covariances, target_covariances):
     cs = _symmetric(source_covariances)
     cd = _symmetric(target_covariances)
     # B = R C^s (3 x 3), then S = C^d + B R^T (upper entries).
-    b = [[sum(rotation[a, j] * _entry(cs, j, c) for j in range(3)) for c in range(3)] for a in
+    b = [[sum(rotation[a, j] * upper_entry(cs, j, c) for j in range(3)) for c in range(3)] for a in
          range(3)]  # fmt: skip
-    s = [_entry(cd, a, c) + sum(b[a][j] * rotation[c, j] for j in range(3)) for a, c in _UPPER]
+    s = [upper_entry(cd, a, c) + sum(b[a][j] * rotation[c, j] for j in range(3)) for a, c in _UPPER]
     s00, s01, s02, s11, s12, s22 = s
     c00 = s11 * s22 - s12 * s12
     c01 = s02 * s12 - s01 * s22
@@ -271,18 +111,18 @@ def gicp_normal_equations(params, source, matched, source_covariances, target_co
     s = [source[:, k] for k in range(3)]
     gap = [params[4 + a] - matched[:, a] for a in range(3)]
     e = [s[j] + sum(rotation[a, j] * gap[a] for a in range(3)) for j in range(3)]  # R^T r
-    me = [sum(_entry(m, a, b) * e[b] for b in range(3)) for a in range(3)]
+    me = [sum(upper_entry(m, a, b) * e[b] for b in range(3)) for a in range(3)]
     costs = sum(e[a] * me[a] for a in range(3))
     if callable(weights):
         weights = weights(costs)
     # e_b x s, and M~ (e_b x s): entry c of e_b x s is 0 for c = b.
     columns = [[None, -s[2], s[1]], [s[2], None, -s[0]], [-s[1], s[0], None]]
     m_columns = [
-        [sum(_entry(m, a, c) * columns[b][c] for c in range(3) if c != b) for a in range(3)]
+        [sum(upper_entry(m, a, c) * columns[b][c] for c in range(3) if c != b) for a in range(3)]
         for b in range(3)
     ]  # fmt: skip
     s_cross = [_cross(s, m_columns[b]) for b in range(3)]
-    entries = [_entry(m, a, b) for a, b in _UPPER]
+    entries = [upper_entry(m, a, b) for a, b in _UPPER]
     entries += [m_columns[b][a] for a in range(3) for b in range(3)]
     entries += [s_cross[b][a] for a, b in _UPPER]
     entries += me + _cross(s, me)
@@ -316,27 +156,26 @@ GICP = Step("gicp", gicp_step)
 
 
 def gicp(
-    source,
-    target,
+    source: ArrayLike,
+    target: ArrayLike,
     *,
-    max_correspondence_distance,
-    source_covariances=None,
-    target_covariances=None,
-    init=None,
-    max_iterations=30,
-    relative_fitness=1e-6,
-    relative_rmse=1e-6,
-    rotation_epsilon=ROTATION_EPSILON,
-    translation_epsilon=None,
-    loss=None,
-    source_mask=None,
-    target_mask=None,
-    exact=True,
-    covariances_k=20,
-    verbose=False,
-    throw=True,
-    search="auto",
-    buckets=True,
+    max_correspondence_distance: ArrayLike,
+    source_covariances: ArrayLike | None = None,
+    target_covariances: ArrayLike | None = None,
+    init: SE3 | None = None,
+    max_iterations: int | np.integer = 30,
+    relative_fitness: ArrayLike = 1e-6,
+    relative_rmse: ArrayLike = 1e-6,
+    rotation_epsilon: ArrayLike = ROTATION_EPSILON,
+    translation_epsilon: ArrayLike | None = None,
+    loss: WeightedLoss | None = None,
+    source_mask: ArrayLike | None = None,
+    target_mask: ArrayLike | None = None,
+    covariances_k: int | np.integer = 20,
+    verbose: bool = False,
+    throw: bool = True,
+    search: str | NeighbourIndex = "auto",
+    buckets: bool = True,
 ) -> ICPResult:
     r"""Generalized ICP: minimize
     $\sum_i \rho\big(r_i^\top (C^d_i + R C^s_i R^\top)^{-1} r_i\big)$, $r_i = T s_i - d_i$,
@@ -378,7 +217,6 @@ def gicp(
     - `loss`: robust loss with a `weight(s)` method of the squared Mahalanobis residual (the
       `lieax.lstsq` losses); default least squares.
     - `source_mask`, `target_mask`: `(n,)`, `(m,)` bools, False for padding (see `pad_clouds`).
-    - `exact`: accepted for compatibility and ignored (as for `point_to_plane`).
     - `covariances_k`: neighbours for the default covariances (small_gicp's default, 20), found
       as `search` says (`"auto"`: see `estimate_covariances`).
     - `verbose`: print the fitness and inlier RMSE after every iteration.
@@ -398,11 +236,11 @@ def gicp(
     source_mask = check_mask(source_mask, source, "source_mask")
     target_mask = check_mask(target_mask, target, "target_mask")
     if source_covariances is None:
-        source_covariances = _default_covariances(source, source_mask, covariances_k, buckets)
+        source_covariances = default_covariances(source, source_mask, covariances_k, buckets)
     if target_covariances is None:
-        target_covariances = _default_covariances(target, target_mask, covariances_k, buckets)
-    source_covariances = _check_covariances(source_covariances, source, "source_covariances")
-    target_covariances = _check_covariances(target_covariances, target, "target_covariances")
+        target_covariances = default_covariances(target, target_mask, covariances_k, buckets)
+    source_covariances = check_covariances(source_covariances, source, "source_covariances")
+    target_covariances = check_covariances(target_covariances, target, "target_covariances")
     if translation_epsilon is None:
         check_parameter(max_correspondence_distance, "max_correspondence_distance", positive=True)
         translation_epsilon = TRANSLATION_EPSILON_PER_DISTANCE * max_correspondence_distance
@@ -412,31 +250,3 @@ def gicp(
         buckets, source_rows=source_covariances, target_rows=target_covariances,
         step_tolerance=(rotation_epsilon, translation_epsilon),
     )  # fmt: skip
-
-
-def _default_covariances(points, mask, k, buckets):
-    """`estimate_covariances` of a cloud; with `buckets`, on the cloud padded (masked rows) to its
-    capacity bucket, as `_register` pads it (`lieax.icp._batch.bucket_size`), cut back to the
-    cloud's rows: a cloud of a new size in a known bucket compiles nothing new."""
-    if not buckets:
-        return estimate_covariances(points, k=k, mask=mask)
-    padded, padded_mask = pad_to_bucket(points, mask)
-    covariances = estimate_covariances(padded, k=k, mask=padded_mask)
-    if is_concrete(covariances):  # a transfer, not a compiled slice (`to_device`)
-        return to_device(np.asarray(covariances)[: points.shape[0]])
-    return covariances[: points.shape[0]]
-
-
-def _check_covariances(covariances, points, what):
-    covariances = as_float_array(covariances, what)
-    expected = (points.shape[0], 3, 3)
-    if covariances.shape != expected:
-        raise ValueError(
-            f"{what} must have shape {expected} (one 3x3 matrix per point), "
-            f"got shape {tuple(covariances.shape)}."
-        )
-    if covariances.dtype != points.dtype:
-        raise TypeError(
-            f"{what} must have the points' dtype {points.dtype}, got {covariances.dtype}."
-        )
-    return covariances

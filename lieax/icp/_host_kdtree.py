@@ -81,7 +81,7 @@ class KDTreeIndex(NamedTuple):
     points: jax.Array
     order: jax.Array
     valid: jax.Array
-    tree: jax.Array
+    tree: jax.Array | _native_kdtree.NativeKDTree
 
 
 def check_on_host(points, what):

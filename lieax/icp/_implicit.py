@@ -41,8 +41,9 @@ problems (a `vmap`ped batch keeps the others' derivatives). The derivative is th
 stationary point: it matches finite differences of the returned pose to the accuracy to which
 the loop converged (tighten `relative_fitness`/`relative_rmse` to compare them closely).
 
-The rule is linear in $\dot\theta$ (one Hessian, a forward pass of $g$, a 6x6 solve), so JAX
-transposes it for `jax.grad`, as `lieax.lstsq`'s implicit derivatives.
+The rule is `lieax.lstsq._implicit.stationary_tangent`, the one of `lieax.lstsq`'s implicit
+derivatives: linear in $\dot\theta$ (one Hessian, a forward pass of $g$, a 6x6 solve), so JAX
+transposes it for `jax.grad`.
 """
 
 import functools
@@ -52,6 +53,7 @@ import jax.numpy as jnp
 
 from .._linalg import quat_to_matrix
 from ..groups import SE3, kernels
+from ..lstsq._implicit import stationary_tangent
 from ..lstsq._solution import Status
 from ._centring import centred_pose, centroid, uncentred_tangent
 from ._checks import ICPError
@@ -146,10 +148,7 @@ def _tangents(params, rmse, data, fixed, data_dot, *, kind, static_loss):
     undefined = jnp.where(status == Status.CONVERGED, 1.0, jnp.nan).astype(params.dtype)
     data_dot = jax.tree.map(lambda x: x * undefined.astype(x.dtype), data_dot)
     zero = jnp.zeros((6,), params.dtype)
-    hessian = jax.jacfwd(gradient)(zero, data)
-    hessian = 0.5 * (hessian + hessian.T)
-    _, mixed = jax.jvp(lambda d: gradient(zero, d), (data,), (data_dot,))
-    delta_dot = -jnp.linalg.solve(hessian, mixed) * undefined
+    delta_dot = stationary_tangent(gradient, 6, params.dtype, data, data_dot) * undefined
 
     def mean_squared(delta, data):
         gap = gaps(delta, data)

@@ -7,20 +7,82 @@ overall shape with a wide capture distance; fine levels refine on the full detai
 """
 
 import math
+from collections.abc import Iterable
+from typing import Any, Literal, overload
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 
 from ..groups import SE3, kernels
 from ._checks import ICPInputError, check_cloud, check_count, check_mask
 from ._downsample import voxel_downsample
 from ._gicp import gicp
-from ._registration import ICPError, Status, _raise_on_failure, point_to_plane, point_to_point
+from ._registration import (
+    ICPError,
+    ICPResult,
+    Status,
+    _raise_on_failure,
+    point_to_plane,
+    point_to_point,
+)
+from ._robust import WeightedLoss
 
 _METHODS = {"point_to_point": point_to_point, "point_to_plane": point_to_plane, "gicp": gicp}
 
 
+@overload
+def multi_scale(
+    source: ArrayLike,
+    target: ArrayLike,
+    *,
+    voxel_sizes: Iterable[ArrayLike | None],
+    max_correspondence_distances: Iterable[ArrayLike],
+    max_iterations: int | np.integer | Iterable[int | np.integer] = 30,
+    method: str = "point_to_plane",
+    init: SE3 | None = None,
+    loss: WeightedLoss | None = None,
+    source_mask: ArrayLike | None = None,
+    target_mask: ArrayLike | None = None,
+    return_levels: Literal[False] = False,
+    throw: bool = True,
+    **options: Any,
+) -> ICPResult: ...
+@overload
+def multi_scale(
+    source: ArrayLike,
+    target: ArrayLike,
+    *,
+    voxel_sizes: Iterable[ArrayLike | None],
+    max_correspondence_distances: Iterable[ArrayLike],
+    max_iterations: int | np.integer | Iterable[int | np.integer] = 30,
+    method: str = "point_to_plane",
+    init: SE3 | None = None,
+    loss: WeightedLoss | None = None,
+    source_mask: ArrayLike | None = None,
+    target_mask: ArrayLike | None = None,
+    return_levels: Literal[True],
+    throw: bool = True,
+    **options: Any,
+) -> tuple[ICPResult, list[ICPResult]]: ...
+@overload
+def multi_scale(
+    source: ArrayLike,
+    target: ArrayLike,
+    *,
+    voxel_sizes: Iterable[ArrayLike | None],
+    max_correspondence_distances: Iterable[ArrayLike],
+    max_iterations: int | np.integer | Iterable[int | np.integer] = 30,
+    method: str = "point_to_plane",
+    init: SE3 | None = None,
+    loss: WeightedLoss | None = None,
+    source_mask: ArrayLike | None = None,
+    target_mask: ArrayLike | None = None,
+    return_levels: bool,
+    throw: bool = True,
+    **options: Any,
+) -> ICPResult | tuple[ICPResult, list[ICPResult]]: ...
 def multi_scale(
     source,
     target,
@@ -55,7 +117,7 @@ def multi_scale(
       that fails hands its last pose on. A valid input point that is not finite makes the result
       `NONFINITE` (with `init`), whatever the levels (whose voxels drop such points) reached.
     - `options`: further keyword arguments of the method (`relative_fitness`, `normals_k`,
-      `covariances_k`, `exact`, ...), the same at every level.
+      `covariances_k`, ...), the same at every level.
 
     Called eagerly, each level's clouds are the occupied voxels' centroids, padded (masked) to a
     power-of-two row count shared by both clouds (fewer compilations). Under `jit` or

@@ -19,9 +19,12 @@ that `lieax.icp._implicit` can differentiate them with the neighbourhoods held f
 """
 
 import functools
+from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
+import numpy as np
+from jax.typing import ArrayLike
 
 from .. import _cpu_emitters as cpu_emitters
 from .._host_call import host_call
@@ -32,9 +35,20 @@ NORMAL_SEARCHES = ("auto", "kdtree", "graph")
 _UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
 
+def upper_entry(upper, a, b):
+    """Entry `(a, b)` of a symmetric 3x3 matrix given as its six upper entries (`_UPPER`'s order)."""
+    return upper[_UPPER.index((min(a, b), max(a, b)))]
+
+
 def estimate_normals(
-    points, *, k=30, radius=None, mask=None, viewpoint=(0.0, 0.0, 0.0), search="auto"
-):
+    points: ArrayLike,
+    *,
+    k: int | np.integer = 30,
+    radius: ArrayLike | None = None,
+    mask: ArrayLike | None = None,
+    viewpoint: ArrayLike | Sequence[float] | None = (0.0, 0.0, 0.0),
+    search: str = "auto",
+) -> jax.Array:
     r"""Unit normals of a point cloud, shape `(n, 3)`.
 
     **Arguments:**

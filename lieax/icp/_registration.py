@@ -52,6 +52,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 
 from .._checks import is_concrete, to_device
 from .._runtime_error import raise_if
@@ -73,7 +74,9 @@ from ._loop import IDENTITY, MIN_CORRESPONDENCES, Options, solve
 from ._matchers import matcher_for
 from ._plane_step import POINT_TO_PLANE
 from ._point_step import POINT_TO_POINT
+from ._robust import WeightedLoss
 from ._robust import split_loss as _split_loss
+from ._search import NeighbourIndex
 
 # `point_to_plane(presample=...)`: the fewest points the first registration runs on, and the
 # smallest `max_iterations` it runs for (a caller asking for a few iterations steps the whole
@@ -123,25 +126,24 @@ class ICPResult(SolverResult, _ICPResultFields):
 
 
 def point_to_plane(
-    source,
-    target,
+    source: ArrayLike,
+    target: ArrayLike,
     *,
-    max_correspondence_distance,
-    target_normals=None,
-    init=None,
-    max_iterations=30,
-    relative_fitness=1e-6,
-    relative_rmse=1e-6,
-    loss=None,
-    source_mask=None,
-    target_mask=None,
-    exact=True,
-    normals_k=30,
-    verbose=False,
-    throw=True,
-    search="auto",
-    buckets=True,
-    presample=_DEFAULT_PRESAMPLE,
+    max_correspondence_distance: ArrayLike,
+    target_normals: ArrayLike | None = None,
+    init: SE3 | None = None,
+    max_iterations: int | np.integer = 30,
+    relative_fitness: ArrayLike = 1e-6,
+    relative_rmse: ArrayLike = 1e-6,
+    loss: WeightedLoss | None = None,
+    source_mask: ArrayLike | None = None,
+    target_mask: ArrayLike | None = None,
+    normals_k: int | np.integer = 30,
+    verbose: bool = False,
+    throw: bool = True,
+    search: str | NeighbourIndex = "auto",
+    buckets: bool = True,
+    presample: float = _DEFAULT_PRESAMPLE,
 ) -> ICPResult:
     r"""Point-to-plane ICP: minimize $\sum_i \rho\big((n_i^\top (T s_i - d_i))^2\big)$ over
     $T$ = `T_target_source`, re-matching $d_i$ (nearest target point of $T s_i$) every iteration.
@@ -160,8 +162,6 @@ def point_to_plane(
     - `loss`: robust loss with a `weight(s)` method of the squared residual `s` (the
       `lieax.lstsq` losses: `Huber`, `Cauchy`, `Tukey`, `GemanMcClure`); default least squares.
     - `source_mask`, `target_mask`: `(n,)`, `(m,)` bools, False for padding (see `pad_clouds`).
-    - `exact`: accepted for compatibility and ignored: every search is exact in every iteration
-      (it verified the matches of the removed `search="graph"`).
     - `normals_k`: neighbours for the default normals.
     - `verbose`: print the fitness and inlier RMSE after every iteration, from inside the compiled
       loop (`jax.debug.print`; under `vmap` one line per problem).
@@ -208,22 +208,21 @@ def point_to_plane(
 
 
 def point_to_point(
-    source,
-    target,
+    source: ArrayLike,
+    target: ArrayLike,
     *,
-    max_correspondence_distance,
-    init=None,
-    max_iterations=30,
-    relative_fitness=1e-6,
-    relative_rmse=1e-6,
-    loss=None,
-    source_mask=None,
-    target_mask=None,
-    exact=True,
-    verbose=False,
-    throw=True,
-    search="auto",
-    buckets=True,
+    max_correspondence_distance: ArrayLike,
+    init: SE3 | None = None,
+    max_iterations: int | np.integer = 30,
+    relative_fitness: ArrayLike = 1e-6,
+    relative_rmse: ArrayLike = 1e-6,
+    loss: WeightedLoss | None = None,
+    source_mask: ArrayLike | None = None,
+    target_mask: ArrayLike | None = None,
+    verbose: bool = False,
+    throw: bool = True,
+    search: str | NeighbourIndex = "auto",
+    buckets: bool = True,
 ) -> ICPResult:
     r"""Point-to-point ICP: minimize $\sum_i \rho(\|T s_i - d_i\|^2)$ over $T$ = `T_target_source`
     with the closed-form (weighted Kabsch) step each iteration, re-matching $d_i$.

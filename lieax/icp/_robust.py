@@ -7,6 +7,7 @@ new scale does not recompile); any other object with a `weight(s)` method is a s
 """
 
 import functools
+from typing import Protocol
 
 import jax
 import jax.numpy as jnp
@@ -14,6 +15,14 @@ import jax.numpy as jnp
 from ..lstsq import Cauchy, GemanMcClure, Huber, Tukey
 
 KNOWN_LOSSES = (None, Huber, Cauchy, Tukey, GemanMcClure)
+
+
+class WeightedLoss(Protocol):
+    r"""The type of ICP's `loss=`: anything with a `weight(s)` method giving the IRLS weights
+    $\rho'(s)$ of squared residuals `s` (the `lieax.lstsq` losses, or a hashable object of the
+    user's)."""
+
+    def weight(self, s: jax.Array, /) -> jax.Array: ...
 
 
 def split_loss(loss):

@@ -20,10 +20,11 @@ slower on three of them and 9% faster on the full bunny; see the changelog.) Els
 """
 
 import math
-from typing import NamedTuple
+from typing import Any, NamedTuple, TypeAlias
 
 import jax
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 
 from . import _grid, _host_kdtree
 from ._checks import check_parameter
@@ -62,6 +63,10 @@ class BruteIndex(NamedTuple):
     valid: jax.Array
 
 
+# What `build_index` returns and `nearest` and ICP's `search=` take.
+NeighbourIndex: TypeAlias = _grid.GridIndex | _host_kdtree.KDTreeIndex | BruteIndex
+
+
 def check_search(search) -> str:
     if search not in SEARCHES:
         raise ValueError(f"search must be one of {SEARCHES}, got {search!r}.")
@@ -79,7 +84,14 @@ def resolve(search, target_size, has_radius=True, platform=None) -> str:
     return "grid" if has_radius and target_size > BRUTE_MAX_TARGET else "brute"
 
 
-def build_index(points, mask=None, *, search="auto", max_distance=None, **options):
+def build_index(
+    points: ArrayLike,
+    mask: ArrayLike | None = None,
+    *,
+    search: str = "auto",
+    max_distance: ArrayLike | None = None,
+    **options: Any,
+) -> NeighbourIndex:
     """Prepare a target cloud `points` (shape `(n, 3)`) for nearest-neighbour queries; runs under
     `jit` and `vmap`.
 
@@ -193,7 +205,14 @@ def _min_and_argmin(d2):
     return smallest, jnp.minimum(first, columns - 1)
 
 
-def nearest(index, queries, *, radius=jnp.inf, initial=None, mask=None) -> Neighbors:
+def nearest(
+    index: NeighbourIndex,
+    queries: ArrayLike,
+    *,
+    radius: ArrayLike = jnp.inf,
+    initial: ArrayLike | None = None,
+    mask: ArrayLike | None = None,
+) -> Neighbors:
     """The nearest target point of every query, exact within `radius`.
 
     **Arguments:**

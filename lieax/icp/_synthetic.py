@@ -2,8 +2,10 @@
 corner (floor and two walls), a sphere and a capped cylinder, sampled uniformly by area, with
 exact normals, optional noise, and a pair of views related by a known rigid motion."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import DTypeLike
 
 from .._checks import to_device
 from ..groups import SE3, kernels
@@ -72,7 +74,9 @@ def _sample_part(rng, kind, p, count):
     return base + radius * radial + z, radial
 
 
-def synthetic_scene(n=2000, *, noise=0.0, seed=0, dtype=jnp.float64):
+def synthetic_scene(
+    n: int = 2000, *, noise: float = 0.0, seed: int = 0, dtype: DTypeLike = jnp.float64
+) -> tuple[jax.Array, jax.Array]:
     """`(points, normals)`, each `(n, 3)`: the scene sampled uniformly by area (about 2 m across),
     Gaussian noise of standard deviation `noise` added along each point's normal."""
     rng = np.random.default_rng(seed)
@@ -89,9 +93,15 @@ def synthetic_scene(n=2000, *, noise=0.0, seed=0, dtype=jnp.float64):
 
 
 def synthetic_pair(
-    n=2000, *, rotation_deg=10.0, translation=0.1, noise=0.0, same_samples=True, seed=0,
-    dtype=jnp.float64,
-):  # fmt: skip
+    n: int = 2000,
+    *,
+    rotation_deg: float = 10.0,
+    translation: float = 0.1,
+    noise: float = 0.0,
+    same_samples: bool = True,
+    seed: int = 0,
+    dtype: DTypeLike = jnp.float64,
+) -> tuple[jax.Array, jax.Array, jax.Array, SE3]:
     """Two views of the scene related by a known motion.
 
     **Arguments:**

@@ -10,14 +10,13 @@ H = \frac{\partial g}{\partial \delta}
   = \nabla^2_\delta f(x^* \oplus \delta, \theta)\big|_{\delta=0},$$
 
 with the exact Hessian of the (robust) cost in tangent coordinates, not the Gauss-Newton one, so
-that problems with nonzero residuals get exact derivatives. `minimizer_tangents` is this rule
-once for lieax's Levenberg-Marquardt, for both its doors: `least_squares` (one state,
+that problems with nonzero residuals get exact derivatives. `stationary_tangent` is this rule
+once, for ICP's poses (`lieax.icp._implicit`) and, through `minimizer_tangents`, which adds the
+cost's derivative, for both doors of lieax's Levenberg-Marquardt: `least_squares` (one state,
 `with_implicit_derivatives`) and `FactorGraph.solve` (`lieax.factorgraph._implicit`, whose fixed
 instances do not move); `local_to_tangents` turns the right-local $\dot\delta$ into JAX tangents
-of the solution's leaves. $\dot\delta$ is a right-local
-tangent; each group leaf's JAX tangent is made from it by `leaf_tangent_from_local`. The cost
-moves by $\partial f / \partial \theta\,\dot\theta$ (its derivative through $x^*$ vanishes
-with $g$). No iteration is unrolled: the rule costs one Hessian ($n$ forward passes over one
+of the solution's leaves (each group leaf's by `leaf_tangent_from_local`). The cost moves by
+$\partial f / \partial \theta\,\dot\theta$ (its derivative through $x^*$ vanishes with $g$). No iteration is unrolled: the rule costs one Hessian ($n$ forward passes over one
 reverse pass of the residual) and one $n \times n$ Cholesky solve, and it is linear in
 $\dot\theta$, so JAX transposes it for `jax.grad`.
 """
@@ -41,25 +40,33 @@ from ._problem import cost
 
 
 def minimizer_tangents(objective, n, dtype, theta, theta_dot, free=None):
-    r"""`(delta_dot, cost_dot)`: the implicit derivative $\dot\delta = -H^{-1}\,\partial_\theta
-    g\,\dot\theta$ of the minimizer of `objective(delta, theta)` at $\delta = 0$ (the solution,
-    where its gradient $g$ vanishes) and the cost's $\partial_\theta f\,\dot\theta$, for `n`
-    tangent coordinates of `dtype`. `free` (a boolean mask of the coordinates, or `None`) holds
-    the others still: their rows and columns of $H$ become the identity's and their
-    $\dot\delta$ is zero. $H$ is the exact Hessian (`n` forward passes over one reverse pass),
-    symmetrized and solved by `cholesky_with_fallback` (the factorization of the dense loop's
-    `solve_spd`, whose regularized fallback gives a singular direction, such as a free gauge,
-    no motion; `solve_factored` is linear in the right side, so JAX transposes it)."""
+    r"""`(delta_dot, cost_dot)`: the implicit derivative $\dot\delta$ of the minimizer of
+    `objective(delta, theta)` at $\delta = 0$ (`stationary_tangent` of its gradient), and the
+    cost's $\partial_\theta f\,\dot\theta$ (its derivative through the minimizer vanishes with
+    $g$), for `n` tangent coordinates of `dtype`."""
     zero = jnp.zeros((n,), dtype=dtype)
-    hessian = jax.jacfwd(jax.grad(objective))(zero, theta)
+    delta_dot = stationary_tangent(jax.grad(objective), n, dtype, theta, theta_dot, free)
+    _, cost_dot = jax.jvp(lambda th: objective(zero, th), (theta,), (theta_dot,))
+    return delta_dot, cost_dot
+
+
+def stationary_tangent(gradient, n, dtype, theta, theta_dot, free=None):
+    r"""$\dot\delta = -H^{-1}\,\partial_\theta g\,\dot\theta$ for the zero at $\delta = 0$ of
+    `gradient(delta, theta)` ($g$, `n` tangent coordinates of `dtype`), $H = \partial_\delta g$
+    (`n` forward passes of $g$). `free` (a boolean mask of the coordinates, or `None`) holds the
+    others still: their rows and columns of $H$ become the identity's and their $\dot\delta$ is
+    zero. $H$ is symmetrized and solved by `cholesky_with_fallback` (the factorization of the
+    dense loop's `solve_spd`, whose regularized fallback gives a singular direction, such as a
+    free gauge, no motion, and an indefinite $H$ NaN; `solve_factored` is linear in the right
+    side, so JAX transposes it). Used by `least_squares`, `FactorGraph.solve` and ICP."""
+    zero = jnp.zeros((n,), dtype=dtype)
+    hessian = jax.jacfwd(gradient)(zero, theta)
     hessian = 0.5 * (hessian + hessian.T)
-    _, (cost_dot, mixed) = jax.jvp(
-        lambda th: jax.value_and_grad(objective)(zero, th), (theta,), (theta_dot,)
-    )
+    _, mixed = jax.jvp(lambda th: gradient(zero, th), (theta,), (theta_dot,))
     if free is not None:
         hessian = jnp.where(free[:, None] & free[None, :], hessian, jnp.eye(n, dtype=dtype))
         mixed = jnp.where(free, mixed, 0.0)
-    return -solve_factored(cholesky_with_fallback(hessian), mixed), cost_dot
+    return -solve_factored(cholesky_with_fallback(hessian), mixed)
 
 
 def local_to_tangents(leaves, treedef, local):

@@ -1,4 +1,4 @@
-"""A user's script written as the docs write lieax: a type checker must see lieax's types in it
+"""A user's script written as the docs (and examples/icp_demo.py) write lieax: a type checker must see lieax's types in it
 (`assert_type`), report no error, and reject the mistakes in `_rejected` (each line's
 `# type: ignore[...]` is then used; with `warn_unused_ignores` an unused one is an error, so a hint
 that decays to `Any` fails the check). From the repository root, with mypy in any environment:
@@ -19,7 +19,21 @@ import jax.numpy as jnp
 import numpy as np
 
 import lieax
-from lieax import S2, SE2, SE3, SE23, SO2, SO3, Sim3, cameras, conventions, io
+from lieax import (
+    S2,
+    SE2,
+    SE3,
+    SE23,
+    SO2,
+    SO3,
+    Sim3,
+    cameras,
+    conventions,
+    icp,
+    io,
+    retractions,
+    viz,
+)
 from lieax.factorgraph import Factor, FactorGraph, SolveResult, Var, VarRef, marginal_covariances
 from lieax.lstsq import GaussNewton, LevenbergMarquardt, Solution, Termination
 
@@ -301,6 +315,74 @@ fit = lieax.lstsq.least_squares(
 )  # fmt: skip
 damped = LevenbergMarquardt(initial_damping=1e-3)
 assert_type(damped.scale(damped.init(3, jnp.float64)), jax.Array)
+# ---- icp.md, examples/icp_demo.py and batch_icp.py (small clouds) ----
+source_j, target_j, target_normals, T_truth = icp.synthetic_pair(600, rotation_deg=5.0, seed=1)
+assert_type(T_truth, SE3)
+assert_type(icp.synthetic_scene(600)[0], jax.Array)
+# NumPy until the registration, as the demo
+source, target = np.asarray(source_j), np.asarray(target_j)
+result = icp.point_to_plane(
+    source, target, target_normals=target_normals, max_correspondence_distance=0.1,
+    max_iterations=np.int64(30), presample=0,
+)  # fmt: skip
+assert_type(result, icp.ICPResult)
+assert_type(result.transform, SE3)
+assert_type(result.fitness, jax.Array)
+assert_type(result.inlier_rmse, jax.Array)
+assert_type(result.iterations, jax.Array)
+assert_type(result.status, jax.Array)
+assert_type(result.correspondences, jax.Array)
+assert result.status_name == "CONVERGED", result
+assert_type(
+    icp.point_to_point(
+        source, target, max_correspondence_distance=0.1, init=result.transform,
+        loss=lieax.lstsq.Huber(0.05), search="kdtree",
+    ),
+    icp.ICPResult,
+)  # fmt: skip
+assert_type(icp.estimate_normals(target, k=10, viewpoint=None), jax.Array)
+assert_type(icp.estimate_covariances(target, k=10), jax.Array)
+assert_type(
+    icp.gicp(source, target, max_correspondence_distance=0.1, covariances_k=10), icp.ICPResult
+)
+assert_type(icp.voxel_downsample(target, 0.05), jax.Array)
+cells, cells_mask = icp.voxel_downsample(target, 0.05, size=200)
+assert_type(cells_mask, jax.Array)
+pyramid = icp.multi_scale(
+    source, target, voxel_sizes=(0.1, None), max_correspondence_distances=(0.3, 0.1),
+    max_iterations=(10, 20),
+)  # fmt: skip
+assert_type(pyramid, icp.ICPResult)
+finest, levels = icp.multi_scale(
+    source, target, voxel_sizes=[0.1], max_correspondence_distances=[0.3], return_levels=True
+)
+assert_type(levels, list[icp.ICPResult])
+index = icp.build_index(target, search="brute")
+assert_type(icp.nearest(index, source, radius=0.1), icp.Neighbors)
+assert_type(icp.nearest(index, source).distance, jax.Array)
+sources, source_masks = icp.pad_clouds([source[:500], source])
+targets, target_masks = icp.pad_clouds([target, target[:550]])
+register = lambda s, sm, t, tm: icp.point_to_plane(
+    s, t, source_mask=sm, target_mask=tm, max_correspondence_distance=0.1, throw=False
+)  # fmt: skip
+batch = jax.vmap(register)(sources, source_masks, targets, target_masks)
+assert_type(register(source, None, target, None), icp.ICPResult)
+
+# ---- retractions (groups.md) ----
+assert_type(retractions.cayley.rminus(T, T), jax.Array)
+assert_type(retractions.first_order, retractions.Retraction)
+moved_cayley = lieax.rplus({"pose": T}, {"pose": jnp.zeros(6)}, retraction=retractions.cayley)
+
+# ---- viz (matplotlib without pyplot, as the examples save figures) ----
+from matplotlib.figure import Figure  # noqa: E402
+
+figure = Figure()
+ax = viz.plot_registration(source, target, result.transform, ax=figure.add_subplot(projection="3d"))
+viz.plot_frames(SE3.identity((2,)), ax=ax, origin_color="k", labels=["a", "b"])
+viz.plot_points(target, ax=ax, color="tab:green", mask=np.ones(600, bool))
+viz.plot_pose_graph(SE3.identity((3,)), edges=np.array([[0, 1], [1, 2]]), ax=ax, frames=0.1)
+viz.set_axes_equal(ax)
+viz.plot_cost(np.array([3.0, 2.0, 1.0]), ax=figure.add_subplot())
 
 # ---- the compilation cache, threads ----
 cache = lieax.enable_compilation_cache(tempfile.mkdtemp())
@@ -324,3 +406,14 @@ def _rejected() -> None:
     lieax.imu.predict(pim, SE2.identity(), jnp.zeros(3), jnp.zeros(6), imu_params)  # type: ignore[arg-type]
     lieax.lstsq.least_squares(curve, {}, solver="lm")  # type: ignore[arg-type]
     LevenbergMarquardt(damping=1.0)  # type: ignore[call-arg]
+    icp.point_to_plane(a, a, max_correspondence_distance=0.1, init=SO3.identity())  # type: ignore[arg-type]
+    icp.point_to_point(a, a, max_correspondence_distance=0.1, loss=2.0)  # type: ignore[arg-type]
+    icp.point_to_point(a, a, max_correspondence_distance=0.1).transform.scale()  # type: ignore[attr-defined]
+    _ = icp.voxel_downsample(a, 0.1, size=10).shape  # type: ignore[attr-defined]
+    levels = icp.multi_scale(
+        a, a, voxel_sizes=[0.1], max_correspondence_distances=[1.0], return_levels=True
+    )
+    _ = levels.transform  # type: ignore[attr-defined]
+    _ = icp.synthetic_pair(10)[3].shape  # type: ignore[attr-defined]
+    icp.nearest(a, a)  # type: ignore[arg-type]
+    viz.plot_frames(a)  # type: ignore[arg-type]
