@@ -14,13 +14,18 @@ come from `lieax.value_and_jacobian`, i.e. the groups' closed-form `custom_jvp` 
 """
 
 import math
+from collections.abc import Callable, Iterable, Sequence
+from typing import Any, Self
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 
 from .._checks import check_not_foreign, foreign_conversion
+from .._typing import PyTree
 from ..autodiff._jacobian import value_and_jacobian
+from ..lstsq import AbstractLoss
 from ._variables import VarRef
 
 
@@ -55,17 +60,17 @@ class Factor:
 
     def __init__(
         self,
-        residual,
-        args,
-        data=None,
+        residual: Callable[..., ArrayLike],
+        args: Iterable[VarRef],
+        data: PyTree | None = None,
         *,
-        sqrt_information=None,
-        information=None,
-        covariance=None,
-        sigmas=None,
-        loss=None,
-        jacobian_fn=None,
-        name=None,
+        sqrt_information: ArrayLike | None = None,
+        information: ArrayLike | None = None,
+        covariance: ArrayLike | None = None,
+        sigmas: ArrayLike | Sequence[float] | None = None,
+        loss: AbstractLoss | None = None,
+        jacobian_fn: Callable[..., tuple[ArrayLike, Sequence[ArrayLike]]] | None = None,
+        name: str | None = None,
     ):
         self.residual = residual
         self.name = name
@@ -112,7 +117,13 @@ class Factor:
         self.residual_size = None  # k, set when a `FactorGraph` checks the kind
 
     @classmethod
-    def make(cls, residual, args, data=None, **options):
+    def make(
+        cls,
+        residual: Callable[..., ArrayLike],
+        args: Iterable[VarRef],
+        data: PyTree | None = None,
+        **options: Any,
+    ) -> Self:
         """`Factor(residual, args, data, **options)` (jaxls' spelling)."""
         return cls(residual, args, data, **options)
 
@@ -183,8 +194,13 @@ def sigmas_to_sqrt_information(sigmas, what="sigmas"):
     return weights[..., :, None] * np.eye(sigmas.shape[-1])
 
 
-def square_root_information(matrix, what="information matrix", *, covariance=False,
-                            semidefinite=False):  # fmt: skip
+def square_root_information(
+    matrix: ArrayLike,
+    what: str = "information matrix",
+    *,
+    covariance: bool = False,
+    semidefinite: bool = False,
+) -> np.ndarray:
     r"""The square-root information $R$, $R^\top R = \Omega$, of a batch `(..., d, d)` of
     information matrices $\Omega$ or, with `covariance=True`, of covariances
     $\Sigma = \Omega^{-1}$ (numpy float64; the one conversion of `Factor`, `lieax.graph` and the

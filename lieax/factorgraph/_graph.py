@@ -8,6 +8,7 @@ or new measurements of the same structure reuse it, under `vmap` too.
 
 import operator
 import warnings
+from collections.abc import Iterable, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -16,10 +17,19 @@ import numpy as np
 from .._checks import to_device
 from .._runtime_error import raise_if
 from .._threads import lapack_limited
+from .._typing import PyTree
 from ..autodiff._tangents import check_retraction, manifold_leaves
-from ..lstsq import LevenbergMarquardt, NonFiniteStartError, SolveError, Status, Termination
+from ..lstsq import (
+    AbstractLoss,
+    AbstractSolver,
+    LevenbergMarquardt,
+    NonFiniteStartError,
+    SolveError,
+    Status,
+    Termination,
+)
 from ..lstsq._solution import SolveResult, is_failure, nonfinite_leaves
-from ..retractions import exp
+from ..retractions import Retraction, exp
 from ._dense_solve import dense_threads
 from ._elimination import (
     candidates,
@@ -70,7 +80,13 @@ class FactorGraph:
     information, finite data, Jacobian shapes of a `jacobian_fn`.
     """
 
-    def __init__(self, factors, variables=None, *, check_gauge=True):
+    def __init__(
+        self,
+        factors: Iterable[Factor],
+        variables: Iterable[Var] | None = None,
+        *,
+        check_gauge: bool = True,
+    ):
         factors = tuple(factors)
         if not factors or not all(isinstance(f, Factor) for f in factors):
             raise TypeError("factors must be a non-empty sequence of lieax.factorgraph.Factor.")
@@ -144,7 +160,7 @@ class FactorGraph:
             f"kinds, {self.layout.num_unknowns} unknowns)"
         )
 
-    def index(self, var):
+    def index(self, var: Var) -> int:
         """The position of `var` in `variables` (and in a solution's `values`)."""
         for k, v in enumerate(self.variables):
             if v is var:
@@ -152,11 +168,11 @@ class FactorGraph:
         raise ValueError(f"{var!r} is not a variable of this graph.")
 
     @property
-    def initial_values(self):
+    def initial_values(self) -> tuple[PyTree, ...]:
         return tuple(v.value for v in self.variables)
 
     @property
-    def data(self):
+    def data(self) -> tuple[tuple[PyTree, jax.Array | None, AbstractLoss | None], ...]:
         """Per factor kind `(data, sqrt_information, loss)`, as `solve(data=...)` takes it."""
         if self._default_data is None:
             self._default_data = tuple(
@@ -169,7 +185,9 @@ class FactorGraph:
             )
         return self._default_data
 
-    def cost(self, values=None, data=None):
+    def cost(
+        self, values: Sequence[PyTree] | None = None, data: Sequence[PyTree] | None = None
+    ) -> jax.Array:
         r"""$\tfrac12 \sum \rho(\|R r\|^2)$ at `values` (default the initial values; jitted,
         compiled once per graph)."""
         from ._assembly import cost
@@ -180,7 +198,9 @@ class FactorGraph:
         values = self.initial_values if values is None else tuple(values)
         return self._cost(values, self._data(data))
 
-    def linearize(self, values=None, data=None):
+    def linearize(
+        self, values: Sequence[PyTree] | None = None, data: Sequence[PyTree] | None = None
+    ) -> tuple[jax.Array, tuple[jax.Array, ...], tuple[jax.Array, ...], tuple[jax.Array, ...]]:
         """`(cost, diag, off, grad)`: the block normal equations at `values` (fixed instances
         masked), per kind and per pair of kinds of `layout` (jitted, compiled once per graph)."""
         from ._assembly import linearize
@@ -217,19 +237,19 @@ class FactorGraph:
 
     def solve(
         self,
-        values=None,
-        data=None,
+        values: Sequence[PyTree] | None = None,
+        data: Sequence[PyTree] | None = None,
         *,
-        solver=GTSAM,
-        termination=GTSAM_TERMINATION,
-        linear_solver="auto",
-        eliminate="auto",
-        retraction=None,
-        cg_tolerance=1e-8,
-        cg_max_iterations=None,
-        verbose=False,
-        throw=True,
-    ):
+        solver: AbstractSolver = GTSAM,
+        termination: Termination = GTSAM_TERMINATION,
+        linear_solver: str = "auto",
+        eliminate: Var | str | None = "auto",
+        retraction: Retraction | None = None,
+        cg_tolerance: float = 1e-8,
+        cg_max_iterations: int | None = None,
+        verbose: bool = False,
+        throw: bool = True,
+    ) -> SolveResult:
         r"""Minimize $\tfrac12 \sum \rho(\|R r\|^2)$ (see `_solve` for the semantics).
 
         **Arguments:**

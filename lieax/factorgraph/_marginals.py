@@ -8,17 +8,31 @@ rotation first). Small graphs invert the dense $H$; larger ones factor it once w
 multifrontal `CholeskyPlan` and solve for the unit right-hand sides of the requested blocks.
 """
 
+from collections.abc import Sequence
+
 import numpy as np
+from jax.typing import ArrayLike
 
 from .. import _cpu_emitters as cpu_emitters
+from .._typing import PyTree
 from ._assembly import linearize
 from ._block_pattern import dense_matrix
+from ._graph import FactorGraph
 from ._linear import to_padded
+from ._variables import Var
 
 _DENSE_LIMIT = 2000
 
 
-def marginal_covariances(graph, values, var, indices=None, *, data=None, method="auto"):
+def marginal_covariances(
+    graph: FactorGraph,
+    values: Sequence[PyTree],
+    var: Var,
+    indices: ArrayLike | Sequence[int] | None = None,
+    *,
+    data: Sequence[PyTree] | None = None,
+    method: str = "auto",
+) -> np.ndarray:
     """The marginal covariances of instances `indices` (default all) of `var` at `values`.
 
     **Arguments:**

@@ -21,8 +21,10 @@ import concurrent.futures
 import dataclasses
 import hashlib
 import threading
+from collections.abc import Sequence
 
 import numpy as np
+from jax.typing import ArrayLike
 
 from ._block_pattern import BlockPattern
 from ._gram import gram_plan
@@ -250,7 +252,9 @@ def check_anchored(variables, factors, layout, plans, unary):
         )
 
 
-def connected_components(n, rows, cols):
+def connected_components(
+    n: int, rows: ArrayLike | Sequence[int], cols: ArrayLike | Sequence[int]
+) -> tuple[int, np.ndarray]:
     """`(count, labels)` of the undirected graph of `n` nodes and edges `(rows[e], cols[e])`,
     labelled as `scipy.sparse.csgraph.connected_components` does (component `c` is the one of
     the `c`-th smallest node that starts a component), in NumPy without importing SciPy's

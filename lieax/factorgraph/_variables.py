@@ -9,11 +9,14 @@ values", Ceres' `SetParameterBlockConstant`); priors are ordinary unary factors.
 """
 
 import math
+from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 
+from .._typing import PyTree
 from ..autodiff._tangents import leaf_array, leaf_tangent_shape, manifold_leaves
 
 
@@ -31,7 +34,13 @@ class Var:
     is made.
     """
 
-    def __init__(self, value, *, fixed=None, name=None):
+    def __init__(
+        self,
+        value: PyTree,
+        *,
+        fixed: ArrayLike | Sequence[int] | None = None,
+        name: str | None = None,
+    ):
         leaves, treedef = manifold_leaves(value, f"Var {name!r} value")
         sizes = {_leading(leaf) for leaf in leaves}
         if len(sizes) != 1 or None in sizes:
@@ -52,7 +61,7 @@ class Var:
                 bad = np.flatnonzero(~np.all(np.isfinite(np.reshape(array, (self.count, -1))), 1))
                 raise ValueError(f"Var {name!r}: instance {bad[0]} has non-finite values.")
 
-    def __getitem__(self, index):
+    def __getitem__(self, index: ArrayLike | Sequence[int]) -> "VarRef":
         return VarRef(self, index)
 
     def __repr__(self):
@@ -69,7 +78,7 @@ class VarRef:
     its arguments with `isinstance(ref, VarRef)`.
     """
 
-    def __init__(self, var, index):
+    def __init__(self, var: Var, index: ArrayLike | Sequence[int]):
         self.var = var
         self.index = index
 

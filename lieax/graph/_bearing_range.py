@@ -27,13 +27,17 @@ through the rules of `SE3.bearing` / `range` (`lieax.value_and_jacobian`).
 """
 
 import math
+from collections.abc import Sequence
 
+import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 
 from .._linalg import dot
 from ..factorgraph import Factor, VarRef
 from ..groups import S2, SE2, SE3, SO2, kernels
+from ..lstsq import AbstractLoss
 
 # θ/sin θ = asin(s)/s = Σ (2k)! / (4^k (k!)² (2k + 1)) s^(2k) for cos θ > 0, summed in s² below
 # _SERIES_LIMIT (the next term, 0.0115 s^16, is below 1.2e-18 there); above, atan2(s, c) / s, whose
@@ -44,7 +48,7 @@ _THETA_OVER_SINE = tuple(
 )
 
 
-def direction_error(measured, predicted):
+def direction_error(measured: ArrayLike, predicted: ArrayLike) -> jax.Array:
     r"""$(\theta / \sin\theta)\,B_m^\top b$ for unit vectors $m$ = `measured`, $b$ = `predicted`
     (`(*batch, 3)`): the sphere's logarithm of $b$ at $m$ in `S2.basis(m)`, of norm $\theta$, the
     angle between them (module docstring); it depends on the direction of $b$ only (the derivative
@@ -73,7 +77,9 @@ def direction_error(measured, predicted):
     return jnp.where(antipode, pi_along_first, error)
 
 
-def bearing_range_error(pose, landmark, measured):
+def bearing_range_error(
+    pose: SE2 | SE3, landmark: ArrayLike, measured: tuple[SO2 | S2, ArrayLike]
+) -> jax.Array:
     r"""The unwhitened residual of one bearing-range measurement (module docstring): `pose` an
     `SE2` (or `SE3`), `landmark` `(2,)` (or `(3,)`), `measured` a pair `(bearing, range)` with
     the bearing an `SO2` (or `S2`); shape `(2,)` (or `(3,)`). Batched arguments broadcast."""
@@ -86,7 +92,9 @@ def bearing_range_error(pose, landmark, measured):
     return jnp.concatenate([bearing_error, (pose.range(landmark) - range_)[..., None]], axis=-1)
 
 
-def bearing_range_jacobians_2d(pose, landmark, measured):
+def bearing_range_jacobians_2d(
+    pose: SE2, landmark: ArrayLike, measured: tuple[SO2, ArrayLike]
+) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
     r"""`(e, (J_e_pose, J_e_landmark))` for an `SE2` pose: the residual of `bearing_range_error`
     and its closed-form blocks `(2, 3)` and `(2, 2)` (module docstring)."""
     error = bearing_range_error(pose, landmark, measured)
@@ -110,19 +118,19 @@ def bearing_range_jacobians_2d(pose, landmark, measured):
 
 
 def bearing_range_factor(
-    pose,
-    landmark,
-    bearings,
-    ranges,
+    pose: VarRef,
+    landmark: VarRef,
+    bearings: SO2 | S2 | ArrayLike,
+    ranges: ArrayLike,
     *,
-    sigmas=None,
-    sqrt_information=None,
-    information=None,
-    covariance=None,
-    loss=None,
-    closed_form=True,
-    name="bearing_range",
-):
+    sigmas: ArrayLike | Sequence[float] | None = None,
+    sqrt_information: ArrayLike | None = None,
+    information: ArrayLike | None = None,
+    covariance: ArrayLike | None = None,
+    loss: AbstractLoss | None = None,
+    closed_form: bool = True,
+    name: str = "bearing_range",
+) -> Factor:
     r"""A `Factor` kind of bearing-range measurements of landmarks from poses, 2D or 3D (GTSAM's
     `BearingRangeFactor2D` / `BearingRangeFactor3D`; residuals and blocks in the module
     docstring):

@@ -11,11 +11,16 @@ $e = \mathrm{Log}(Z^{-1} X)$, $\partial e / \partial X = J_r^{-1}(e)$). The gaug
 """
 
 import functools
+from collections.abc import Sequence
 
 import numpy as np
+from jax.typing import ArrayLike
 
-from ..factorgraph import Factor, FactorGraph, Var
+from ..factorgraph import Factor, FactorGraph, Var, VarRef
+from ..groups import SE2, SE3
+from ..lstsq import AbstractLoss
 from ._factors import between_error, between_jacobians, prior_error, prior_jacobian
+from ._graph import PoseGraph
 
 
 def _between_blocks(pose_i, pose_j, measured, exact):
@@ -49,9 +54,16 @@ def refuse_sightings(graph, entry):
 
 
 def between_factor(
-    poses_i, poses_j, measured, *, sqrt_information=None, loss=None, closed_form=True,
-    exact=True, name="between",
-):  # fmt: skip
+    poses_i: VarRef,
+    poses_j: VarRef,
+    measured: SE2 | SE3,
+    *,
+    sqrt_information: ArrayLike | None = None,
+    loss: AbstractLoss | None = None,
+    closed_form: bool = True,
+    exact: bool = True,
+    name: str = "between",
+) -> Factor:
     r"""The `lieax.factorgraph.Factor` kind of between measurements (GTSAM's `BetweenFactor`):
     residual $\mathrm{Log}(Z^{-1} X_i^{-1} X_j)$ (`between_error`).
 
@@ -81,9 +93,15 @@ def between_factor(
 
 
 def prior_factor(
-    poses, measured, *, sqrt_information=None, loss=None, closed_form=True, exact=True,
-    name="prior",
-):  # fmt: skip
+    poses: VarRef,
+    measured: SE2 | SE3,
+    *,
+    sqrt_information: ArrayLike | None = None,
+    loss: AbstractLoss | None = None,
+    closed_form: bool = True,
+    exact: bool = True,
+    name: str = "prior",
+) -> Factor:
     r"""The `lieax.factorgraph.Factor` kind of pose priors (GTSAM's `PriorFactor`): residual
     $\mathrm{Log}(Z^{-1} X)$ (`prior_error`), with `poses` an indexed view of a pose `Var`
     and the other arguments as `between_factor`'s (blocks `prior_jacobian`)."""
@@ -104,7 +122,14 @@ def _check_blocks(closed_form, exact):
         raise ValueError("exact=False selects approximate closed-form blocks: needs closed_form.")
 
 
-def to_factor_graph(graph, *, closed_form=True, exact=True, fixed="auto", check_gauge=True):
+def to_factor_graph(
+    graph: PoseGraph,
+    *,
+    closed_form: bool = True,
+    exact: bool = True,
+    fixed: ArrayLike | Sequence[int] | str | None = "auto",
+    check_gauge: bool = True,
+) -> tuple[FactorGraph, Var]:
     """`(factor_graph, poses)`: the `lieax.factorgraph.FactorGraph` of a `PoseGraph` (its
     `between_factor` and, when it has priors, its `prior_factor`) and its pose `Var`, to add
     factors of other kinds to, or to solve with other options.

@@ -20,15 +20,23 @@ Prior factor (GTSAM's `PriorFactor`): $e = \mathrm{Log}(Z^{-1} X)$, $\partial e 
 ($I$ in GTSAM).
 """
 
+import jax
 import jax.numpy as jnp
 
+from ..groups import SE2, SE3, AbstractGroup
+from ._graph import PoseGraph
 
-def between_error(pose_i, pose_j, measured):
+
+def between_error(
+    pose_i: AbstractGroup, pose_j: AbstractGroup, measured: AbstractGroup
+) -> jax.Array:
     r"""$\mathrm{Log}(Z^{-1} X_i^{-1} X_j)$, batched; the residual before whitening."""
     return measured.between(pose_i.between(pose_j)).log()
 
 
-def between_jacobians(pose_i, pose_j, measured, exact=True):
+def between_jacobians(
+    pose_i: AbstractGroup, pose_j: AbstractGroup, measured: AbstractGroup, exact: bool = True
+) -> tuple[jax.Array, jax.Array, jax.Array]:
     r"""`(e, J_e_pose_i, J_e_pose_j)`: the error and its `(..., d, d)` blocks (see the module
     docstring; `exact=False` gives GTSAM's blocks $-\mathrm{Ad}(H^{-1})$ and $I$)."""
     relative = pose_i.between(pose_j)
@@ -43,12 +51,14 @@ def between_jacobians(pose_i, pose_j, measured, exact=True):
     return error, J_e_pose_i, J_e_pose_j
 
 
-def prior_error(pose, measured):
+def prior_error(pose: AbstractGroup, measured: AbstractGroup) -> jax.Array:
     r"""$\mathrm{Log}(Z^{-1} X)$."""
     return measured.between(pose).log()
 
 
-def prior_jacobian(pose, measured, exact=True):
+def prior_jacobian(
+    pose: AbstractGroup, measured: AbstractGroup, exact: bool = True
+) -> tuple[jax.Array, jax.Array]:
     """`(e, J_e_pose)` with $J = J_r^{-1}(e)$ (`exact`) or $I$ (GTSAM)."""
     error = prior_error(pose, measured)
     if exact:
@@ -85,7 +95,7 @@ def prior_cost(priors, poses):
     return 0.5 * jnp.sum(robust_weights(priors.loss, s)[0])
 
 
-def cost(graph, poses=None):
+def cost(graph: PoseGraph, poses: SE2 | SE3 | None = None) -> jax.Array:
     r"""The graph's cost $\tfrac12 \sum \rho(r^\top \Omega r)$ at `poses` (default `graph.poses`):
     the quantity GTSAM's `graph.error(values)` reports (without robust losses)."""
     poses = graph.poses if poses is None else poses

@@ -38,6 +38,7 @@ import warnings
 from typing import NamedTuple
 
 import numpy as np
+import numpy.typing as npt
 
 from .._checks import to_device
 from ..groups import SE2, SE3, kernels
@@ -83,7 +84,12 @@ def _upper_to_symmetric(values, d):
     return matrix
 
 
-def read_g2o(path, *, information="nearest", dtype=None) -> PoseGraph:
+def read_g2o(
+    path: str | os.PathLike[str],
+    *,
+    information: str = "nearest",
+    dtype: npt.DTypeLike | None = None,
+) -> PoseGraph:
     r"""Read a 2D or 3D g2o file into a `PoseGraph`.
 
     **Arguments:**
@@ -461,7 +467,9 @@ def _poses_from_rows(group, rows, lines, path):
     return np.concatenate([wxyz, rows[:, :3]], axis=1), np.abs(norm - 1.0)
 
 
-def write_g2o(path, graph: PoseGraph, *, poses=None):
+def write_g2o(
+    path: str | os.PathLike[str], graph: PoseGraph, *, poses: SE2 | SE3 | None = None
+) -> None:
     r"""Write `graph` (with `poses` in place of `graph.poses` if given, e.g. an optimized result)
     as a g2o file that `read_g2o` and GTSAM's `readG2o` read back: vertices in pose order with
     `graph.vertex_ids` (negative ones too), then edges with the information $R^\top R$ as read

@@ -8,12 +8,17 @@ $\tfrac12 r^\top \Omega r = \tfrac12 \|R r\|^2$.
 """
 
 import dataclasses
+from collections.abc import Sequence
+from typing import Any, Self
 
+import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 
 from ..factorgraph import connected_components, square_root_information
 from ..groups import SE2, SE3, AbstractGroup, kernels
+from ..lstsq import AbstractLoss
 
 GROUPS = {2: SE2, 3: SE3}
 
@@ -64,7 +69,7 @@ class PoseGraph:
     Build one with `read_g2o`, or `PoseGraph.create` from arrays.
     """
 
-    poses: AbstractGroup
+    poses: SE2 | SE3
     vertex_ids: np.ndarray
     between: BetweenFactors
     priors: PriorFactors | None = None
@@ -73,15 +78,15 @@ class PoseGraph:
     @classmethod
     def create(
         cls,
-        poses,
-        edges,
-        measurements,
-        information=None,
+        poses: SE2 | SE3,
+        edges: ArrayLike | Sequence[Sequence[int]],
+        measurements: SE2 | SE3,
+        information: ArrayLike | None = None,
         *,
-        vertex_ids=None,
-        sqrt_information=None,
-        loss=None,
-    ):
+        vertex_ids: ArrayLike | Sequence[int] | None = None,
+        sqrt_information: ArrayLike | None = None,
+        loss: AbstractLoss | None = None,
+    ) -> Self:
         """A graph from poses `(n,)`, `edges` `(m, 2)` pose indices, measurements `(m,)` of the
         same group, and either `information` `(m, d, d)` (or `(d, d)` for all edges; identity when
         both are `None`) or its upper-triangular square root `sqrt_information`."""
@@ -135,7 +140,7 @@ class PoseGraph:
 
     # ---- shape ---------------------------------------------------------------------------------
     @property
-    def group(self):
+    def group(self) -> type[SE2] | type[SE3]:
         return type(self.poses)
 
     @property
@@ -157,11 +162,11 @@ class PoseGraph:
         return np.stack([self.between.i, self.between.j], axis=1)
 
     @property
-    def measurements(self):
+    def measurements(self) -> AbstractGroup:
         return self.between.measured
 
     @property
-    def information(self):
+    def information(self) -> jax.Array:
         r"""$\Omega = R^\top R$ of every between factor, `(m, d, d)`."""
         r = self.between.sqrt_information
         return jnp.swapaxes(r, -1, -2) @ r
@@ -174,10 +179,10 @@ class PoseGraph:
         )
 
     # ---- derived graphs --------------------------------------------------------------------------
-    def replace(self, **changes):
+    def replace(self, **changes: Any) -> Self:
         return dataclasses.replace(self, **changes)
 
-    def with_poses(self, poses):
+    def with_poses(self, poses: SE2 | SE3) -> Self:
         """The same factors around other poses (for example an initialisation)."""
         if type(poses) is not self.group or poses.batch_shape != self.poses.batch_shape:
             raise ValueError(
@@ -185,11 +190,18 @@ class PoseGraph:
             )
         return self.replace(poses=poses)
 
-    def with_loss(self, loss):
+    def with_loss(self, loss: AbstractLoss | None) -> Self:
         """The same graph with a robust loss on the between factors (`None` removes it)."""
         return self.replace(between=dataclasses.replace(self.between, loss=loss))
 
-    def with_prior(self, index, measured=None, information=None, *, loss=None):
+    def with_prior(
+        self,
+        index: ArrayLike | Sequence[int],
+        measured: SE2 | SE3 | None = None,
+        information: ArrayLike | None = None,
+        *,
+        loss: AbstractLoss | None = None,
+    ) -> Self:
         """The graph with prior factors on poses `index` (an int or `(p,)` ints) at `measured`
         (default: the current poses there) with `information` `(d, d)` or `(p, d, d)` (default
         the identity). Priors replace the gauge: the optimizer then holds no pose fixed (unless
@@ -229,21 +241,21 @@ class PoseGraph:
             )
         return self.replace(priors=priors)
 
-    def with_fixed(self, index):
+    def with_fixed(self, index: ArrayLike | Sequence[int]) -> Self:
         """The graph with poses `index` held constant by the optimizer."""
         index = np.unique(np.atleast_1d(np.asarray(index)).astype(np.int64))
         if index.size and (index.min() < 0 or index.max() >= self.num_poses):
             raise ValueError(f"fixed indices must be in 0..{self.num_poses - 1}, got {index}.")
         return self.replace(fixed=index)
 
-    def index_of(self, vertex_id) -> int:
+    def index_of(self, vertex_id: int) -> int:
         """The pose index of a file's vertex id."""
         hits = np.flatnonzero(self.vertex_ids == vertex_id)
         if hits.size == 0:
             raise KeyError(f"no vertex with id {vertex_id}.")
         return int(hits[0])
 
-    def components(self):
+    def components(self) -> tuple[int, np.ndarray]:
         """`(count, labels)`: the connected components of the graph, as scipy's
         `connected_components` returns them (labels `(n,)` per pose)."""
         return connected_components(self.num_poses, self.between.i, self.between.j)

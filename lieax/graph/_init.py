@@ -19,8 +19,11 @@ import collections
 import jax.numpy as jnp
 import numpy as np
 
+from ..groups import SE2, SE3
+from ._graph import PoseGraph
 
-def spanning_tree_poses(graph, root=0):
+
+def spanning_tree_poses(graph: PoseGraph, root: int = 0) -> SE2 | SE3:
     """Poses composed along a breadth-first spanning tree of `graph` from pose `root` (kept at
     its current value); `ValueError` if some pose cannot be reached."""
     n = graph.num_poses
@@ -58,7 +61,7 @@ def _inverse(T):
     return out
 
 
-def chordal_initialization(graph, root=0):
+def chordal_initialization(graph: PoseGraph, root: int = 0) -> SE2 | SE3:
     """Poses from chordal rotation initialisation and then linear translations (see the module
     docstring); pose `root` keeps its current value. Returns a group batch like `graph.poses`."""
     from scipy.sparse import coo_matrix

@@ -23,9 +23,12 @@ import hashlib
 import jax
 import numpy as np
 
-from ..lstsq import LevenbergMarquardt, Status, Termination
+from ..groups import SE2, SE3
+from ..lstsq import AbstractSolver, LevenbergMarquardt, Status, Termination
 from ..lstsq._solution import SolverResult
+from ..retractions import Retraction
 from ._factor_graph import refuse_sightings, to_factor_graph
+from ._graph import PoseGraph
 
 _LINEAR_SOLVERS = ("cholesky", "cg")
 _GTSAM = LevenbergMarquardt.gtsam()
@@ -48,7 +51,7 @@ class OptimizeResult(SolverResult):
     - `damping`: the damping at the end.
     """
 
-    poses: object
+    poses: SE2 | SE3
     cost: float
     iterations: int
     linear_solves: int
@@ -60,17 +63,17 @@ class OptimizeResult(SolverResult):
 
 
 def optimize(
-    graph,
+    graph: PoseGraph,
     *,
-    solver=_GTSAM,
-    termination=_GTSAM_TERMINATION,
-    linear_solver="cholesky",
-    jacobian="exact",
-    retraction=None,
-    cg_tolerance=1e-8,
-    cg_max_iterations=None,
-    verbose=False,
-):
+    solver: AbstractSolver = _GTSAM,
+    termination: Termination = _GTSAM_TERMINATION,
+    linear_solver: str = "cholesky",
+    jacobian: str = "exact",
+    retraction: Retraction | None = None,
+    cg_tolerance: float = 1e-8,
+    cg_max_iterations: int | None = None,
+    verbose: bool = False,
+) -> OptimizeResult:
     r"""Levenberg-Marquardt on a `PoseGraph` (see the module docstring for the semantics).
 
     **Arguments:**

@@ -64,6 +64,7 @@ import warnings
 
 import jax.numpy as jnp
 import numpy as np
+import numpy.typing as npt
 
 from ..factorgraph import square_root_information
 from ..groups import SE2, SE3, kernels
@@ -182,7 +183,12 @@ class LandmarkGraph(PoseGraph):
         )
 
 
-def read_toro(path, *, noise_format="auto", dtype=None) -> PoseGraph:
+def read_toro(
+    path: str | os.PathLike[str],
+    *,
+    noise_format: str = "auto",
+    dtype: npt.DTypeLike | None = None,
+) -> PoseGraph:
     r"""Read a TORO or GTSAM text dataset (what GTSAM's `load2D` / `load3D` read; the layouts,
     noise models and initial values are in the module docstring).
 

@@ -9,6 +9,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 
 from .._linalg import matvec, skew
 from ..groups import kernels
@@ -81,7 +82,13 @@ def _sample_increment(gyro, accel, dt, bias, params):
 
 @_samples_by_keyword
 def preintegrate_associative(
-    params: ImuParams, bias=None, *, accel, gyro, dt, mask=None
+    params: ImuParams,
+    bias: ArrayLike | None = None,
+    *,
+    accel: ArrayLike,
+    gyro: ArrayLike,
+    dt: ArrayLike,
+    mask: ArrayLike | None = None,
 ) -> Preintegrated:
     r"""Preintegrate one interval by a pairwise tree reduction of the per-sample increments
     (`_compose`), of depth $\lceil\log_2 N\rceil$, instead of `preintegrate`'s $N$ sequential

@@ -5,10 +5,11 @@ random walk (`BiasRandomWalk`), by a sequential `lax.scan` over `_block_scan`'s 
 
 import jax
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 
 from ._block_scan import _covariance, _kinematics, _propagate, _times_a
 from ._params import BiasRandomWalk, ImuError, ImuParams
-from ._preintegrated import _result
+from ._preintegrated import Preintegrated, _result
 from ._samples import _check_samples, _delta_t, _samples_by_keyword, _scanned
 
 
@@ -60,8 +61,15 @@ def _combined_step(carry, sample, bias, params, walk):
 
 @_samples_by_keyword
 def preintegrate_combined(
-    params: ImuParams, walk: BiasRandomWalk, bias=None, *, accel, gyro, dt, mask=None
-):
+    params: ImuParams,
+    walk: BiasRandomWalk,
+    bias: ArrayLike | None = None,
+    *,
+    accel: ArrayLike,
+    gyro: ArrayLike,
+    dt: ArrayLike,
+    mask: ArrayLike | None = None,
+) -> tuple[Preintegrated, jax.Array]:
     r"""`preintegrate` with GTSAM 4.3's `PreintegratedCombinedMeasurements` covariance: the
     15×15 covariance of $(\theta, \Delta p, \Delta v, b_a, b_g)$ propagated with the biases'
     random walk `walk` and their coupling into the increments (`_combined_step`; its

@@ -28,15 +28,17 @@ differentiates through the groups' rules (`lieax.value_and_jacobian`; the logmap
 `lieax.conventions`.
 """
 
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 
 from .._linalg import cross, dot, skew
-from ..factorgraph import Factor, square_root_information
-from ..groups import SE23, SO3, kernels
+from ..factorgraph import Factor, VarRef, square_root_information
+from ..groups import SE3, SE23, SO3, kernels
 from ._params import ImuError, ImuParams
 from ._predict import predict
 from ._preintegrated import Preintegrated
@@ -53,16 +55,16 @@ def _check_error_mode(error_mode):
 
 
 def imu_residual(
-    pose_i,
-    velocity_i,
-    pose_j,
-    velocity_j,
-    bias_i,
+    pose_i: SE3,
+    velocity_i: ArrayLike,
+    pose_j: SE3,
+    velocity_j: ArrayLike,
+    bias_i: ArrayLike,
     pim: Preintegrated,
-    params,
+    params: ImuParams,
     *,
-    error_mode="logmap",
-):
+    error_mode: str = "logmap",
+) -> jax.Array:
     r"""The unwhitened 9-vector $(r_\theta, r_p, r_v)$ of one IMU factor (module docstring):
     `pose_i`, `pose_j` `SE3` ($T_{nb}$), velocities `(3,)`, `bias_i` `(6,)`, `pim` one interval,
     `error_mode` `"logmap"` (GTSAM 4.3's default) or `"component_wise"`.
@@ -126,16 +128,16 @@ def _prediction_error(pose_i, velocity_i, pose_j, velocity_j, bias_i, pim, param
 
 
 def imu_jacobians(
-    pose_i,
-    velocity_i,
-    pose_j,
-    velocity_j,
-    bias_i,
+    pose_i: SE3,
+    velocity_i: ArrayLike,
+    pose_j: SE3,
+    velocity_j: ArrayLike,
+    bias_i: ArrayLike,
     pim: Preintegrated,
-    params,
+    params: ImuParams,
     *,
-    error_mode="logmap",
-):
+    error_mode: str = "logmap",
+) -> tuple[jax.Array, tuple[jax.Array, ...]]:
     r"""`(r, (J_pose_i, J_velocity_i, J_pose_j, J_velocity_j, J_bias_i))`: `imu_residual` and its
     blocks `(9, 6)`, `(9, 3)`, `(9, 6)`, `(9, 3)`, `(9, 6)` in right-local tangents (poses
     $(\rho, \phi)$ with $T \oplus \delta = T\,\mathrm{Exp}(\delta)$, vectors additive), for
@@ -271,14 +273,14 @@ def _residual_covariance(pim: Preintegrated):
 def imu_factor(
     pim: Preintegrated,
     params: ImuParams,
-    pose_i,
-    velocity_i,
-    pose_j,
-    velocity_j,
-    bias_i,
+    pose_i: VarRef,
+    velocity_i: VarRef,
+    pose_j: VarRef,
+    velocity_j: VarRef,
+    bias_i: VarRef,
     *,
-    error_mode="logmap",
-):
+    error_mode: str = "logmap",
+) -> Factor:
     r"""A `Factor` kind of IMU factors, one per interval of the batched `pim` (`(m,)`).
 
     **Arguments:**
@@ -343,17 +345,17 @@ def _check_intervals(pim):
 
 
 def combined_imu_residual(
-    pose_i,
-    velocity_i,
-    pose_j,
-    velocity_j,
-    bias_i,
-    bias_j,
+    pose_i: SE3,
+    velocity_i: ArrayLike,
+    pose_j: SE3,
+    velocity_j: ArrayLike,
+    bias_i: ArrayLike,
+    bias_j: ArrayLike,
     pim: Preintegrated,
-    params,
+    params: ImuParams,
     *,
-    error_mode="logmap",
-):
+    error_mode: str = "logmap",
+) -> jax.Array:
     r"""The unwhitened 15-vector $(r_\theta, r_p, r_v, b_j - b_i)$ of one combined IMU factor:
     `imu_residual` (in `error_mode`, as GTSAM's `CombinedImuFactor` follows its parameters'
     `ImuFactorErrorMode`) stacked with the bias random walk's $b_j - b_i$ (GTSAM's
@@ -365,17 +367,17 @@ def combined_imu_residual(
 
 
 def combined_imu_jacobians(
-    pose_i,
-    velocity_i,
-    pose_j,
-    velocity_j,
-    bias_i,
-    bias_j,
+    pose_i: SE3,
+    velocity_i: ArrayLike,
+    pose_j: SE3,
+    velocity_j: ArrayLike,
+    bias_i: ArrayLike,
+    bias_j: ArrayLike,
     pim: Preintegrated,
-    params,
+    params: ImuParams,
     *,
-    error_mode="logmap",
-):
+    error_mode: str = "logmap",
+) -> tuple[jax.Array, tuple[jax.Array, ...]]:
     r"""`(r, (J_pose_i, J_velocity_i, J_pose_j, J_velocity_j, J_bias_i, J_bias_j))`:
     `combined_imu_residual` and its blocks `(15, 6)`, `(15, 3)`, `(15, 6)`, `(15, 3)`, `(15, 6)`,
     `(15, 6)`. The first nine rows are `imu_jacobians`' (no $b_j$ column: zero), the last six
@@ -415,17 +417,17 @@ def _combined_residual_covariance(pim: Preintegrated, covariance):
 
 def combined_imu_factor(
     pim: Preintegrated,
-    covariance,
+    covariance: ArrayLike,
     params: ImuParams,
-    pose_i,
-    velocity_i,
-    pose_j,
-    velocity_j,
-    bias_i,
-    bias_j,
+    pose_i: VarRef,
+    velocity_i: VarRef,
+    pose_j: VarRef,
+    velocity_j: VarRef,
+    bias_i: VarRef,
+    bias_j: VarRef,
     *,
-    error_mode="logmap",
-):
+    error_mode: str = "logmap",
+) -> Factor:
     r"""A `Factor` kind of combined IMU factors (GTSAM 4.3's `CombinedImuFactor`), one per
     interval: `combined_imu_residual` over $(T_i, v_i, T_j, v_j, b_i, b_j)$, the IMU residual
     and the bias random walk in one 15-row factor whitened by the inverse square root of its
@@ -479,7 +481,13 @@ def combined_imu_factor(
     )
 
 
-def bias_random_walk_factor(bias_i, bias_j, delta_t, accel_bias_sigma, gyro_bias_sigma):
+def bias_random_walk_factor(
+    bias_i: VarRef,
+    bias_j: VarRef,
+    delta_t: ArrayLike | Sequence[float],
+    accel_bias_sigma: float,
+    gyro_bias_sigma: float,
+) -> Factor:
     r"""A `Factor` kind $r = b_j - b_i$ with covariance
     $\Delta t\,\mathrm{diag}(\sigma_{b_a}^2 I, \sigma_{b_g}^2 I)$: the bias random walk of
     GTSAM's `CombinedImuFactor` (`biasAccCovariance`, `biasOmegaCovariance`, continuous time),

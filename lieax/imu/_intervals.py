@@ -4,11 +4,16 @@ samples padded, on the host, to a bucketed length with a per-sample mask (`prein
 compile one program per pair of buckets, not one per length.
 """
 
+from collections.abc import Sequence
+from typing import overload
+
 import jax
 import numpy as np
+from jax.typing import ArrayLike
 
 from ._combined import preintegrate_combined
 from ._params import BiasRandomWalk, ImuError, ImuParams
+from ._preintegrated import Preintegrated
 from ._sequential import preintegrate
 
 
@@ -83,16 +88,42 @@ def _stream(accel, gyro, dt):
     return accel, gyro, dt, lengths
 
 
+@overload
 def preintegrate_intervals(
     params: ImuParams,
-    bias=None,
+    bias: ArrayLike | None = None,
     *,
-    accel,
-    gyro,
-    dt,
+    accel: Sequence[ArrayLike] | ArrayLike,
+    gyro: Sequence[ArrayLike] | ArrayLike,
+    dt: Sequence[ArrayLike] | ArrayLike,
+    walk: None = None,
+    buckets: bool = True,
+) -> Preintegrated: ...
+
+
+@overload
+def preintegrate_intervals(
+    params: ImuParams,
+    bias: ArrayLike | None = None,
+    *,
+    accel: Sequence[ArrayLike] | ArrayLike,
+    gyro: Sequence[ArrayLike] | ArrayLike,
+    dt: Sequence[ArrayLike] | ArrayLike,
+    walk: BiasRandomWalk,
+    buckets: bool = True,
+) -> tuple[Preintegrated, jax.Array]: ...
+
+
+def preintegrate_intervals(
+    params: ImuParams,
+    bias: ArrayLike | None = None,
+    *,
+    accel: Sequence[ArrayLike] | ArrayLike,
+    gyro: Sequence[ArrayLike] | ArrayLike,
+    dt: Sequence[ArrayLike] | ArrayLike,
     walk: BiasRandomWalk | None = None,
-    buckets=True,
-):
+    buckets: bool = True,
+) -> Preintegrated | tuple[Preintegrated, jax.Array]:
     r"""Preintegrate the intervals of a stream, of any numbers of samples, in one compiled call:
     `vmap(preintegrate)` over the intervals padded to one length with a mask (`preintegrate`'s
     `mask`; the padded samples are skipped: each interval's result is its unpadded one, to

@@ -5,11 +5,13 @@ and the navigation frame's rotation rate (`ImuParams`), the biases' random walk
 (`ImuError`). Conventions: docs/conventions.md.
 """
 
-from typing import NamedTuple
+from collections.abc import Sequence
+from typing import NamedTuple, Self
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 
 from .._checks import to_device
 from ..groups import SE3
@@ -45,14 +47,14 @@ class ImuParams(NamedTuple):
     @classmethod
     def make_u(
         cls,
-        gravity=9.81,
+        gravity: float = 9.81,
         *,
-        accel_noise_density=0.0,
-        gyro_noise_density=0.0,
-        integration_sigma=0.0,
-        body_P_sensor=None,
-        omega_coriolis=None,
-    ):
+        accel_noise_density: float = 0.0,
+        gyro_noise_density: float = 0.0,
+        integration_sigma: float = 0.0,
+        body_P_sensor: SE3 | None = None,
+        omega_coriolis: ArrayLike | Sequence[float] | None = None,
+    ) -> Self:
         r"""Z up, gravity along $-z$ (GTSAM's `PreintegrationParams.MakeSharedU(g)`), with isotropic
         covariances $\sigma^2 I$ from the noise densities (m/s²/√Hz, rad/s/√Hz) and the
         integration sigma."""
@@ -81,7 +83,7 @@ class BiasRandomWalk(NamedTuple):
     gyroscope_bias_covariance: jax.Array
 
     @classmethod
-    def isotropic(cls, accel_bias_sigma, gyro_bias_sigma):
+    def isotropic(cls, accel_bias_sigma: float, gyro_bias_sigma: float) -> Self:
         r"""$\sigma^2 I$ from the random-walk densities (m/s³/√Hz, rad/s²/√Hz)."""
         eye = np.eye(3)
         return cls(jnp.asarray(accel_bias_sigma**2 * eye), jnp.asarray(gyro_bias_sigma**2 * eye))

@@ -3,7 +3,9 @@ in an inertial or a rotating navigation frame (GTSAM 4.3's `NavState::predictPIM
 Conventions: docs/conventions.md.
 """
 
+import jax
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 
 from .._linalg import cross, dot, skew
 from ..groups import SE3, SO3, kernels
@@ -11,7 +13,9 @@ from ._params import ImuParams
 from ._preintegrated import Preintegrated
 
 
-def predict(pim: Preintegrated, pose_i: SE3, velocity_i, bias, params: ImuParams):
+def predict(
+    pim: Preintegrated, pose_i: SE3, velocity_i: ArrayLike, bias: ArrayLike, params: ImuParams
+) -> tuple[SE3, jax.Array]:
     r"""The state at $j$ from the state at $i$ (GTSAM 4.3's `PreintegrationBase::predict`,
     `NavState::predictPIM`): with $(\theta, \Delta p, \Delta v)$ = `pim.bias_corrected(bias)`
     and $\Delta t$ = `pim.delta_t`, in an inertial frame (`params.omega_coriolis` `None`)

@@ -16,6 +16,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 
 from .._linalg import matvec
 from ..groups import SO3, kernels
@@ -94,7 +95,7 @@ class Preintegrated(NamedTuple):
     def J_v_bias_gyro(self) -> jax.Array:
         return self.jacobian_bias[..., 6:9, 3:6]
 
-    def residual_covariance(self):
+    def residual_covariance(self) -> jax.Array:
         r"""The covariance of the IMU factor's residual (`lieax.imu.imu_residual`), `(*batch, 9, 9)`:
         `covariance` pushed through the residual's Jacobian at zero residual, $M \Sigma M^\top$
         with $M$ = `residual_coordinates(theta)` (GTSAM 4.3's `residualCovariance()`, which its
@@ -102,7 +103,7 @@ class Preintegrated(NamedTuple):
         m = residual_coordinates(self.theta)
         return m @ self.covariance @ jnp.swapaxes(m, -1, -2)
 
-    def bias_corrected(self, bias):
+    def bias_corrected(self, bias: ArrayLike) -> jax.Array:
         r"""$(\theta, \Delta p, \Delta v) + J_b (b - \hat b)$, `(*batch, 9)` (GTSAM's
         `biasCorrectedDelta`, first order in the bias change)."""
         vector = jnp.concatenate([self.theta, self.delta_p, self.delta_v], axis=-1)

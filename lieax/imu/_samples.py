@@ -6,6 +6,8 @@ accelerometer and gyroscope from integrating silently, the bias and sensor-pose 
 
 import functools
 import inspect
+from collections.abc import Callable
+from typing import ParamSpec, TypeVar
 
 import jax
 import jax.numpy as jnp
@@ -14,6 +16,9 @@ import numpy as np
 from .._checks import as_float_array, is_concrete, to_device
 from .._linalg import cross
 from ._params import ImuError, _check_params
+
+P = ParamSpec("P")
+R = TypeVar("R")
 
 
 def _check_samples(gyro, accel, dt, bias, params, mask=None):
@@ -129,7 +134,7 @@ def _corrected(accel, gyro, bias, params):
     return acc_b, omega_b, (b_R_s, d_acc_omega, b_R_s)
 
 
-def _samples_by_keyword(function):
+def _samples_by_keyword(function: Callable[P, R]) -> Callable[P, R]:
     r"""`function` with a clear `TypeError` when its call does not bind: the samples are
     keyword-only (`accel=`, `gyro=`, `dt=`), since a swapped positional accelerometer and
     gyroscope would integrate silently to a wrong, valid-looking result."""
@@ -137,7 +142,7 @@ def _samples_by_keyword(function):
     name = function.__name__
 
     @functools.wraps(function)
-    def checked(*args, **kwargs):
+    def checked(*args: P.args, **kwargs: P.kwargs) -> R:
         try:
             signature.bind(*args, **kwargs)
         except TypeError as error:

@@ -7,6 +7,7 @@ derivatives go through the block scan.
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 
 from .._checks import is_concrete, to_device
 from ._block_scan import _block_scan
@@ -61,7 +62,15 @@ def _scan_jvp(primals, tangents):
 
 
 @_samples_by_keyword
-def preintegrate(params: ImuParams, bias=None, *, accel, gyro, dt, mask=None) -> Preintegrated:
+def preintegrate(
+    params: ImuParams,
+    bias: ArrayLike | None = None,
+    *,
+    accel: ArrayLike,
+    gyro: ArrayLike,
+    dt: ArrayLike,
+    mask: ArrayLike | None = None,
+) -> Preintegrated:
     r"""Preintegrate the samples of one interval by a sequential `lax.scan`, exactly as GTSAM's
     `PreintegratedImuMeasurements(params, bias).integrateMeasurement(accel[k], gyro[k], dt[k])`
     for $k = 0 \dots N-1$ (see `_tangent_step`). `vmap` it over intervals (e.g.

@@ -16,6 +16,7 @@ state while the others run on (the batching rule of `while_loop`).
 """
 
 import dataclasses
+from collections.abc import Callable
 from typing import NamedTuple
 
 import jax
@@ -24,6 +25,7 @@ import numpy as np
 from jax import lax
 
 from .._runtime_error import raise_if
+from .._typing import PyTree
 from ..autodiff._tangents import (
     check_retraction,
     leaf_array,
@@ -59,12 +61,12 @@ _RESOLVED = {}  # (termination, dtype) -> termination with the dtype's default t
 
 
 def least_squares(
-    residual_fn,
-    x0,
-    args=None,
+    residual_fn: Callable[[PyTree, PyTree], PyTree],
+    x0: PyTree,
+    args: PyTree | None = None,
     *,
     solver: AbstractSolver = _LEVENBERG_MARQUARDT,
-    loss=None,
+    loss: PyTree | None = None,
     termination: Termination = _TERMINATION,
     differentiation: str = "implicit",
     retraction: Retraction = exp,

@@ -9,6 +9,7 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
+from .._typing import PyTree
 from ..groups import AbstractManifold, kernels
 
 
@@ -124,13 +125,13 @@ class SolverResult:
     _repr_fields = ("cost", "iterations")  # the scalars `repr` shows after the status
 
     @property
-    def status_name(self):
+    def status_name(self) -> str | np.ndarray:
         """The `Status` name (`"CONVERGED"`, ...), or an array of names for a batch of results.
         Needs a concrete status (outside `jit`)."""
         return status_names(self.status)
 
     @property
-    def converged(self):
+    def converged(self) -> jax.Array:
         """`status == Status.CONVERGED`, as a boolean array (works under `jit` and `vmap`)."""
         return self.status == Status.CONVERGED
 
@@ -161,7 +162,7 @@ def _scalar(value):
 
 
 class _SolutionFields(NamedTuple):
-    value: object
+    value: PyTree
     cost: jax.Array
     iterations: jax.Array
     status: jax.Array
@@ -187,7 +188,7 @@ class Solution(SolverResult, _SolutionFields):
 
 
 class _SolveResultFields(NamedTuple):
-    values: tuple
+    values: tuple[PyTree, ...]
     cost: jax.Array
     iterations: jax.Array
     linear_solves: jax.Array

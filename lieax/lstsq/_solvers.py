@@ -28,11 +28,13 @@ that fits a step into a trust region).
 """
 
 import dataclasses
-from typing import ClassVar
+from typing import ClassVar, dataclass_transform
 
 import jax
 import jax.numpy as jnp
+from jax.typing import ArrayLike, DTypeLike
 
+from .._typing import PyTree
 from . import _trust_region as trust_region
 from ._normal_equations import damping_for_radius, solve_spd
 
@@ -40,6 +42,8 @@ _SCALINGS = ("minpack", "jacobi", "clipped", "identity")
 _DAMPING_UPDATES = ("nielsen", "minpack", "gtsam")
 
 
+# subclasses become frozen dataclasses in __init_subclass__: a checker reads their fields
+@dataclass_transform(frozen_default=True, field_specifiers=(dataclasses.field,))
 class AbstractSolver:
     """Base of the dense normal-equation solvers; see the module docstring for the interface."""
 
@@ -54,23 +58,32 @@ class AbstractSolver:
             data = [field.name for field in fields if field.name not in static]
             jax.tree_util.register_dataclass(cls, data_fields=data, meta_fields=static)
 
-    def init(self, dimension, dtype):
+    def init(self, dimension: int, dtype: DTypeLike) -> PyTree:
         raise NotImplementedError
 
-    def step(self, state, hessian, gradient):
+    def step(
+        self, state: PyTree, hessian: jax.Array, gradient: jax.Array
+    ) -> tuple[jax.Array, PyTree]:
         raise NotImplementedError
 
-    def update(self, state, gain_ratio, finite, actual, cost):
+    def update(
+        self,
+        state: PyTree,
+        gain_ratio: ArrayLike,
+        finite: ArrayLike,
+        actual: ArrayLike,
+        cost: ArrayLike,
+    ) -> tuple[jax.Array, PyTree]:
         raise NotImplementedError
 
-    def diverged(self, state, cost, initial_cost):
+    def diverged(self, state: PyTree, cost: ArrayLike, initial_cost: ArrayLike) -> jax.Array:
         raise NotImplementedError
 
-    def damping(self, state) -> jax.Array:
+    def damping(self, state: PyTree) -> jax.Array:
         r"""The damping $\mu$ of the current state (zero for undamped solvers), for the log."""
         raise NotImplementedError
 
-    def scale(self, state) -> jax.Array:
+    def scale(self, state: PyTree) -> jax.Array:
         """The scaling $d$ of the variables the last step was computed with (see the module
         docstring)."""
         raise NotImplementedError
@@ -93,22 +106,31 @@ class GaussNewton(AbstractSolver):
     rejects_steps = False
     divergence_factor: float = 1e6
 
-    def init(self, dimension, dtype):
+    def init(self, dimension: int, dtype: DTypeLike) -> PyTree:
         return jnp.ones((dimension,), dtype)
 
-    def step(self, state, hessian, gradient):
+    def step(
+        self, state: PyTree, hessian: jax.Array, gradient: jax.Array
+    ) -> tuple[jax.Array, PyTree]:
         return solve_spd(hessian, -gradient), state
 
-    def update(self, state, gain_ratio, finite, actual, cost):
+    def update(
+        self,
+        state: PyTree,
+        gain_ratio: ArrayLike,
+        finite: ArrayLike,
+        actual: ArrayLike,
+        cost: ArrayLike,
+    ) -> tuple[jax.Array, PyTree]:
         return finite, state
 
-    def diverged(self, state, cost, initial_cost):
+    def diverged(self, state: PyTree, cost: ArrayLike, initial_cost: ArrayLike) -> jax.Array:
         return trust_region.cost_diverged(cost, initial_cost, self.divergence_factor)
 
-    def damping(self, state):
+    def damping(self, state: PyTree) -> jax.Array:
         return jnp.zeros(())
 
-    def scale(self, state):
+    def scale(self, state: PyTree) -> jax.Array:
         return state
 
 
@@ -277,7 +299,7 @@ class LevenbergMarquardt(AbstractSolver):
                 f"{self.damping_update!r}."
             )
 
-    def init(self, dimension, dtype):
+    def init(self, dimension: int, dtype: DTypeLike) -> PyTree:
         initial_scale = jnp.zeros if self.scaling == "minpack" else jnp.ones
         if self.damping_update == "minpack":  # (damping, radius, scale, |D step|, g . step)
             zero = jnp.zeros((), dtype)
@@ -289,7 +311,9 @@ class LevenbergMarquardt(AbstractSolver):
             initial_scale((dimension,), dtype),
         )
 
-    def step(self, state, hessian, gradient):
+    def step(
+        self, state: PyTree, hessian: jax.Array, gradient: jax.Array
+    ) -> tuple[jax.Array, PyTree]:
         damping, factor, scale = state[:3]  # `factor` is the radius for "minpack"
         # the scaling chooses the path, not the optimum: not differentiated (and sqrt is not
         # differentiable at a zero column)
@@ -319,7 +343,14 @@ class LevenbergMarquardt(AbstractSolver):
             return step, (damping, radius, scale, step_norm, slope)
         return step, (damping, factor, scale)
 
-    def update(self, state, gain_ratio, finite, actual, cost):
+    def update(
+        self,
+        state: PyTree,
+        gain_ratio: ArrayLike,
+        finite: ArrayLike,
+        actual: ArrayLike,
+        cost: ArrayLike,
+    ) -> tuple[jax.Array, PyTree]:
         damping, factor, scale = state[:3]
         accept = finite & trust_region.accepts(
             gain_ratio, self.min_gain_ratio, inclusive=self.inclusive_gain_ratio
@@ -338,13 +369,13 @@ class LevenbergMarquardt(AbstractSolver):
         damping = jnp.clip(damping, self.min_damping, 2.0 * self.max_damping)
         return accept, (damping, factor.astype(damping.dtype), scale)
 
-    def diverged(self, state, cost, initial_cost):
+    def diverged(self, state: PyTree, cost: ArrayLike, initial_cost: ArrayLike) -> jax.Array:
         return trust_region.damping_exhausted(
             state[0], self.max_damping, inclusive=self.inclusive_max_damping
         )
 
-    def damping(self, state):
+    def damping(self, state: PyTree) -> jax.Array:
         return state[0]
 
-    def scale(self, state):
+    def scale(self, state: PyTree) -> jax.Array:
         return jnp.where(state[2] > 0, state[2], 1.0)

@@ -5,6 +5,7 @@ MINPACK."""
 
 import dataclasses
 import operator
+from collections.abc import Sequence
 
 import jax
 import numpy as np
@@ -148,7 +149,9 @@ class Termination:
                     f"{getattr(self, name)!r}."
                 )
 
-    def require(self, door: str, counting: str, zero=(), given=()):
+    def require(
+        self, door: str, counting: str, zero: Sequence[str] = (), given: Sequence[str] = ()
+    ) -> None:
         """Refuse (`ValueError`, naming the field) what `door` cannot honour: a `counting` other
         than its own, a tolerance of `zero` that is not 0 (a test it does not run), one of
         `given` left `None` (the door has no default for it)."""

@@ -12,7 +12,7 @@ checkout.) It also runs as a script: `python tests/typecheck/user_script.py`.
 
 import os
 import tempfile
-from typing import assert_type, reveal_type
+from typing import Any, assert_type, reveal_type
 
 import jax
 import jax.numpy as jnp
@@ -34,6 +34,8 @@ from lieax import (
     retractions,
     viz,
 )
+from lieax.factorgraph import Factor, FactorGraph, SolveResult, Var, VarRef, marginal_covariances
+from lieax.lstsq import GaussNewton, LevenbergMarquardt, Solution, Termination
 
 jax.config.update("jax_enable_x64", True)
 
@@ -159,6 +161,160 @@ assert_type(
     lieax.ba.BALProblem,
 )
 
+# ---- factor-graphs.md ----
+fx, fy, ftheta = np.arange(5.0), 0.1 * np.arange(5.0), 0.2 * np.arange(5.0)
+marks = np.array([[1.0, 2.0], [3.0, -1.0], [4.5, 1.5]])
+fi, fj = np.arange(4), np.arange(1, 5)
+seen_by, seen = np.array([0, 1, 2, 2, 3, 4]), np.array([0, 0, 1, 2, 1, 2])
+
+
+def in_frame(k, xy):  # points xy (m, 2) in the frames of poses k (m,)
+    c, s = np.cos(ftheta[k]), np.sin(ftheta[k])
+    dx, dy = xy[:, 0] - fx[k], xy[:, 1] - fy[k]
+    return np.stack([c * dx + s * dy, -s * dx + c * dy], axis=1)
+
+
+step_x, step_y = in_frame(fi, np.stack([fx[fj], fy[fj]], axis=1)).T
+odometry = SE2.from_xy_theta(step_x, step_y, ftheta[fj] - ftheta[fi])
+sightings = in_frame(seen_by, marks[seen])
+poses = Var(SE2.from_xy_theta(fx + 0.1, fy - 0.1, ftheta + 0.1), name="poses")
+points = Var(marks + 0.3, name="points")
+assert_type(poses[fi], VarRef)
+
+
+def between(a, b, z):
+    return z.between(a.between(b)).log()
+
+
+def prior(pose, z):
+    return z.between(pose).log()
+
+
+def landmark(pose, p, z):
+    return pose.inverse() @ p - z
+
+
+factor_graph = FactorGraph([
+    Factor(between, (poses[fi], poses[fj]), odometry, sqrt_information=np.diag([10.0, 10.0, 20.0])),
+    Factor(prior, (poses[np.array([0])],), SE2.from_xy_theta(fx[:1], fy[:1], ftheta[:1]),
+           information=1e4 * np.eye(3)),
+    Factor(landmark, (poses[seen_by], points[seen]), sightings, loss=lieax.lstsq.Huber(0.5)),
+])  # fmt: skip
+solved = factor_graph.solve(eliminate=points)
+assert_type(solved, SolveResult)
+assert_type(solved.cost, jax.Array)
+assert_type(solved.converged, jax.Array)
+solved_poses, solved_points = solved.values
+assert solved.converged and jnp.allclose(solved_points, marks, atol=1e-8)
+assert_type(marginal_covariances(factor_graph, solved.values, points, [0]), np.ndarray)
+assert_type(factor_graph.cost(solved.values), jax.Array)
+assert_type(factor_graph.index(points), int)
+fg_cost, fg_diagonal, fg_off_diagonal, fg_gradient = factor_graph.linearize()
+assert_type(fg_diagonal, tuple[jax.Array, ...])
+marquardt = LevenbergMarquardt.gtsam(scaling="clipped", damping_update="nielsen")
+assert_type(
+    factor_graph.solve(solver=marquardt, termination=Termination.gtsam(max_iterations=50)),
+    SolveResult,
+)
+assert_type(
+    Factor.make(prior, (poses[[0]],), SE2.from_xy_theta(fx[:1], fy[:1], ftheta[:1])), Factor
+)
+count, labels = lieax.factorgraph.connected_components(3, [0], [1])
+assert_type(count, int)
+assert_type(lieax.factorgraph.square_root_information(np.eye(3)), np.ndarray)
+
+# ---- pose graphs (examples/pose_graph.py, landmark_slam.py) ----
+square = SE2.from_xy_theta(
+    jnp.array([0.0, 1.0, 1.0, 0.0]), jnp.array([0.0, 0.0, 1.0, 1.0]), jnp.arange(4) * np.pi / 2
+)
+edges = np.array([[0, 1], [1, 2], [2, 3], [3, 0]])
+measured = square[edges[:, 0]].between(square[edges[:, 1]])
+pose_graph = lieax.graph.PoseGraph.create(square, edges, measured, np.eye(3))
+assert_type(pose_graph, lieax.graph.PoseGraph)
+with tempfile.TemporaryDirectory() as directory:
+    g2o_path = os.path.join(directory, "square.g2o")
+    lieax.graph.write_g2o(g2o_path, pose_graph)
+    pose_graph = lieax.graph.read_g2o(g2o_path)
+assert_type(lieax.graph.chordal_initialization(pose_graph), SE2 | SE3)
+pose_graph = pose_graph.with_poses(lieax.graph.chordal_initialization(pose_graph))
+optimized = lieax.graph.optimize(pose_graph, termination=Termination.gtsam(max_iterations=20))
+assert_type(optimized, lieax.graph.OptimizeResult)
+assert_type(optimized.poses, SE2 | SE3)
+assert_type(optimized.cost_history, np.ndarray)
+print(optimized.status.name, optimized.iterations, optimized.status_name)
+assert_type(lieax.graph.cost(pose_graph, optimized.poses), jax.Array)
+assert_type(pose_graph.with_prior(0).with_fixed([1]).with_loss(lieax.lstsq.Huber(1.0)),
+            lieax.graph.PoseGraph)  # fmt: skip
+assert_type(pose_graph.components()[0], int)
+graph_factors, pose_var = lieax.graph.to_factor_graph(pose_graph, fixed=[0])
+assert_type(graph_factors, FactorGraph)
+assert_type(pose_var, Var)
+gps = lieax.graph.prior_factor(pose_var[[2]], square[2:3], sqrt_information=np.eye(3))
+loop = lieax.graph.between_factor(pose_var[[0]], pose_var[[2]], square[0:1].between(square[2:3]))
+assert_type(FactorGraph([*graph_factors.factors, gps, loop]).solve().values, tuple[Any, ...])
+assert_type(
+    lieax.graph.between_jacobians(square[0], square[1], measured[0]),
+    tuple[jax.Array, jax.Array, jax.Array],
+)
+landmarks = Var(jnp.array([[2.0, 0.5]]), name="landmarks")
+sighting = lieax.graph.bearing_range_factor(
+    pose_var[[0, 1]], landmarks[[0, 0]], jnp.array([0.2, 1.0]), jnp.array([2.0, 1.1]),
+    sigmas=(0.05, 0.1),
+)  # fmt: skip
+assert_type(sighting, Factor)
+
+# ---- imu.md ----
+imu_params = lieax.imu.ImuParams.make_u(
+    9.81, accel_noise_density=0.01, gyro_noise_density=0.001, integration_sigma=1e-4
+)
+accel = jnp.tile(jnp.array([0.1, 0.0, 9.81]), (20, 1))
+gyro = jnp.tile(jnp.array([0.0, 0.0, 0.1]), (20, 1))
+pim = lieax.imu.preintegrate(imu_params, jnp.zeros(6), accel=accel, gyro=gyro, dt=0.005)
+assert_type(pim, lieax.imu.Preintegrated)
+assert_type(pim.delta_R, SO3)
+assert_type(pim.residual_covariance(), jax.Array)
+pose_j, velocity_j = lieax.imu.predict(pim, SE3.identity(), jnp.zeros(3), jnp.zeros(6), imu_params)
+assert_type(pose_j, SE3)
+intervals = lieax.imu.preintegrate_intervals(
+    imu_params, accel=[accel, accel[:15]], gyro=[gyro, gyro[:15]], dt=0.005
+)
+assert_type(intervals, lieax.imu.Preintegrated)
+walk = lieax.imu.BiasRandomWalk.isotropic(1e-3, 1e-4)
+combined, combined_covariance = lieax.imu.preintegrate_intervals(
+    imu_params, accel=[accel, accel[:15]], gyro=[gyro, gyro[:15]], dt=0.005, walk=walk
+)
+assert_type(combined_covariance, jax.Array)
+imu_poses = Var(SE3.identity((3,)), fixed=[0], name="poses")
+velocities, biases = (
+    Var(jnp.zeros((3, 3)), name="velocities"),
+    Var(jnp.zeros((3, 6)), name="biases"),
+)
+ki, kj = np.array([0, 1]), np.array([1, 2])
+imu = lieax.imu.imu_factor(
+    intervals, imu_params, imu_poses[ki], velocities[ki], imu_poses[kj], velocities[kj], biases[ki]
+)
+assert_type(imu, Factor)
+bias_walk = lieax.imu.bias_random_walk_factor(biases[ki], biases[kj], [0.1, 0.075], 1e-3, 1e-4)
+assert_type(bias_walk, Factor)
+
+# ---- solvers.md: least_squares ----
+samples = jnp.linspace(0.0, 1.0, 20)
+
+
+def curve(x, t):
+    return x["scale"] * jnp.exp(-x["rate"] * t) - 2.0 * jnp.exp(-0.5 * t)
+
+
+fit = lieax.lstsq.least_squares(curve, {"scale": 1.0, "rate": 1.0}, samples)
+assert_type(fit, Solution)
+assert_type(fit.cost, jax.Array)
+assert fit.converged
+fit = lieax.lstsq.least_squares(
+    curve, fit.value, samples, solver=GaussNewton(divergence_factor=1e3),
+    termination=Termination(max_iterations=5), loss=lieax.lstsq.Huber(1.0),
+)  # fmt: skip
+damped = LevenbergMarquardt(initial_damping=1e-3)
+assert_type(damped.scale(damped.init(3, jnp.float64)), jax.Array)
 # ---- icp.md, examples/icp_demo.py and batch_icp.py (small clouds) ----
 source_j, target_j, target_normals, T_truth = icp.synthetic_pair(600, rotation_deg=5.0, seed=1)
 assert_type(T_truth, SE3)
@@ -242,6 +398,14 @@ def _rejected() -> None:
     lieax.align(a, a).scale()  # type: ignore[attr-defined]
     lieax.read_ply(3.0)  # type: ignore[arg-type]
     lieax.tangent_dim(T).upper()  # type: ignore[attr-defined]
+    Var(SE2.identity((2,)), fixed="first")  # type: ignore[arg-type]
+    Factor(between, poses[fi])  # type: ignore[arg-type]
+    factor_graph.solve(eliminate=3)  # type: ignore[arg-type]
+    lieax.graph.optimize(factor_graph)  # type: ignore[arg-type]
+    lieax.imu.preintegrate(imu_params, accel=accel, gyro=gyro)  # type: ignore[call-arg]
+    lieax.imu.predict(pim, SE2.identity(), jnp.zeros(3), jnp.zeros(6), imu_params)  # type: ignore[arg-type]
+    lieax.lstsq.least_squares(curve, {}, solver="lm")  # type: ignore[arg-type]
+    LevenbergMarquardt(damping=1.0)  # type: ignore[call-arg]
     icp.point_to_plane(a, a, max_correspondence_distance=0.1, init=SO3.identity())  # type: ignore[arg-type]
     icp.point_to_point(a, a, max_correspondence_distance=0.1, loss=2.0)  # type: ignore[arg-type]
     icp.point_to_point(a, a, max_correspondence_distance=0.1).transform.scale()  # type: ignore[attr-defined]
