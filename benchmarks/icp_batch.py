@@ -44,7 +44,7 @@ from _timing import (
     markdown_table,
     time_interleaved,
 )
-from icp import open3d_cloud, rotation_deg, scan_normals, timed
+from icp import SCAN_NORMALS, open3d_cloud, rotation_deg, scan_normals, timed
 
 from lieax import SE3, icp
 
@@ -162,7 +162,7 @@ def main():
     rows, notes = [], []
     for label in args.clouds.split(","):
         source, target, radius, _ = clouds[label]
-        normals = scan_normals(label, target)
+        normals = scan_normals(target, SCAN_NORMALS[label])
         for kind in args.batches.split(","):
             elements = makers[kind](source, target, normals, radius, args.count)
             row, note = run_batch(f"{label}, {kind}", elements, radius, args.rounds)
