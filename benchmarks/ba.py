@@ -573,14 +573,16 @@ def lieax_solver(problem, iterations, loss, delta, damping="marquardt", lambda_u
     def solve():
         result = graph.solve(
             eliminate=points,
-            max_iterations=iterations,
             solver=lstsq.LevenbergMarquardt.gtsam(
                 scaling="clipped" if damping == "marquardt" else "identity",
                 damping_update=lambda_update,
                 initial_damping=1e-4 if lambda_update == "nielsen" else 1e-5,
             ),
             # with Ceres' rule, Ceres' stopping test too: function_tolerance 1e-6 (relative)
-            relative_tolerance=1e-6 if lambda_update == "nielsen" else 1e-5,
+            termination=lstsq.Termination.gtsam(
+                max_iterations=iterations,
+                function_tolerance=1e-6 if lambda_update == "nielsen" else 1e-5,
+            ),
             throw=False,
         )
         return jax.block_until_ready(result)

@@ -33,7 +33,7 @@ from _timing import (
 from pgo import SETS
 
 from lieax import graph as lg
-from lieax.factorgraph import _native_cholesky, _sparse
+from lieax.factorgraph import _multifrontal, _native_cholesky
 from lieax.factorgraph._linear import to_padded
 from lieax.graph import _optimize
 
@@ -54,7 +54,9 @@ def solvers(plan, system):
     result = jax.ShapeDtypeStruct(system[2].shape, system[2].dtype)
     native = jax.jit(lambda *s: _native_cholesky.solve(plan.key, *s))
     host = jax.jit(
-        lambda *s: _sparse.host_call(lambda *a: _sparse._host_solve(plan, *a), result, *s)
+        lambda *s: _multifrontal.host_call(
+            lambda *a: _multifrontal._host_solve(plan, *a), result, *s
+        )
     )
     return {"native": lambda: native(*system), "numpy": lambda: host(*system)}
 

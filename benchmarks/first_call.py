@@ -141,7 +141,8 @@ def readme_first_call(_):
     T_world_body = lieax.SE3.exp(jnp.array([1.0, 0.0, 0.5, 0.1, -0.2, 0.3]))
     p_body = jnp.array([0.2, -0.1, 1.0])
     p_world = T_world_body @ p_body
-    J_T, J_p = lieax.jacobian(lambda T, p: T @ p, argnums=(0, 1))(T_world_body, p_body)
+    jacobians = jax.jit(lieax.jacobian(lambda T, p: T @ p, argnums=(0, 1)))
+    J_T, J_p = jacobians(T_world_body, p_body)
     delta = 1e-6 * jnp.array([1.0, -2.0, 0.5, 0.3, 0.1, -0.4])
     moved = T_world_body.rplus(delta) @ p_body
     assert jnp.allclose(moved - p_world, J_T @ delta, atol=1e-12)
@@ -289,11 +290,12 @@ def ba_build(problem):
 
 
 def ba_call(problem):
-    from lieax.lstsq import LevenbergMarquardt
+    from lieax.lstsq import LevenbergMarquardt, Termination
 
     graph, points = problem
     marquardt = LevenbergMarquardt.gtsam(scaling="clipped", damping_update="nielsen")
-    return _ready(graph.solve(eliminate=points, solver=marquardt, max_iterations=20))
+    termination = Termination.gtsam(max_iterations=20)
+    return _ready(graph.solve(eliminate=points, solver=marquardt, termination=termination))
 
 
 def imu_setup(quick, data_dir):
@@ -329,7 +331,9 @@ def imu_call(problem):
     )
     if "graph" not in problem:
         problem["graph"], _ = problem["example"].build_graph(data, pim, imu_params)
-    return _ready(problem["graph"].solve(max_iterations=50))
+    from lieax.lstsq import Termination
+
+    return _ready(problem["graph"].solve(termination=Termination.gtsam(max_iterations=50)))
 
 
 def landmarks_setup(quick, data_dir):

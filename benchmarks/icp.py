@@ -14,18 +14,15 @@ Tables:
 2. Growth with cloud size (both scans resampled to 10k, 40k, 160k and 640k points): compile
    time, the default search's phases (host k-d tree build, one matching step cold and warm, one
    Gauss-Newton step) and the totals.
-3. Matching exactness: the share of source points whose match is their exact nearest neighbour
-   (within the distance) for the graph descent alone and after the exact check, against SciPy's
-   cKDTree.
-4. Every kind of scan (`benchmarks/neighbors.py`'s clouds: the bunny at 2 mm and in full, 1 cm;
+3. Every kind of scan (`benchmarks/neighbors.py`'s clouds: the bunny at 2 mm and in full, 1 cm;
    outdoor LiDAR on a 0.5 m grid, 1 m; a Kinect frame on a 1 cm grid against a shifted-grid,
    cropped, moved copy, 5 cm; and `benchmarks/_scan_pairs.py`'s pairs of consecutive scans:
    LiDAR on a 0.25 m grid, 1 m; the Kinect frame on a 1 cm and a 3 cm grid against an
    independently resampled, cropped, moved copy, three voxels), `--only` choosing among them by
    label: Open3D against lieax with each `search` backend (`kdtree` is the default on a CPU),
    float64, Open3D's target normals given to both, Open3D's criteria 1e-6 / 30 and 1e-10 / 60;
-   then the per-phase profile (index build, matching, normal equations, exact check) at the
-   converged pose.
+   then the per-phase profile (index build, matching, normal equations) at the converged
+   pose.
 
 Run `LIEAX_DATA_DIR=../shared/data python benchmarks/icp.py` (needs the `bench` extra: open3d,
 scipy; Open3D needs the system library libusb-1.0-0). `--quick` runs a small smoke version.
@@ -59,7 +56,7 @@ from _timing import (
 from scipy.spatial import cKDTree
 
 from lieax import SE3, icp
-from lieax.icp import _host_kdtree, _neighbors, _registration, _search
+from lieax.icp import _coordinates, _host_kdtree, _plane_step, _search
 
 MAX_DISTANCE = 0.01
 MAX_ITERATIONS = 30
@@ -259,15 +256,15 @@ def component_timings(source, target, normals, reference, rounds):
     params = SE3.from_matrix(jnp.asarray(reference, jnp.float32)).parameters()
     build = neighbors.builder("kdtree pykdtree", MAX_DISTANCE)
     index = build(t)
-    queries = _registration.transform_points(params, s)
+    queries = _coordinates.transform_points(params, s)
     cold = neighbors.matcher("kdtree", MAX_DISTANCE, warm=False)
     warm = neighbors.matcher("kdtree", MAX_DISTANCE)
     slot, d2 = cold(index, queries, None)
     inliers = d2 <= MAX_DISTANCE**2
     normals_slots = n[index.order]
     step = jax.jit(
-        lambda p, m, w: _registration._plane_step(
-            p, s, index.points[m], normals_slots[m], w, lambda x: jnp.ones_like(x)
+        lambda p, m, w: _plane_step.plane_step(
+            p, s, None, index.points[m], normals_slots[m], w, lambda x: jnp.ones_like(x)
         )
     )
     variants = {
@@ -280,51 +277,10 @@ def component_timings(source, target, normals, reference, rounds):
     return {key: timing.median for key, timing in timings.items()}
 
 
-# ---- 3. exactness -------------------------------------------------------------------------------
-
-
-def exactness(data_dir):
-    rows = []
-    for name, label in (("bunny_v0.002.npz", "bunny 2 mm"), ("bunny_full.npz", "bunny full")):
-        source, target, reference = load_pair(data_dir, name)
-        tree = cKDTree(target)
-        t = jnp.asarray(target, jnp.float32)
-        index = _neighbors.build_index(t)
-        for pose_label, pose in (("identity", np.eye(4)), ("reference", reference)):
-            moved = source @ pose[:3, :3].T + pose[:3, 3]
-            distance, nearest = tree.query(moved)
-            within = distance <= MAX_DISTANCE
-            q = jnp.asarray(moved, jnp.float32)
-            descent = _neighbors.nearest(index, q, radius=MAX_DISTANCE, exact=False)
-            certified = _neighbors.certify(index, descent.slot, descent.distance**2, MAX_DISTANCE)
-            checked = _neighbors.nearest(index, q, radius=MAX_DISTANCE)
-            share = functools.partial(
-                _exact_share, nearest=nearest, distance=distance, within=within
-            )
-            rows.append([
-                label, pose_label, f"{within.mean():.1%}", f"{share(descent):.2%}",
-                f"{np.asarray(certified).mean():.1%}", f"{share(checked):.3%}",
-            ])  # fmt: skip
-    headers = [
-        "cloud", "pose", "pairs within 1 cm", "descent exact", "certified by coverage",
-        "after exact check",
-    ]  # fmt: skip
-    return markdown_table(headers, rows)
-
-
-def _exact_share(found, nearest, distance, within):
-    """Share of the pairs within the distance matched to their nearest neighbour, or to another
-    point at the same distance up to float32 rounding (2e-8 m at these coordinates)."""
-    same = (np.asarray(found.index) == nearest) | np.isclose(
-        np.asarray(found.distance), distance, rtol=1e-6, atol=2e-8
-    )
-    return np.mean(same[within])
-
-
-# ---- 5. every kind of scan ----------------------------------------------------------------------
+# ---- 3. every kind of scan ----------------------------------------------------------------------
 
 SCAN_NORMALS = {"bunny 2 mm": 0.006, "bunny full": 0.006, "LiDAR": 1.5, "Kinect": 0.03}
-SCAN_SEARCHES = "graph,grid,kdtree"
+SCAN_SEARCHES = "grid,kdtree"
 
 
 def scan_clouds(data_dir, only=None):
@@ -363,13 +319,11 @@ def scans(data_dir, rounds, criteria, searches, only=None):
             row, row_notes = scan_row(label, clouds, tolerance, cap, rounds, searches)
             rows.append(row)
             notes += row_notes
-        for name in ("graph", "kdtree"):
-            profiles.append([label, name, *scan_profile(name, clouds, rounds)])
+        profiles.append([label, "kdtree", *scan_profile("kdtree", clouds, rounds)])
     headers = ["cloud", "points (source/target)", "distance", "criteria", "Open3D"] + [
         f"lieax {name} (ratio)" for name in searches
     ]
-    profile_headers = ["cloud", "search", "index build", "match / it.", "normal equations / it.",
-                       "exact check"]  # fmt: skip
+    profile_headers = ["cloud", "search", "index build", "match / it.", "normal equations / it."]
     return markdown_table(headers, rows), notes, markdown_table(profile_headers, profiles)
 
 
@@ -423,7 +377,7 @@ def scan_row(label, clouds, tolerance, cap, rounds, searches):
 def scan_profile(name, clouds, rounds):
     """Per-phase seconds at the converged pose, float64, for one backend: index build, one
     matching step (warm-started from the converged matches), one Gauss-Newton step (normal
-    equations and solve), the exact check (graph only)."""
+    equations and solve)."""
     import neighbors
 
     source, target, normals, radius, truth = clouds
@@ -435,8 +389,8 @@ def scan_profile(name, clouds, rounds):
     inliers = d2 <= radius**2
     matched_normals = jnp.asarray(normals)[index.order]
     step = jax.jit(
-        lambda p, sl, w: _registration._plane_step(
-            p, s, index.points[sl], matched_normals[sl], w, lambda x: jnp.ones_like(x)
+        lambda p, sl, w: _plane_step.plane_step(
+            p, s, None, index.points[sl], matched_normals[sl], w, lambda x: jnp.ones_like(x)
         )
     )
     params = jnp.asarray([1.0, 0, 0, 0, 0, 0, 0])
@@ -445,16 +399,10 @@ def scan_profile(name, clouds, rounds):
         "match": lambda: match(index, queries, slot),
         "step": lambda: step(params, slot, inliers),
     }
-    if name == "graph":
-        certified = _neighbors.certify(index, slot, d2, radius)
-        exact = jax.jit(
-            lambda i, q, sl, e, c: _neighbors.refine_uncertified(i, q, sl, e, c, radius, scan=False)
-        )
-        variants["exact"] = lambda: exact(index, queries, slot, d2, certified)
     timings = time_interleaved(variants, rounds, warmup=1)
     return [
         format_seconds(timings[k].median) if k in timings else "—"
-        for k in ("build", "match", "step", "exact")
+        for k in ("build", "match", "step")
     ]
 
 
@@ -467,7 +415,7 @@ def main():
     parser.add_argument("--searches", default=SCAN_SEARCHES, help="backends in the scans table")
     parser.add_argument(
         "--skip", default="",
-        help="comma-separated sections to skip: single,growth,exactness,scans",
+        help="comma-separated sections to skip: single,growth,scans",
     )  # fmt: skip
     parser.add_argument("--only", help="in the scans table, the clouds whose label contains this")
     args = parser.parse_args()
@@ -488,8 +436,6 @@ def main():
             + growth(args.data_dir, sizes, args.rounds)
             + "\n"
         )
-    if "exactness" not in skip:
-        print("## Matching exactness (float32)\n\n" + exactness(args.data_dir) + "\n")
     if "scans" not in skip:
         criteria = [(1e-6, 30)] if args.quick else [(1e-6, 30), (1e-10, 60)]
         searches = args.searches.split(",")

@@ -29,7 +29,7 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np
 
 from lieax import icp
-from lieax.icp import _registration
+from lieax.icp import _loop
 from lieax.icp._batch import bucket_size
 
 
@@ -65,14 +65,14 @@ def main():
         print(f"| {label} | {shapes} | {seconds:.2f} s | {status} | {fitness:.4f} |")
 
     sizes = rng.integers(3000, 4501, size=20)
-    loops = _registration._solve._cache_size()
+    loops = _loop.solve._cache_size()
     start = time.perf_counter()
     for k, n in enumerate(sizes):
         source, target, normals, _ = icp.synthetic_pair(int(n), seed=k)
         icp.point_to_plane(source, target, target_normals=normals, max_correspondence_distance=0.2)
     print(f"\n20 synthetic pairs of 3000-4500 points ({len(set(sizes))} sizes, "
           f"{len({bucket_size(int(n)) for n in sizes})} buckets): "
-          f"{_registration._solve._cache_size() - loops} compilations of the loop, "
+          f"{_loop.solve._cache_size() - loops} compilations of the loop, "
           f"{time.perf_counter() - start:.1f} s in all")  # fmt: skip
 
 

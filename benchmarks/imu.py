@@ -45,6 +45,9 @@ from _timing import (
 )
 
 import lieax.imu as imu
+from lieax.lstsq import Termination
+
+GTSAM_100 = Termination.gtsam(max_iterations=100)
 
 jax.config.update("jax_enable_x64", True)
 
@@ -187,14 +190,14 @@ def main(argv=None):
     with FirstCall() as construction:
         graph, _ = example.build_graph(data, sequential, params)
     with FirstCall() as first_solve:
-        ours = jax.block_until_ready(graph.solve(max_iterations=100))
+        ours = jax.block_until_ready(graph.solve(termination=GTSAM_100))
     with FirstCall() as warm_solve:
-        jax.block_until_ready(graph.solve(max_iterations=100))
+        jax.block_until_ready(graph.solve(termination=GTSAM_100))
     g_graph, g_initial = gtsam_problem(example, data, pims)
     initial_gtsam = g_graph.error(g_initial)
     gtsam_cost, gtsam_iterations = run_gtsam(g_graph, g_initial)
     solve_timings = time_interleaved(
-        {"lieax": lambda: graph.solve(max_iterations=100).cost,
+        {"lieax": lambda: graph.solve(termination=GTSAM_100).cost,
          "gtsam": lambda: jnp.asarray(run_gtsam(g_graph, g_initial)[0])},
         args.rounds, warmup=0, min_sample_s=0.0,
     )  # fmt: skip

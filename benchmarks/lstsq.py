@@ -53,6 +53,12 @@ import lieax.lstsq  # noqa: E402
 DTYPE = jnp.float32 if ARGS.float32 else jnp.float64
 TOLERANCE = 1e-6 if ARGS.float32 else 1e-10
 MAX_ITERATIONS = 100
+TERMINATION = lieax.lstsq.Termination(
+    max_iterations=MAX_ITERATIONS,
+    function_tolerance=TOLERANCE,
+    gradient_tolerance=TOLERANCE,
+    parameter_tolerance=TOLERANCE,
+)
 
 
 # ---- the problems ------------------------------------------------------------------------------
@@ -83,10 +89,7 @@ def lieax_solve(source, target):
         lieax_residual,
         lieax.SE3.identity(dtype=DTYPE),
         (source, target),
-        max_iterations=MAX_ITERATIONS,
-        function_tolerance=TOLERANCE,
-        gradient_tolerance=TOLERANCE,
-        parameter_tolerance=TOLERANCE,
+        termination=TERMINATION,
         throw=False,
     )
 

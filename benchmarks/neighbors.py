@@ -8,12 +8,11 @@ Clouds (the ICP benchmark's, `benchmarks/icp.py` imports them from here):
 
 Per cloud and backend, at the pose ICP converges to: the index build (jitted, on the target; the
 host tree's registry emptied first), one matching step of every source point inside a jitted call
-from scratch (the graph: seed, descent and exact check) and warm-started from the exact matches
-(the graph's descent, as in ICP's iterations; the host trees skipping the matches their spacing
-test keeps; the native tree, which keeps no spacing, answering every query), and exactness: the share of the source points with a target point within the radius that
-got their nearest one (or one at the same distance) in the warm-started step, against SciPy's
-cKDTree, and for the graph also after its exact check. The two host libraries are also timed bare
-(numpy in, numpy out) to choose between them.
+from scratch and warm-started from the exact matches (the host trees skipping the matches their
+spacing test keeps; the native tree, which keeps no spacing, answering every query), and
+exactness: the share of the source points with a target point within the radius that got their
+nearest one (or one at the same distance) in the warm-started step, against SciPy's cKDTree. The
+two host libraries are also timed bare (numpy in, numpy out) to choose between them.
 
 A third table, `--libraries`, compares the k-d trees lieax could use: SciPy's cKDTree
 (`balanced_tree=False`, as lieax builds it), pykdtree, small_gicp's `KdTree` and lieax's native
@@ -44,7 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.spatial import cKDTree
 
-from lieax.icp import _host_kdtree, _neighbors, _search
+from lieax.icp import _host_kdtree, _search
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
@@ -54,7 +53,7 @@ from _timing import format_seconds, machine_description, markdown_table, time_in
 
 LIDAR_VOXEL = 0.5
 KINECT_VOXEL = 0.01
-BACKENDS = ("graph", "grid", "kdtree native", "kdtree pykdtree", "kdtree scipy", "brute")
+BACKENDS = ("grid", "kdtree native", "kdtree pykdtree", "kdtree scipy", "brute")
 
 
 # ---- clouds --------------------------------------------------------------------------------------
@@ -103,12 +102,8 @@ def builder(backend, radius):
 
 
 def matcher(backend, radius, warm=True):
-    """`match(index, queries, slot)`, one ICP matching step: the graph's descent from `slot`;
-    the host tree warm-started from `slot` (with `warm`); the others' exact search."""
-    if backend == "graph" and warm:
-        return jax.jit(lambda index, q, slot: _neighbors.track(index, q, slot, max_steps=2)[:2])
-    if backend == "graph":  # seed, descent, exact check
-        return jax.jit(lambda index, q, slot: _search.nearest(index, q, radius=radius)[1:3])
+    """`match(index, queries, slot)`, one ICP matching step: the host tree warm-started from
+    `slot` (with `warm`); the others' exact search."""
     previous = backend.startswith("kdtree") and warm
     return jax.jit(
         lambda index, q, slot: _search.match(index, q, radius, previous=slot if previous else None)
@@ -151,19 +146,15 @@ def measure_backend(backend, t, q, reference, radius, rounds):
     build, cold = builder(backend, radius), matcher(backend, radius, warm=False)
     warm = matcher(backend, radius)
     index = build(t)
-    # The converged matches: where the graph and the warm host tree start from.
+    # The converged matches: where the warm host tree starts from.
     slot = _search.nearest(index, q, radius=radius).slot
     variants = {"build": lambda: fresh_build(build, t), "cold": lambda: cold(index, q, slot)}
-    if backend.startswith("kdtree") or backend == "graph":
+    if backend.startswith("kdtree"):
         variants["warm"] = lambda: warm(index, q, slot)
     timings = time_interleaved(variants, rounds, warmup=1)
     _, found_d2 = warm(index, q, slot)
     share, within = exact_share(np.sqrt(np.asarray(found_d2, np.float64)), reference, radius)
     note = f"{share:.2%}"
-    if backend == "graph":
-        checked = _search.nearest(index, q, radius=radius)
-        after, _ = exact_share(np.asarray(checked.distance), reference, radius)
-        note += f" (after the exact check {after:.3%})"
     times = [
         format_seconds(timings[k].median) if k in timings else "—"
         for k in ("build", "cold", "warm")

@@ -69,6 +69,7 @@ from _timing import format_seconds, machine_description, markdown_table
 from lieax import graph as lg
 from lieax import icp
 from lieax.icp import _host_kdtree
+from lieax.lstsq import Termination
 
 # Variables that change a library's threads or code paths: the header names those set.
 SETTINGS = (
@@ -209,7 +210,7 @@ def imu_smoother(data_dir, quick):
     g_graph, g_initial = imu_bench.gtsam_problem(example, data, pims)
     yield (
         f"IMU smoother {keyframes} keyframes",
-        lambda: graph.solve(max_iterations=100).cost,
+        lambda: graph.solve(termination=Termination.gtsam(max_iterations=100)).cost,
         "GTSAM",
         lambda: imu_bench.run_gtsam(g_graph, g_initial)[0],
     )

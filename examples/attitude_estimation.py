@@ -164,7 +164,7 @@ def solve(record, window, overlap, *, verbose=False, max_iterations=50):
                 residuals,
                 x0,
                 (jnp.asarray(acc), jnp.asarray(mag)),
-                max_iterations=max_iterations,
+                termination=lstsq.Termination(max_iterations=max_iterations),
                 verbose=verbose,
             )
         )

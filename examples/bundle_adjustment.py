@@ -58,7 +58,7 @@ def solve(problem, *, loss=None, max_iterations=50, verbose=False):
     result = graph.solve(
         eliminate=points,
         solver=lstsq.LevenbergMarquardt.gtsam(scaling="clipped", damping_update="nielsen"),
-        max_iterations=max_iterations,
+        termination=lstsq.Termination.gtsam(max_iterations=max_iterations),
         verbose=verbose,
     )
     (pose, intrinsics), solved_points = result.values

@@ -257,8 +257,10 @@ def main(argv=None):
     preintegrated = time.perf_counter() - start
     pim, covariance = pim if args.combined else (pim, None)
     graph, _ = build_graph(data, pim, imu_params, covariance)
+    from lieax.lstsq import Termination
+
     start = time.perf_counter()
-    result = graph.solve(max_iterations=50)
+    result = graph.solve(termination=Termination.gtsam(max_iterations=50))
     solved = time.perf_counter() - start
     summary = {
         "status": result.status_name,

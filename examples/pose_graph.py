@@ -159,6 +159,7 @@ def main(argv=None):
     args = parser.parse_args(argv)
     jax.config.update("jax_enable_x64", True)
     from lieax import graph
+    from lieax.lstsq import Termination
 
     truth = None
     if args.g2o:
@@ -178,13 +179,15 @@ def main(argv=None):
     result = graph.optimize(
         pose_graph,
         linear_solver=args.solver,
-        max_iterations=args.max_iterations,
+        termination=Termination.gtsam(max_iterations=args.max_iterations),
         verbose=args.verbose,
     )
     first = time.perf_counter() - start
     start = time.perf_counter()
     result = graph.optimize(
-        pose_graph, linear_solver=args.solver, max_iterations=args.max_iterations
+        pose_graph,
+        linear_solver=args.solver,
+        termination=Termination.gtsam(max_iterations=args.max_iterations),
     )
     second = time.perf_counter() - start
 

@@ -74,6 +74,7 @@ def solve_lieax(initial_poses, initial_points, cam, pt, measured, behind, max_it
     """The problem in lieax: one `stereo_factor` kind and a prior on pose 0."""
     from lieax import cameras
     from lieax import factorgraph as fg
+    from lieax.lstsq import Termination
 
     prior = initial_poses[0]
     poses = fg.Var(initial_poses, name="poses")
@@ -87,9 +88,11 @@ def solve_lieax(initial_poses, initial_points, cam, pt, measured, behind, max_it
     )
     graph = fg.FactorGraph([stereo, anchor])
     result = graph.solve(
-        max_iterations=max_iterations,
-        relative_tolerance=TOLERANCE,
-        absolute_tolerance=TOLERANCE,
+        termination=Termination.gtsam(
+            max_iterations=max_iterations,
+            function_tolerance=TOLERANCE,
+            absolute_function_tolerance=TOLERANCE,
+        )
     )
     return graph, result
 

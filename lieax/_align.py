@@ -3,10 +3,40 @@ with scale), the same as `SE3.align` / `Sim3.align`. The solution, its implicit 
 input checks live beside the groups, in `lieax.groups._procrustes`.
 """
 
+from typing import Literal, overload
+
+from jax.typing import ArrayLike
+
 from .groups import SE3, Sim3
 
 
-def align(points_a, points_b, weights=None, *, with_scale: bool = False) -> SE3 | Sim3:
+@overload
+def align(
+    points_a: ArrayLike,
+    points_b: ArrayLike,
+    weights: ArrayLike | None = None,
+    *,
+    with_scale: Literal[False] = False,
+) -> SE3: ...
+@overload
+def align(
+    points_a: ArrayLike,
+    points_b: ArrayLike,
+    weights: ArrayLike | None = None,
+    *,
+    with_scale: Literal[True],
+) -> Sim3: ...
+@overload
+def align(
+    points_a: ArrayLike, points_b: ArrayLike, weights: ArrayLike | None = None, *, with_scale: bool
+) -> SE3 | Sim3: ...
+def align(
+    points_a: ArrayLike,
+    points_b: ArrayLike,
+    weights: ArrayLike | None = None,
+    *,
+    with_scale: bool = False,
+) -> SE3 | Sim3:
     r"""The least-squares alignment $T_{ab}$ of corresponding points, $a_i \approx T_{ab}\,b_i$.
 
     **Arguments:**

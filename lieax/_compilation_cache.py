@@ -12,7 +12,7 @@ def default_cache_dir() -> pathlib.Path:
     return pathlib.Path(base) / "lieax" / "jax"
 
 
-def enable_compilation_cache(path=None) -> pathlib.Path:
+def enable_compilation_cache(path: str | os.PathLike[str] | None = None) -> pathlib.Path:
     """Turns on JAX's persistent compilation cache, so that a second process loads the programs
     a first one compiled instead of compiling them again (XLA's compilation is most of a first
     call: seconds on a CPU).

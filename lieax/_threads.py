@@ -29,7 +29,7 @@ The limits are set through `threadpoolctl` around lieax's own work only and rest
 around the host work inside each callback (`blas_limited`, `openmp_limited`: counts of the calling
 thread), and for XLA's LAPACK calls around the compiled solve that makes them
 (`lapack_limited`, set by `FactorGraph.solve` and `lieax.graph.optimize` from
-`lieax.factorgraph._sparse.dense_threads`, not inside the program, which then keeps no host
+`lieax.factorgraph._dense_solve.dense_threads`, not inside the program, which then keeps no host
 callback: JAX's persistent cache can store it, and `vmap` of its loop's `cond` works; the LAPACK
 call runs on a thread XLA picks, so this limit is process-wide while it holds: another thread of
 the process calling OpenBLAS meanwhile shares it; under the caller's own `jit` it is not set).
@@ -53,6 +53,7 @@ import ctypes
 import os
 import sys
 import threading
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -160,7 +161,7 @@ def get_threads() -> int | None:
 
 
 @contextlib.contextmanager
-def threads(n: int | None):
+def threads(n: int | None) -> Iterator[None]:
     """`set_threads(n)` for the calls inside the `with` block, the previous setting restored after
     it (on every thread: lieax's host work runs on XLA's threads, not the caller's)."""
     previous = dict(_SETTING)

@@ -28,12 +28,15 @@ for _ in range(steps):
 ```
 """
 
+from collections.abc import Callable
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import optax  # the optax package (absolute import; this module is lieax.optax)
+from jax.typing import ArrayLike
 
+from ._typing import PyTree
 from .autodiff._jacobian import value_and_grad
 from .autodiff._tangents import check_retraction, manifold_leaves, rplus, zero_tangents
 from .groups import AbstractManifold
@@ -104,7 +107,7 @@ def on_manifold(
     return optax.GradientTransformationExtraArgs(init, update)
 
 
-def apply_updates(params, updates, *, retraction: Retraction = exp):
+def apply_updates(params: PyTree, updates: PyTree, *, retraction: Retraction = exp) -> PyTree:
     r"""$X \oplus u$ leaf by leaf (the manifold version of `optax.apply_updates`), or
     $\mathcal{R}_X(u)$ with another `retraction` from `lieax.retractions`; updates are cast to
     each leaf's dtype."""
@@ -119,17 +122,17 @@ class MinimizeResult(NamedTuple):
     """The result of `minimize`: the final point `value`, its `loss`, and `loss_history` of shape
     `(steps + 1,)` (the loss at every iterate, the start first)."""
 
-    value: object
+    value: PyTree
     loss: jax.Array
     loss_history: jax.Array
 
 
 def minimize(
-    loss,
-    x0,
+    loss: Callable[[PyTree, PyTree], ArrayLike],
+    x0: PyTree,
     optimizer: optax.GradientTransformation,
     steps: int,
-    args=None,
+    args: PyTree = None,
     *,
     retraction: Retraction = exp,
 ) -> MinimizeResult:

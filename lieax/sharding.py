@@ -49,15 +49,20 @@ all-reduce (the batch axis needs no collective).
 Conventions (right perturbation, tangent layouts) are docs/conventions.md.
 """
 
+from collections.abc import Callable, Iterable
+from typing import Any
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import AxisType, Mesh, NamedSharding, PartitionSpec
 
+from ._typing import PyTree
+
 __all__ = ["batch_map", "batch_mesh", "shard_batch", "shard_residuals"]
 
 
-def batch_mesh(devices=None, axis_name: str = "batch") -> Mesh:
+def batch_mesh(devices: Iterable[jax.Device] | None = None, axis_name: str = "batch") -> Mesh:
     """A one-axis mesh over `devices` (default: `jax.devices()`, every device of every process).
 
     The axis is of type `Auto`: XLA's partitioner propagates shardings through the code outside
@@ -86,13 +91,13 @@ def _axis(mesh: Mesh, axis_name):
 
 
 def shard_batch(
-    tree,
+    tree: PyTree,
     mesh: Mesh | None = None,
     *,
     pad: bool = False,
     process_local: bool = False,
-    axis_name=None,
-):
+    axis_name: str | None = None,
+) -> PyTree:
     """Lays every array of `tree` out over `mesh`, its leading (batch) axis split evenly.
 
     **Arguments:**
@@ -185,7 +190,13 @@ def _specs(in_axes, axis, what):
     return jax.tree_util.tree_map(spec, in_axes, is_leaf=lambda node: node is None)
 
 
-def batch_map(fn, mesh: Mesh | None = None, *, in_axes=0, axis_name=None):
+def batch_map(
+    fn: Callable[..., Any],
+    mesh: Mesh | None = None,
+    *,
+    in_axes: PyTree = 0,
+    axis_name: str | None = None,
+) -> Callable[..., Any]:
     """`jax.vmap(fn)` split over the devices of `mesh` along the batch axis, jitted once.
 
     Each device runs `jax.vmap(fn, in_axes)` on its slice of the batch (`jax.shard_map`), with no
@@ -231,7 +242,13 @@ def batch_map(fn, mesh: Mesh | None = None, *, in_axes=0, axis_name=None):
     return jax.jit(per_device, in_shardings=shardings)
 
 
-def shard_residuals(residual_fn, mesh: Mesh | None = None, *, in_axes=0, axis_name=None):
+def shard_residuals(
+    residual_fn: Callable[[PyTree, PyTree], PyTree],
+    mesh: Mesh | None = None,
+    *,
+    in_axes: PyTree = 0,
+    axis_name: str | None = None,
+) -> Callable[[PyTree, PyTree], PyTree]:
     r"""A `least_squares` residual function evaluated shard by shard along the residual axis.
 
     `shard_residuals(residual_fn, mesh)(x, args)` equals `residual_fn(x, args)` for a residual

@@ -8,7 +8,7 @@ import numpy as np
 
 import lieax.imu as imu
 from lieax import SE3, SO3
-from lieax.imu import _preintegration
+from lieax.imu import _sequential
 
 SAMPLES = 60
 NOISE = dict(accel_noise_density=0.01, gyro_noise_density=1e-3, integration_sigma=1e-4)
@@ -75,7 +75,7 @@ def integrate(pim, gyro, accel, dt):
 def entrywise_over_intervals(monkeypatch, *args, **kwargs):
     """`vmap(preintegrate)` with the entrywise scan for any batch (`_dispatch_batched` chooses
     it for $2^{23}$ samples or more): a fresh `jit`, traced with the threshold at zero."""
-    monkeypatch.setattr(_preintegration, "_ENTRYWISE_MIN_SAMPLES", 0)
+    monkeypatch.setattr(_sequential, "_ENTRYWISE_MIN_SAMPLES", 0)
     try:
         return jax.jit(jax.vmap(imu.preintegrate, in_axes=(None, None)))(*args, **kwargs)
     finally:

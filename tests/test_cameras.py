@@ -19,6 +19,7 @@ import lieax
 from lieax import SE3, SO3, cameras
 from lieax import conventions as cv
 from lieax import factorgraph as fg
+from lieax.lstsq import Termination
 
 _AXIS = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
 REGIMES = {
@@ -402,7 +403,9 @@ def test_default_policy_matches_gtsam_and_does_not_fit_the_mirror():
     same problem to 1e-6; with `"mirror"` the solve moves them to a mirrored minimum (still behind,
     a much larger cost, reported as converged: the silent failure the default avoids)."""
     graph, (poses, initial, cam, pt, uv) = _graph()
-    result = graph.solve(relative_tolerance=1e-12, absolute_tolerance=1e-12)
+    result = graph.solve(
+        termination=Termination.gtsam(function_tolerance=1e-12, absolute_function_tolerance=1e-12)
+    )
     solved = np.asarray(result.values[1])
     np.testing.assert_array_equal(solved[:2], initial[:2])
     assert cameras.count_behind(graph, result.values) == 8
@@ -410,7 +413,9 @@ def test_default_policy_matches_gtsam_and_does_not_fit_the_mirror():
     assert 0 < in_front_cost < 2 * 40  # 40 observations in front at the noise level
 
     mirror_graph, _ = _graph("mirror")
-    mirror = mirror_graph.solve(relative_tolerance=1e-12, absolute_tolerance=1e-12)
+    mirror = mirror_graph.solve(
+        termination=Termination.gtsam(function_tolerance=1e-12, absolute_function_tolerance=1e-12)
+    )
     assert cameras.count_behind(mirror_graph, mirror.values) == 8
     assert np.abs(np.asarray(mirror.values[1])[:2] - initial[:2]).max() > 0.05
     # a worse minimum, reported as converged: the issue's silent failure
@@ -453,7 +458,9 @@ def test_bearing_factor_triangulates():
     points = fg.Var(jnp.asarray(start), name="points")
     factor = cameras.bearing_factor(pose_var[cam], points[pt], measured)
     graph = fg.FactorGraph([factor])
-    result = graph.solve(relative_tolerance=1e-14, absolute_tolerance=1e-20)
+    result = graph.solve(
+        termination=Termination.gtsam(function_tolerance=1e-14, absolute_function_tolerance=1e-20)
+    )
     assert float(result.cost) < 1e-20
     np.testing.assert_allclose(result.values[1], truth, atol=1e-8)
     kinds = (pose_var[cam], points[pt])

@@ -19,9 +19,10 @@ import pytest
 from lieax import SE2, SE3, lstsq
 from lieax import graph as lg
 from lieax.factorgraph import Factor, FactorGraph, Var, marginal_covariances
+from lieax.factorgraph._block_pattern import dense_matrix
 from lieax.factorgraph._linear import to_padded
 from lieax.factorgraph._solve import retract
-from lieax.factorgraph._sparse import dense_matrix
+from lieax.lstsq import Termination
 
 jax.config.update("jax_enable_x64", True)
 
@@ -81,7 +82,9 @@ def gps_graph():
 
 def test_pose_graph_with_gps_matches_lstsq(gps_graph):
     graph, _, (i, j, measured, position, start) = gps_graph
-    result = graph.solve(relative_tolerance=1e-12, absolute_tolerance=1e-14)
+    result = graph.solve(
+        termination=Termination.gtsam(function_tolerance=1e-12, absolute_function_tolerance=1e-14)
+    )
     assert result.status_name == "CONVERGED"
 
     def residuals(x, _):
@@ -89,7 +92,9 @@ def test_pose_graph_with_gps_matches_lstsq(gps_graph):
         r2 = 10.0 * (x.translation() - position)
         return r1, r2
 
-    reference = lstsq.least_squares(residuals, start, max_iterations=50, function_tolerance=1e-14)
+    reference = lstsq.least_squares(
+        residuals, start, termination=Termination(max_iterations=50, function_tolerance=1e-14)
+    )
     np.testing.assert_allclose(result.cost, reference.cost, rtol=1e-9)
     np.testing.assert_allclose(result.values[0].rminus(reference.value), 0.0, atol=1e-7)
     # the cost history starts at the initial cost and decreases
@@ -110,8 +115,13 @@ def test_pose_graph_with_gps_matches_lstsq(gps_graph):
 )
 def test_solver_options_reach_the_same_cost(gps_graph, options):
     graph, _, _ = gps_graph
-    reference = graph.solve(relative_tolerance=1e-12, absolute_tolerance=1e-14)
-    result = graph.solve(relative_tolerance=1e-12, absolute_tolerance=1e-14, **options)
+    reference = graph.solve(
+        termination=Termination.gtsam(function_tolerance=1e-12, absolute_function_tolerance=1e-14)
+    )
+    result = graph.solve(
+        termination=Termination.gtsam(function_tolerance=1e-12, absolute_function_tolerance=1e-14),
+        **options,
+    )
     assert result.status_name == "CONVERGED"
     np.testing.assert_allclose(result.cost, reference.cost, rtol=1e-7)
 
@@ -215,7 +225,12 @@ def test_landmarks_two_kinds_three_factors(landmarks):
     graph, _, marks, truth, points = landmarks
     assert np.unique(np.concatenate(graph.plans[2].indices[1:])).size == 5  # all points seen
     results = [
-        graph.solve(relative_tolerance=1e-14, absolute_tolerance=1e-20, **options)
+        graph.solve(
+            termination=Termination.gtsam(
+                function_tolerance=1e-14, absolute_function_tolerance=1e-20
+            ),
+            **options,
+        )
         for options in ({"eliminate": None}, {"eliminate": marks})
     ]
     for result in results:
@@ -315,9 +330,13 @@ def test_bundle_adjustment_solvers_agree(bundle, options):
     if "eliminate" in options:
         options["eliminate"] = landmarks
     reference = graph.solve(
-        linear_solver="dense", relative_tolerance=1e-12, absolute_tolerance=1e-14
+        linear_solver="dense",
+        termination=Termination.gtsam(function_tolerance=1e-12, absolute_function_tolerance=1e-14),
     )
-    result = graph.solve(relative_tolerance=1e-12, absolute_tolerance=1e-14, **options)
+    result = graph.solve(
+        termination=Termination.gtsam(function_tolerance=1e-12, absolute_function_tolerance=1e-14),
+        **options,
+    )
     assert result.status_name == "CONVERGED"
     assert float(result.cost) < 0.5 * float(graph.cost())
     np.testing.assert_allclose(result.cost, reference.cost, rtol=1e-7)
@@ -414,7 +433,12 @@ def test_vmapped_solve_equals_single_solves(gps_graph):
 def test_implicit_derivative_matches_finite_differences(gps_graph):
     graph, _, (_, _, _, position, _) = gps_graph
     root = graph.data[1][1]
-    options = {"relative_tolerance": 1e-14, "absolute_tolerance": 1e-20, "throw": False}
+    options = {
+        "termination": Termination.gtsam(
+            function_tolerance=1e-14, absolute_function_tolerance=1e-20
+        ),
+        "throw": False,
+    }
 
     def solution(p):
         return graph.solve(data=[None, (p, root, None)], **options)
@@ -486,7 +510,10 @@ def few_camera_bundle():
     return FactorGraph([factor], check_gauge=False), points
 
 
-TIGHT = {"relative_tolerance": 1e-15, "absolute_tolerance": 0.0, "throw": False}
+TIGHT = {
+    "termination": Termination.gtsam(function_tolerance=1e-15, absolute_function_tolerance=0.0),
+    "throw": False,
+}
 
 
 def test_auto_elimination_eliminates_points_seen_by_few_cameras():
@@ -564,7 +591,7 @@ def test_marquardt_damping_with_nielsens_rule():
         jacobian_fn=ba.camera_jacobians,
     )
     graph = FactorGraph([factor], check_gauge=False)
-    options = {"absolute_tolerance": 0.0, "throw": False}
+    options = {"termination": Termination.gtsam(absolute_function_tolerance=0.0), "throw": False}
     marquardt = lstsq.LevenbergMarquardt.gtsam(scaling="clipped", damping_update="nielsen")
     nielsen = graph.solve(solver=marquardt, **options)
     gtsam_rule = graph.solve(solver=lstsq.LevenbergMarquardt.gtsam(scaling="clipped"), **options)
@@ -719,7 +746,11 @@ def test_bundle_adjustment_with_lieax_ba():
         check_gauge=False,
     )
     autodiff = FactorGraph([Factor(ba.camera_residual, args, observed)], check_gauge=False)
-    options = {"eliminate": points, "linear_solver": "cholesky", "relative_tolerance": 1e-10}
+    options = {
+        "eliminate": points,
+        "linear_solver": "cholesky",
+        "termination": Termination.gtsam(function_tolerance=1e-10),
+    }
     result = closed.solve(**options)
     reference = autodiff.solve(**options)
     assert result.status_name == "CONVERGED"
@@ -875,7 +906,7 @@ def test_x64_switched_on_after_a_graph_was_built():
 
 @pytest.mark.parametrize("algorithm", [lstsq.LevenbergMarquardt.gtsam(), lstsq.GaussNewton()])
 def test_an_exact_fit_converges_with_absolute_tolerance_zero(algorithm):
-    """Noise-free bundle adjustment, gauge fixed at the truth, `absolute_tolerance=0`: the cost
+    """Noise-free bundle adjustment, gauge fixed at the truth, `absolute_function_tolerance=0`: the cost
     falls to the floating-point floor (about 1e-27 from 323) and the solve ends CONVERGED (it
     ended DIVERGED, damping exhausted on rounding noise, and Gauss-Newton ran to
     MAX_ITERATIONS)."""
@@ -894,7 +925,11 @@ def test_an_exact_fit_converges_with_absolute_tolerance_zero(algorithm):
         [Factor(ba.camera_residual, args, observed, jacobian_fn=ba.camera_jacobians)],
         check_gauge=False,
     )
-    result = graph.solve(eliminate=points, solver=algorithm, absolute_tolerance=0.0)
+    result = graph.solve(
+        eliminate=points,
+        solver=algorithm,
+        termination=Termination.gtsam(absolute_function_tolerance=0.0),
+    )
     assert result.status_name == "CONVERGED"
     assert float(result.cost) < 1e-18 * float(graph.cost())
     np.testing.assert_allclose(result.values[1], generated.truth.points, atol=1e-9)
@@ -930,7 +965,9 @@ def test_partial_priors_leave_their_free_directions_free():
     for f in (by_sigmas, by_information, by_root):  # one information R^T R
         root = np.asarray(f.sqrt_information)
         np.testing.assert_allclose(root.T @ root, np.diag([100.0, 100.0, 0.0]), atol=1e-12)
-    result = FactorGraph([odometry, by_sigmas]).solve(relative_tolerance=1e-12)
+    result = FactorGraph([odometry, by_sigmas]).solve(
+        termination=Termination.gtsam(function_tolerance=1e-12)
+    )
     assert result.status_name == "CONVERGED"
 
     one = Factor(prior, (poses[anchors[:1]],), priors[:1], sigmas=sigmas, name="position")
@@ -968,7 +1005,9 @@ def test_partial_priors_match_gtsam():
             Factor(prior, (poses[anchors],), priors, sigmas=[0.1, 0.1, np.inf]),
         ]
     )
-    result = graph.solve(relative_tolerance=1e-12, absolute_tolerance=0.0)
+    result = graph.solve(
+        termination=Termination.gtsam(function_tolerance=1e-12, absolute_function_tolerance=0.0)
+    )
     assert result.status_name == "CONVERGED"
 
     def pose2(x):

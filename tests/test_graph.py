@@ -16,9 +16,18 @@ import pytest
 import lieax
 from lieax import SE2, SE3, retractions
 from lieax import graph as lg
+from lieax.factorgraph import (
+    _block_pattern,
+    _dense_solve,
+    _host_triangular,
+    _multifrontal,
+    _native_cholesky,
+    _ordering,
+    _pcg,
+)
 from lieax.factorgraph import _graph as factorgraph_module
-from lieax.factorgraph import _native_cholesky, _sparse
 from lieax.graph import _optimize
+from lieax.lstsq import Termination
 
 jax.config.update("jax_enable_x64", True)
 
@@ -213,7 +222,7 @@ def test_block_cholesky_matches_dense(n, extra, d):
     i = np.concatenate([np.arange(n - 1), rng.integers(0, n, extra)])
     j = np.concatenate([np.arange(1, n), rng.integers(0, n, extra)])
     keep = i != j
-    pattern, _, _ = _sparse.BlockPattern.from_edges(n, d, i[keep], j[keep])
+    pattern, _, _ = _block_pattern.BlockPattern.from_edges(n, d, i[keep], j[keep])
     off = rng.normal(size=(pattern.num_pairs, d, d))
     weight = np.abs(off).sum(axis=(1, 2))
     diag = np.zeros((n, d, d))
@@ -222,55 +231,49 @@ def test_block_cholesky_matches_dense(n, extra, d):
     M = rng.normal(size=(n, d, d))
     diag += M @ np.swapaxes(M, 1, 2) + np.eye(d)
     rhs = rng.normal(size=(n, d))
-    dense = np.asarray(_sparse.dense_matrix(pattern, jnp.asarray(diag), jnp.asarray(off)))
+    dense = np.asarray(_block_pattern.dense_matrix(pattern, jnp.asarray(diag), jnp.asarray(off)))
     expected = np.linalg.solve(dense, rhs.ravel()).reshape(n, d)
-    plan = _sparse.CholeskyPlan.analyze(pattern)
+    plan = _multifrontal.CholeskyPlan.analyze(pattern)
     np.testing.assert_allclose(plan.solve(diag, off, rhs), expected, rtol=1e-9, atol=1e-12)
-    x, _ = _sparse.pcg(
-        pattern, jnp.asarray(diag), jnp.asarray(off), jnp.asarray(rhs), tolerance=1e-12
-    )
+    x, _ = _pcg.pcg(pattern, jnp.asarray(diag), jnp.asarray(off), jnp.asarray(rhs), tolerance=1e-12)
     np.testing.assert_allclose(x, expected, rtol=1e-7, atol=1e-9)
     # not positive definite: NaN, not an exception (the optimizer then raises the damping)
     assert np.all(np.isnan(plan.solve(-diag, off, rhs)))
     # from traced code (the native custom call, or the host call without it), also under vmap
     args = jnp.asarray(diag), jnp.asarray(off)
-    traced = jax.jit(lambda r: _sparse.cholesky_solve(plan, *args, r))(jnp.asarray(rhs))
+    traced = jax.jit(lambda r: _multifrontal.cholesky_solve(plan, *args, r))(jnp.asarray(rhs))
     np.testing.assert_allclose(traced, expected, rtol=1e-9, atol=1e-12)
     stacked = jnp.stack([jnp.asarray(rhs), 2.0 * jnp.asarray(rhs)])
-    batched = jax.jit(jax.vmap(lambda r: _sparse.cholesky_solve(plan, *args, r)))(stacked)
+    batched = jax.jit(jax.vmap(lambda r: _multifrontal.cholesky_solve(plan, *args, r)))(stacked)
     np.testing.assert_allclose(batched[1], 2.0 * expected, rtol=1e-9, atol=1e-12)
     if n * d <= 300:
-        dense_x = _sparse.dense_solve(pattern, *args, jnp.asarray(rhs))
+        dense_x = _dense_solve.dense_solve(pattern, *args, jnp.asarray(rhs))
         np.testing.assert_allclose(dense_x, expected, rtol=1e-9, atol=1e-12)
 
 
 @pytest.mark.parametrize("order", [5, 30, 63, 64, 150])
-def test_triangular_inverse_and_solves(order):
-    """The host's triangular kernels, below and above the order (64) where they switch from
-    LAPACK's unblocked routines to the blocked recursion."""
+def test_triangular_inverse(order):
+    """The host's triangular inverse, below and above the order (64) where it switches from
+    LAPACK's unblocked routine to the blocked recursion."""
     rng = np.random.default_rng(order)
     a = rng.normal(size=(2, order, order))
     lower = np.linalg.cholesky(a @ np.swapaxes(a, 1, 2) + order * np.eye(order))
-    rhs = rng.normal(size=(2, order, 3))
     np.testing.assert_allclose(
-        _sparse._lower_inverse(lower) @ lower, np.broadcast_to(np.eye(order), lower.shape),
+        _host_triangular._lower_inverse(lower) @ lower, np.broadcast_to(np.eye(order), lower.shape),
         atol=1e-12,
     )  # fmt: skip
-    np.testing.assert_allclose(lower @ _sparse._lower_solve(lower, rhs), rhs, atol=1e-12)
-    transposed = _sparse._lower_solve(lower, rhs, transpose=True)
-    np.testing.assert_allclose(np.swapaxes(lower, 1, 2) @ transposed, rhs, atol=1e-12)
 
 
 def test_block_cholesky_of_a_forest():
     """Two components: two roots in one batch, each solved by its own factor."""
     d, rng = 6, np.random.default_rng(7)
     i, j = np.array([0, 1, 3, 4, 5]), np.array([1, 2, 4, 5, 6])
-    pattern, _, _ = _sparse.BlockPattern.from_edges(7, d, i, j)
+    pattern, _, _ = _block_pattern.BlockPattern.from_edges(7, d, i, j)
     off = 0.1 * rng.normal(size=(pattern.num_pairs, d, d))
     diag = np.broadcast_to(4.0 * np.eye(d), (7, d, d)).copy()
     rhs = rng.normal(size=(7, d))
-    dense = np.asarray(_sparse.dense_matrix(pattern, jnp.asarray(diag), jnp.asarray(off)))
-    plan = _sparse.CholeskyPlan.analyze(pattern)
+    dense = np.asarray(_block_pattern.dense_matrix(pattern, jnp.asarray(diag), jnp.asarray(off)))
+    plan = _multifrontal.CholeskyPlan.analyze(pattern)
     assert any(batch.shape[0] == 2 and batch.shape[2] == 0 for batch in plan.batches)
     np.testing.assert_allclose(
         plan.solve(diag, off, rhs), np.linalg.solve(dense, rhs.ravel()).reshape(7, d), rtol=1e-10
@@ -300,21 +303,23 @@ def test_block_cholesky_keeps_one_work_array_per_thread(monkeypatch):
         return original(*args, **kwargs)
 
     with monkeypatch.context() as patch:
-        patch.setattr(_sparse.np, "empty", counting_empty)
+        patch.setattr(np, "empty", counting_empty)
         again = [lg.optimize(graph) for _ in range(3)]
     # at most one work array per thread (a thread first used here allocates one), not one
     # per solve
     assert first.linear_solves >= 2
     assert len(allocated) == len(set(allocated)) <= 2
     assert all(r.cost == first.cost for r in again)
-    assert 1 <= len(plan._buffers) <= _sparse._MAX_BUFFERS
+    assert 1 <= len(plan._buffers) <= _multifrontal._MAX_BUFFERS
     # Python threads sharing the plan (more threads than buffers kept)
     rng = np.random.default_rng(3)
     n, d = plan.pattern.num_blocks, plan.pattern.block_size
     off = 0.1 * rng.normal(size=(plan.pattern.num_pairs, d, d))
     diag = np.broadcast_to(4.0 * np.eye(d), (n, d, d)).copy()
     rhs = rng.normal(size=(n, d))
-    dense = np.asarray(_sparse.dense_matrix(plan.pattern, jnp.asarray(diag), jnp.asarray(off)))
+    dense = np.asarray(
+        _block_pattern.dense_matrix(plan.pattern, jnp.asarray(diag), jnp.asarray(off))
+    )
     expected = np.linalg.solve(dense, rhs.ravel()).reshape(n, d)
     results = [None] * 6
 
@@ -328,7 +333,7 @@ def test_block_cholesky_keeps_one_work_array_per_thread(monkeypatch):
         t.join()
     for k, x in enumerate(results):
         np.testing.assert_allclose(x, (k + 1.0) * expected, rtol=1e-10)
-    assert len(plan._buffers) <= _sparse._MAX_BUFFERS
+    assert len(plan._buffers) <= _multifrontal._MAX_BUFFERS
 
 
 def test_nested_dissection_of_chains():
@@ -344,20 +349,20 @@ def test_nested_dissection_of_chains():
     one = np.concatenate([one, rung, rung])
     other = np.concatenate([other, rung + 1, rung + 2])
     i, j = np.concatenate([one, one + n // 2]), np.concatenate([other, other + n // 2])
-    pattern, _, _ = _sparse.BlockPattern.from_edges(n, d, i, j)
-    order = _sparse.nested_dissection_order(n, pattern.rows, pattern.cols)
+    pattern, _, _ = _block_pattern.BlockPattern.from_edges(n, d, i, j)
+    order = _ordering.nested_dissection_order(n, pattern.rows, pattern.cols)
     np.testing.assert_array_equal(np.sort(order), np.arange(n))
-    by_degree = _sparse.CholeskyPlan.analyze(pattern, order=_sparse.minimum_degree_order(
+    by_degree = _multifrontal.CholeskyPlan.analyze(pattern, order=_ordering.minimum_degree_order(
         n, pattern.rows, pattern.cols
     ))  # fmt: skip
-    plan = _sparse.CholeskyPlan.analyze(pattern)
+    plan = _multifrontal.CholeskyPlan.analyze(pattern)
     assert plan.stats["ordering"] == "nested dissection"
     assert plan.stats["height"] <= 2 * np.log2(rungs)
     assert 3 * plan.stats["height"] <= by_degree.stats["height"]
     off = 0.2 * rng.normal(size=(pattern.num_pairs, d, d))
     diag = np.broadcast_to(6.0 * np.eye(d), (n, d, d)).copy()
     rhs = rng.normal(size=(n, d))
-    dense = np.asarray(_sparse.dense_matrix(pattern, jnp.asarray(diag), jnp.asarray(off)))
+    dense = np.asarray(_block_pattern.dense_matrix(pattern, jnp.asarray(diag), jnp.asarray(off)))
     expected = np.linalg.solve(dense, rhs.ravel()).reshape(n, d)
     np.testing.assert_allclose(plan.solve(diag, off, rhs), expected, rtol=1e-10, atol=1e-12)
     np.testing.assert_allclose(by_degree.solve(diag, off, rhs), expected, rtol=1e-10, atol=1e-12)
@@ -375,7 +380,11 @@ def gradient_norm(graph, poses):
 def test_optimize_generated_2d_cholesky_and_cg_agree():
     graph, truth = noisy_graph(SE2, n=40, loops=20, seed=3)
     initial_cost = float(lg.cost(graph))
-    tight = {"relative_tolerance": 1e-12, "absolute_tolerance": 1e-12}
+    tight = {
+        "termination": Termination.gtsam(
+            function_tolerance=1e-12, absolute_function_tolerance=1e-12
+        )
+    }
     result = lg.optimize(graph, **tight)
     assert result.status == lieax.Status.CONVERGED
     assert result.cost < 1e-2 * initial_cost
@@ -389,7 +398,7 @@ def test_optimize_generated_2d_cholesky_and_cg_agree():
     assert relative_close(cg.cost, result.cost, 1e-9)
     # the same structure with other values reuses the compiled loop
     count = len(_optimize._CACHE)
-    again = lg.optimize(graph.with_poses(truth), max_iterations=3)
+    again = lg.optimize(graph.with_poses(truth), termination=Termination.gtsam(max_iterations=3))
     assert len(_optimize._CACHE) == count and again.iterations <= 3
 
 
@@ -405,7 +414,10 @@ def test_optimize_generated_3d_with_prior_and_robust_loss():
         )
     )
     anchored = outlier.with_prior(0, truth[0], np.eye(6) * 1e6).with_loss(Huber(3.0))
-    result = lg.optimize(anchored, relative_tolerance=1e-10, absolute_tolerance=1e-10)
+    result = lg.optimize(
+        anchored,
+        termination=Termination.gtsam(function_tolerance=1e-10, absolute_function_tolerance=1e-10),
+    )
     assert result.status == lieax.Status.CONVERGED
     # the prior replaces the gauge: pose 0 may move, but stays at the prior
     np.testing.assert_allclose(result.poses[0].rminus(truth[0]), 0.0, atol=1e-3)
@@ -424,7 +436,11 @@ def test_optimize_generated_3d_with_prior_and_robust_loss():
 def test_retractions_reach_the_same_optimum():
     # Cayley and first-order steps take other paths to the same stationary point
     graph, _ = noisy_graph(SE3, n=30, loops=40, sigma=0.02, init_sigma=0.05, seed=4)
-    tight = {"relative_tolerance": 1e-12, "absolute_tolerance": 1e-12}
+    tight = {
+        "termination": Termination.gtsam(
+            function_tolerance=1e-12, absolute_function_tolerance=1e-12
+        )
+    }
     reference = lg.optimize(graph, **tight)
     for retraction in (retractions.cayley, retractions.first_order):
         result = lg.optimize(graph, retraction=retraction, **tight)
@@ -444,9 +460,15 @@ def test_dense_and_multifrontal_steps_agree(monkeypatch):
     graph, _ = noisy_graph(SE3, n=30, loops=40, sigma=0.02, init_sigma=0.05, seed=4)
     graph = graph.with_loss(Huber(3.0))
     assert graph.num_poses * 6 <= factorgraph_module._DENSE_LIMIT
-    dense = lg.optimize(graph, relative_tolerance=1e-10, absolute_tolerance=1e-10)
+    dense = lg.optimize(
+        graph,
+        termination=Termination.gtsam(function_tolerance=1e-10, absolute_function_tolerance=1e-10),
+    )
     monkeypatch.setattr(factorgraph_module, "_DENSE_LIMIT", 0)
-    sparse = lg.optimize(graph, relative_tolerance=1e-10, absolute_tolerance=1e-10)
+    sparse = lg.optimize(
+        graph,
+        termination=Termination.gtsam(function_tolerance=1e-10, absolute_function_tolerance=1e-10),
+    )
     methods = {key[2] for key in _optimize._factor_graph(graph, exact=True)._loops}
     assert methods == {"dense", "cholesky"}
     assert sparse.iterations == dense.iterations

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from lieax import SE3, icp
-from lieax.icp import _neighbors, _registration
+from lieax.icp import _loop
 from lieax.lstsq import Cauchy, Huber
 
 ROWS = 400  # rows of every padded synthetic cloud (>= the PCL bunny pair's 397 points)
@@ -56,48 +56,6 @@ def register(kind, source, target, normals=None, **kwargs):
 @pytest.fixture(scope="module")
 def pair():
     return icp.synthetic_pair(380, rotation_deg=8.0, translation=0.08, seed=3)
-
-
-# ---- nearest neighbours -------------------------------------------------------------------------
-
-
-@pytest.fixture(scope="module")
-def nearest_jit():
-    return jax.jit(
-        lambda t, tm, q: _neighbors.nearest(
-            _neighbors.build_index(t, tm), q, radius=jnp.asarray(0.05, t.dtype)
-        )
-    )
-
-
-def test_nearest_is_exact_within_radius(nearest_jit):
-    rng = np.random.default_rng(0)
-    target = np.concatenate(
-        [rng.normal(size=(300, 3)) * [0.3, 0.3, 0.02], rng.uniform(-1, 1, (100, 3))]
-    )
-    queries = np.concatenate(
-        [target[:150] + rng.normal(size=(150, 3)) * 0.01, rng.uniform(-1.2, 1.2, (150, 3))]
-    )
-    mask = np.arange(len(target)) < 350  # the last 50 target points are padding
-    found = nearest_jit(jnp.asarray(target), jnp.asarray(mask), jnp.asarray(queries))
-    index, distance = brute_force(queries, target[:350])
-    within = distance <= 0.05
-    assert np.all(np.asarray(found.certified))
-    np.testing.assert_array_equal(np.asarray(found.index)[within], index[within])
-    np.testing.assert_allclose(np.asarray(found.distance)[within], distance[within], rtol=1e-12)
-    assert np.all(np.asarray(found.distance)[~within] > 0.05 - 1e-12)
-    assert np.all(np.asarray(found.index) < 350)
-
-
-def test_nearest_unbounded_radius_is_exact_everywhere():
-    rng = np.random.default_rng(1)
-    target = rng.normal(size=(500, 3))
-    queries = rng.normal(size=(200, 3)) * 2.0
-    index = _neighbors.build_index(jnp.asarray(target))
-    found = _neighbors.nearest(index, jnp.asarray(queries))
-    expected, distance = brute_force(queries, target)
-    np.testing.assert_array_equal(np.asarray(found.index), expected)
-    np.testing.assert_allclose(np.asarray(found.distance), distance, rtol=1e-12)
 
 
 # ---- normals and downsampling -------------------------------------------------------------------
@@ -179,7 +137,7 @@ def test_plane_rows_match_lieax_jacobian_and_finite_differences():
     of `SE3`'s action, and central differences of $n^T (T \\,\\mathrm{Exp}(\\xi)) s$ in the
     right tangent (float64), at every pose of `ROTATIONS`, batched over the poses and unbatched."""
     from lieax import jacobian
-    from lieax.icp._registration import _plane_rows
+    from lieax.icp._plane_step import plane_rows as _plane_rows
 
     rng = np.random.default_rng(11)
     points = rng.normal(size=(5, 3)) * 2.0
@@ -272,9 +230,9 @@ def test_presample_reaches_the_direct_pose_and_batches():
         "relative_fitness": 1e-12, "relative_rmse": 1e-12, "max_iterations": 60,
     }  # fmt: skip
     direct = icp.point_to_plane(source, noisy, presample=0, **options)
-    compiled = _registration._solve._cache_size()
+    compiled = _loop.solve._cache_size()
     staged = icp.point_to_plane(source, noisy, **options)
-    assert _registration._solve._cache_size() == compiled  # (the direct run's loop, reused)
+    assert _loop.solve._cache_size() == compiled  # (the direct run's loop, reused)
     assert direct.status_name == staged.status_name == "CONVERGED"
     rotation, translation = pose_error(staged.transform, direct.transform)
     assert rotation < 1e-9 and translation < 1e-9

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from lieax import icp
-from lieax.icp import _normals, _registration
+from lieax.icp import _loop, _normals
 from lieax.icp._batch import CHUNK_POINTS, bucket_size, chunk_size, pad_to_bucket
 
 
@@ -63,7 +63,7 @@ def test_a_stream_of_sizes_compiles_one_loop():
     rng = np.random.default_rng(0)
     sizes = rng.integers(321, 385, size=20)
     assert len(set(sizes)) > 10 and {bucket_size(int(n)) for n in sizes} == {384}
-    compiled = (_registration._solve, _normals._normals, _normals._kdtree_neighbourhoods_call)
+    compiled = (_loop.solve, _normals._normals, _normals._kdtree_neighbourhoods_call)
     before = [f._cache_size() for f in compiled]
     for k, n in enumerate(sizes):
         source, target, _, _ = icp.synthetic_pair(

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from lieax import SE3, icp
-from lieax.icp import _host_kdtree, _registration
+from lieax.icp import _coordinates, _host_kdtree
 from lieax.lstsq import Huber
 
 RADIUS = 0.2
@@ -301,7 +301,7 @@ def test_float32_transform_of_20k_points_matches_float64():
     pose32 = SE3._wrap(pose.parameters().astype(jnp.float32))
     points32 = jnp.asarray(points, jnp.float32)
     for moved in (
-        jax.jit(_registration.transform_points)(pose32.parameters(), points32),
+        jax.jit(_coordinates.transform_points)(pose32.parameters(), points32),
         jax.jit(lambda T, p: T @ p)(pose32, points32),
     ):
         assert moved.dtype == jnp.float32

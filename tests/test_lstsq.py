@@ -15,7 +15,11 @@ import lieax  # noqa: E402
 import lieax.lstsq as ls  # noqa: E402
 
 SOLVERS = {"LM": ls.LevenbergMarquardt(), "GN": ls.GaussNewton()}
-TIGHT = dict(function_tolerance=0.0, gradient_tolerance=1e-14, parameter_tolerance=1e-15)
+TIGHT = dict(
+    termination=ls.Termination(
+        function_tolerance=0.0, gradient_tolerance=1e-14, parameter_tolerance=1e-15
+    )
+)
 
 
 # ---- problems -----------------------------------------------------------------------------------
@@ -282,7 +286,11 @@ def test_status_diverged():
 def test_status_max_iterations_and_the_iteration_table(capsys):
     data = similarity_data(jax.random.PRNGKey(0))
     sol = ls.least_squares(
-        similarity_residual, similarity_start(), data, max_iterations=2, verbose=True
+        similarity_residual,
+        similarity_start(),
+        data,
+        termination=ls.Termination(max_iterations=2),
+        verbose=True,
     )
     assert sol.status == ls.Status.MAX_ITERATIONS and sol.status_name == "MAX_ITERATIONS"
     assert sol.iterations == 2 and sol.cost_history.shape == (3,)

@@ -82,7 +82,9 @@ def _array(value):
 @pytest.mark.parametrize("name", ["rosenbrock", "exponential", "rotation"])
 def test_residual_scale_changes_neither_status_nor_iterates(name, dtype, solver):
     residual_fn, x0, data = _problem(name, DTYPES[dtype])
-    kwargs = dict(solver=SOLVERS[solver], max_iterations=200, throw=False)
+    kwargs = dict(
+        solver=SOLVERS[solver], termination=ls.Termination(max_iterations=200), throw=False
+    )
     reference = ls.least_squares(residual_fn, x0, data(1.0), **kwargs)
     assert reference.status_name == "CONVERGED"
     # powers of two scale every quantity exactly: the same iterates, bit for bit
@@ -282,11 +284,13 @@ def test_numpy_integers_are_iteration_counts():
     target = jnp.array([3.0, -1.0])
     x0 = jnp.zeros(2)
     for count in (np.int64(30), np.int32(30), np.uint8(30)):
-        solution = ls.least_squares(tiny_gradient, x0, target, max_iterations=count)
+        solution = ls.least_squares(
+            tiny_gradient, x0, target, termination=ls.Termination(max_iterations=count)
+        )
         assert solution.cost_history.shape == (31,)
     for bad in (3.0, -1, np.float64(2.0), "3"):
         with pytest.raises(ValueError, match="max_iterations must be a non-negative int"):
-            ls.least_squares(tiny_gradient, x0, target, max_iterations=bad)
+            ls.Termination(max_iterations=bad)
 
 
 # ---- factor graphs ---------------------------------------------------------------------------
@@ -348,7 +352,7 @@ def test_factor_graph_nonfinite_start(offset_graph):
 
 
 def test_factor_graph_relative_tests_are_scale_invariant():
-    """With `absolute_tolerance=0` (GTSAM's absolute test off) and Marquardt damping, scaling the
+    """With `absolute_function_tolerance=0` (GTSAM's absolute test off) and Marquardt damping, scaling the
     residual by a power of two changes nothing; `max_iterations` takes NumPy integers."""
     x = Var(jnp.array([[-1.2, 1.0]]), name="x")
     factor = Factor(fg_rosenbrock, (x[np.array([0])],), jnp.ones((1, 1)), name="rosenbrock")
@@ -356,7 +360,8 @@ def test_factor_graph_relative_tests_are_scale_invariant():
     options = dict(
         solver=ls.LevenbergMarquardt.gtsam(scaling="clipped", damping_update="nielsen",
                                            min_diagonal=1e-30),
-        absolute_tolerance=0.0, relative_tolerance=1e-10, max_iterations=np.int64(200),
+        termination=ls.Termination.gtsam(absolute_function_tolerance=0.0,
+                                         function_tolerance=1e-10, max_iterations=np.int64(200)),
     )  # fmt: skip
     reference = graph.solve(**options)
     assert int(reference.status) == ls.Status.CONVERGED
@@ -367,4 +372,4 @@ def test_factor_graph_relative_tests_are_scale_invariant():
         assert int(scaled.iterations) == int(reference.iterations)
         np.testing.assert_array_equal(scaled.values[0], reference.values[0])
     with pytest.raises(ValueError, match="max_iterations must be a non-negative int"):
-        graph.solve(max_iterations=2.5)
+        graph.solve(termination=ls.Termination.gtsam(max_iterations=2.5))

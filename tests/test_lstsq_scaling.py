@@ -266,7 +266,7 @@ def solve_lieax(residual, solver, starts, scales, x, y):
             start,
             (x, y, scale),
             solver=solver,
-            max_iterations=MAX_ITERATIONS,
+            termination=ls.Termination(max_iterations=MAX_ITERATIONS),
             throw=False,
         )
 
@@ -440,11 +440,13 @@ def test_derivative_of_a_rescaled_solve(differentiation):
             residual_fn(problem),
             start,
             (x, y, scale),
-            max_iterations=200,
+            termination=ls.Termination(
+                max_iterations=200,
+                function_tolerance=0.0,
+                gradient_tolerance=0.0,
+                parameter_tolerance=1e-14,
+            ),
             differentiation=differentiation,
-            function_tolerance=0.0,
-            gradient_tolerance=0.0,
-            parameter_tolerance=1e-14,
             throw=False,
         )
         return solution.value / scale

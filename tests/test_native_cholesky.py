@@ -18,7 +18,7 @@ import pytest
 from _child import child_output
 from test_sparse_multifrontal import system_on_edges
 
-from lieax.factorgraph import _native_cholesky, _sparse
+from lieax.factorgraph import _block_pattern, _multifrontal, _native_cholesky
 
 pytestmark = pytest.mark.skipif(
     not _native_cholesky.available(), reason="the native library is not built (see setup.py)"
@@ -59,7 +59,7 @@ CASES = [
 @pytest.mark.parametrize(("kind", "n", "d"), CASES)
 def test_native_solve_matches_numpy_plan_and_dense(kind, n, d):
     pattern, diag, off, dense, rhs = system(kind, n, d)
-    plan = _sparse.CholeskyPlan.analyze(pattern)
+    plan = _multifrontal.CholeskyPlan.analyze(pattern)
     x = np.asarray(_native_cholesky.solve(plan.key, diag, off, rhs))
     expected = np.linalg.solve(dense, rhs.ravel()).reshape(n, d)
     np.testing.assert_allclose(x, expected, rtol=1e-12, atol=1e-12)
@@ -69,7 +69,7 @@ def test_native_solve_matches_numpy_plan_and_dense(kind, n, d):
 def test_large_fronts_call_the_blas():
     """A grid whose separators make fronts above the plain loops' size (the BLAS path)."""
     pattern, diag, off, dense, rhs = system("grid", 200, 6, seed=3)
-    plan = _sparse.CholeskyPlan.analyze(pattern)
+    plan = _multifrontal.CholeskyPlan.analyze(pattern)
     assert max(len(p) for p in plan_fronts(plan)) * 6 >= 24
     x = np.asarray(_native_cholesky.solve(plan.key, diag, off, rhs))
     np.testing.assert_allclose(x, np.linalg.solve(dense, rhs.ravel()).reshape(rhs.shape),
@@ -83,7 +83,7 @@ def plan_fronts(plan):
 
 def test_not_positive_definite_is_nan():
     pattern, diag, off, _, rhs = system("random", 40, 3, seed=2)
-    plan = _sparse.CholeskyPlan.analyze(pattern)
+    plan = _multifrontal.CholeskyPlan.analyze(pattern)
     for block in (plan.order[0], plan.order[-1]):  # a leaf front's pivot, the root's
         bad = diag.copy()
         bad[block] *= -1.0
@@ -92,13 +92,13 @@ def test_not_positive_definite_is_nan():
 
 def test_vmap_is_one_call_for_the_batch_and_float32():
     pattern, diag, off, dense, rhs = system("random", 30, 3, seed=5)
-    plan = _sparse.CholeskyPlan.analyze(pattern)
+    plan = _multifrontal.CholeskyPlan.analyze(pattern)
     scales = np.array([1.0, 2.0, 3.5])
     diags = diag[None] * scales[:, None, None, None]
-    run = jax.vmap(lambda a, r: _sparse.cholesky_solve(plan, a, jnp.asarray(off), r))
+    run = jax.vmap(lambda a, r: _multifrontal.cholesky_solve(plan, a, jnp.asarray(off), r))
     x = jax.jit(run)(diags, np.stack([rhs] * 3))
     for s, xs in zip(scales, np.asarray(x)):
-        matrix = np.asarray(_sparse.dense_matrix(pattern, jnp.asarray(s * diag), off))
+        matrix = np.asarray(_block_pattern.dense_matrix(pattern, jnp.asarray(s * diag), off))
         np.testing.assert_allclose(xs, np.linalg.solve(matrix, rhs.ravel()).reshape(rhs.shape),
                                    rtol=1e-12, atol=1e-12)  # fmt: skip
     hlo = jax.jit(run).lower(diags, np.stack([rhs] * 3)).as_text()
@@ -114,9 +114,9 @@ def test_unknown_and_collected_keys_are_clear_errors():
     pattern, diag, off, _, rhs = system("chain", 10, 3, seed=7)
     with pytest.raises(Exception, match="no plan is registered under key 12345"):
         np.asarray(_native_cholesky.solve(12345, diag, off, rhs))
-    plan = _sparse.CholeskyPlan.analyze(pattern, max_pivots=(1, 1, 1))  # a key of its own
+    plan = _multifrontal.CholeskyPlan.analyze(pattern, max_pivots=(1, 1, 1))  # a key of its own
     key = plan.key
-    second = _sparse.CholeskyPlan.analyze(pattern, max_pivots=(1, 1, 1))
+    second = _multifrontal.CholeskyPlan.analyze(pattern, max_pivots=(1, 1, 1))
     assert second.key == key and _native_cholesky.references(key) == 2
     del plan
     gc.collect()
@@ -133,7 +133,7 @@ def test_an_inconsistent_analysis_is_refused():
     """The library checks what it is handed (rows in range and in elimination order, every entry
     and child update inside its front) before it registers anything."""
     pattern, *_ = system("grid", 30, 3, seed=11)
-    plan = _sparse.CholeskyPlan.analyze(pattern)
+    plan = _multifrontal.CholeskyPlan.analyze(pattern)
     symbolic = plan._symbolic
     front = next(k for k, p in enumerate(symbolic.pivots) if len(p) > 1)
     pivots = list(symbolic.pivots)
@@ -160,10 +160,12 @@ def test_a_plan_given_as_a_function_is_analysed_when_traced():
     def slow_plan():
         if "plan" not in done:
             time.sleep(0.3)
-            done["plan"] = _sparse.CholeskyPlan.analyze(pattern)
+            done["plan"] = _multifrontal.CholeskyPlan.analyze(pattern)
         return done["plan"]
 
-    solve = jax.jit(lambda a, b, r: _sparse.cholesky_solve(slow_plan, a, b, r, pattern=pattern))
+    solve = jax.jit(
+        lambda a, b, r: _multifrontal.cholesky_solve(slow_plan, a, b, r, pattern=pattern)
+    )
     x = solve(diag, off, rhs)
     np.testing.assert_allclose(x, np.linalg.solve(dense, rhs.ravel()).reshape(rhs.shape),
                                rtol=1e-12, atol=1e-12)  # fmt: skip
@@ -172,15 +174,15 @@ def test_a_plan_given_as_a_function_is_analysed_when_traced():
     def failing():
         raise ValueError("the analysis broke")
 
-    solve = jax.jit(lambda a, b, r: _sparse.cholesky_solve(failing, a, b, r, pattern=other))
+    solve = jax.jit(lambda a, b, r: _multifrontal.cholesky_solve(failing, a, b, r, pattern=other))
     with pytest.raises(ValueError, match="the analysis broke"):
         solve(diag, off, rhs)
 
 
 def test_concurrent_solves_share_a_plan():
     pattern, diag, off, dense, rhs = system("random", 60, 6, seed=10)
-    plan = _sparse.CholeskyPlan.analyze(pattern)
-    solve = jax.jit(lambda a, b, r: _sparse.cholesky_solve(plan, a, b, r))
+    plan = _multifrontal.CholeskyPlan.analyze(pattern)
+    solve = jax.jit(lambda a, b, r: _multifrontal.cholesky_solve(plan, a, b, r))
     expected = np.linalg.solve(dense, rhs.ravel()).reshape(rhs.shape)
     solve(diag, off, rhs).block_until_ready()
     results = [None] * 4

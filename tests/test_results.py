@@ -96,7 +96,9 @@ def test_solution_status_repr_and_pytree():
     again = jax.tree.unflatten(treedef, leaves)
     assert type(again) is lstsq.Solution and type(solution._replace(cost=0.0)) is lstsq.Solution
 
-    stopped = lstsq.least_squares(exponential, jnp.array([5.0]), t, max_iterations=1)
+    stopped = lstsq.least_squares(
+        exponential, jnp.array([5.0]), t, termination=lstsq.Termination(max_iterations=1)
+    )
     assert stopped.status_name == "MAX_ITERATIONS" and not bool(stopped.converged)
     assert repr(stopped).startswith("Solution(status=MAX_ITERATIONS, ")
 

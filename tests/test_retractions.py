@@ -382,7 +382,8 @@ def split_residual(x, data):
     return jax.vmap(lambda p, q: x["rotation"] @ p + x["translation"] - q)(source, target)
 
 
-TIGHT = {"function_tolerance": 0.0, "gradient_tolerance": 1e-13, "parameter_tolerance": 1e-14}
+TOLERANCES = {"function_tolerance": 0.0, "gradient_tolerance": 1e-13, "parameter_tolerance": 1e-14}
+TIGHT = {"termination": ls.Termination(**TOLERANCES)}
 SOURCE, TARGET = alignment_data(jax.random.PRNGKey(0))
 RETRACTIONS = ("exp", "cayley", "first_order")
 
@@ -453,8 +454,7 @@ def solve_split(target, retraction, differentiation):
         (SOURCE[1], target),
         retraction=retraction,
         differentiation=differentiation,
-        max_iterations=30,
-        **TIGHT,
+        termination=ls.Termination(max_iterations=30, **TOLERANCES),
     )
     value = solution.value
     return jnp.concatenate([value["rotation"].as_matrix().ravel(), value["translation"]])

@@ -1,4 +1,4 @@
-"""The host multifrontal block Cholesky of `lieax.factorgraph._sparse`: the update products
+"""The host multifrontal block Cholesky of `lieax.factorgraph._multifrontal`: the update products
 subtracted where their columns become pivots, the identity on padded pivots from the assembly,
 the substitution's two ways of subtracting updates, and the pivot blocks' inverse factors."""
 
@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from lieax.factorgraph import _sparse
+from lieax.factorgraph import _block_pattern, _host_triangular, _multifrontal
 
 
 def random_system(n, extra, d, seed):
@@ -22,12 +22,12 @@ def random_system(n, extra, d, seed):
 def system_on_edges(n, d, i, j, rng):
     """The pattern of the block pairs `(i, j)`, a diagonally dominant (positive definite) system
     on it, its dense matrix and a right-hand side: `(pattern, diag, off, dense, rhs)`."""
-    pattern, _, _ = _sparse.BlockPattern.from_edges(n, d, i, j)
+    pattern, _, _ = _block_pattern.BlockPattern.from_edges(n, d, i, j)
     off = 0.3 * rng.normal(size=(pattern.num_pairs, d, d))
     a = rng.normal(size=(n, d, d))
     degree = np.bincount(np.concatenate([pattern.rows, pattern.cols]), minlength=n)
     diag = a @ np.swapaxes(a, 1, 2) + (2.0 * d * (degree + 1))[:, None, None] * np.eye(d)
-    dense = np.asarray(_sparse.dense_matrix(pattern, jnp.asarray(diag), jnp.asarray(off)))
+    dense = np.asarray(_block_pattern.dense_matrix(pattern, jnp.asarray(diag), jnp.asarray(off)))
     return pattern, diag, off, dense, rng.normal(size=(n, d))
 
 
@@ -37,7 +37,7 @@ def test_solve_matches_dense_with_shared_updates_and_padding(n, extra, d, seed):
     substitution's summed scatter) solve as the dense matrix does, and repeated solves reuse the
     work array without carrying anything over."""
     pattern, diag, off, dense, rhs = random_system(n, extra, d, seed)
-    plan = _sparse.CholeskyPlan.analyze(pattern)
+    plan = _multifrontal.CholeskyPlan.analyze(pattern)
     assert any(batch.scatter is not None for batch in plan.batches)
     assert any(batch.scatter is None and batch.shape[2] for batch in plan.batches)
     padded = [(batch.pivot_index == n).any() for batch in plan.batches]
@@ -49,7 +49,7 @@ def test_solve_matches_dense_with_shared_updates_and_padding(n, extra, d, seed):
 
 def test_not_positive_definite_is_nan():
     pattern, diag, off, _, rhs = random_system(40, 60, 3, 2)
-    plan = _sparse.CholeskyPlan.analyze(pattern)
+    plan = _multifrontal.CholeskyPlan.analyze(pattern)
     diag = diag.copy()
     diag[plan.order[0]] *= -1.0  # the first eliminated block: a pivot of a leaf front
     assert np.all(np.isnan(plan.solve(diag, off, rhs)))
@@ -67,14 +67,14 @@ def test_cholesky_inverse(order):
     a = rng.normal(size=(3, order, order))
     matrix = a @ np.swapaxes(a, 1, 2) + order * np.eye(order)
     garbled = np.tril(matrix) + np.triu(rng.normal(size=matrix.shape), 1)
-    inverse = _sparse._cholesky_inverse(garbled)
+    inverse = _host_triangular._cholesky_inverse(garbled)
     np.testing.assert_allclose(
         inverse, np.linalg.inv(np.linalg.cholesky(matrix)), rtol=1e-10, atol=1e-12
     )
     assert np.all(np.triu(inverse, 1) == 0.0)
     matrix[1] = -matrix[1]
     with pytest.raises(np.linalg.LinAlgError):
-        _sparse._cholesky_inverse(matrix)
+        _host_triangular._cholesky_inverse(matrix)
 
 
 @pytest.mark.parametrize("order", [6, 63, 64, 180])
@@ -84,5 +84,5 @@ def test_cholesky_solve(order):
     a = rng.normal(size=(2, order, order))
     matrix = a @ np.swapaxes(a, 1, 2) + order * np.eye(order)
     rhs = rng.normal(size=(2, order, 1))
-    x = _sparse._cholesky_solve(np.linalg.cholesky(matrix), rhs)
+    x = _host_triangular._cholesky_solve(np.linalg.cholesky(matrix), rhs)
     np.testing.assert_allclose(matrix @ x, rhs, atol=1e-10)

@@ -9,7 +9,15 @@ import pytest
 
 import lieax
 from lieax import SE2, _threads
-from lieax.factorgraph import Factor, FactorGraph, Var, _native_cholesky, _sparse
+from lieax.factorgraph import (
+    Factor,
+    FactorGraph,
+    Var,
+    _block_pattern,
+    _dense_solve,
+    _multifrontal,
+    _native_cholesky,
+)
 
 
 def blas_counts():
@@ -88,7 +96,7 @@ def test_threads_for_small_and_large_work():
 def chain_system(n, d, seed=0):
     """A positive definite block tridiagonal system: pattern, diag, off, rhs (NumPy)."""
     rng = np.random.default_rng(seed)
-    pattern, _, _ = _sparse.BlockPattern.from_edges(n, d, np.arange(n - 1), np.arange(1, n))
+    pattern, _, _ = _block_pattern.BlockPattern.from_edges(n, d, np.arange(n - 1), np.arange(1, n))
     off = 0.1 * rng.normal(size=(n - 1, d, d))
     a = rng.normal(size=(n, d, d))
     diag = a @ np.swapaxes(a, 1, 2) + 2 * d * np.eye(d)
@@ -99,25 +107,25 @@ def test_host_cholesky_runs_on_one_blas_thread_and_restores(monkeypatch, two_bla
     """The NumPy path (without the native library: the host callback)."""
     monkeypatch.setattr(_native_cholesky, "available", lambda: False)
     pattern, diag, off, rhs = chain_system(40, 6)
-    plan = _sparse.CholeskyPlan.analyze(pattern)
+    plan = _multifrontal.CholeskyPlan.analyze(pattern)
     seen = []
-    solve = _sparse.CholeskyPlan.solve
+    solve = _multifrontal.CholeskyPlan.solve
 
     def recording(self, *system):
         seen.append(blas_counts())
         return solve(self, *system)
 
-    monkeypatch.setattr(_sparse.CholeskyPlan, "solve", recording)
-    run = jax.jit(lambda d, o, r: _sparse.cholesky_solve(plan, d, o, r))
+    monkeypatch.setattr(_multifrontal.CholeskyPlan, "solve", recording)
+    run = jax.jit(lambda d, o, r: _multifrontal.cholesky_solve(plan, d, o, r))
     x = run(diag, off, rhs)
-    dense = _sparse.dense_matrix(pattern, diag, off)
+    dense = _block_pattern.dense_matrix(pattern, diag, off)
     np.testing.assert_allclose(x.reshape(-1), np.linalg.solve(dense, rhs.reshape(-1)), rtol=1e-10)
     assert seen and all(counts == [1] * len(counts) for counts in seen)
     assert blas_counts() == two_blas_threads
     # a plan above the threshold keeps the user's counts (None), or lieax's setting
     monkeypatch.setitem(plan.stats, "flops", 2 * _threads.PARALLEL_FLOPS)
     seen.clear()
-    solve_again = jax.jit(lambda d, o, r: _sparse.cholesky_solve(plan, d, o, r))
+    solve_again = jax.jit(lambda d, o, r: _multifrontal.cholesky_solve(plan, d, o, r))
     solve_again(diag, off, rhs).block_until_ready()
     assert seen == [two_blas_threads]
 
@@ -128,9 +136,9 @@ def test_native_cholesky_scopes_its_blas_calls(two_blas_threads):
     SciPy's BLAS) and leaves the pools' counts as they were."""
     assert _native_cholesky.scopes_threads()
     pattern, diag, off, rhs = chain_system(40, 6)
-    plan = _sparse.CholeskyPlan.analyze(pattern)
-    x = jax.jit(lambda d, o, r: _sparse.cholesky_solve(plan, d, o, r))(diag, off, rhs)
-    dense = _sparse.dense_matrix(pattern, diag, off)
+    plan = _multifrontal.CholeskyPlan.analyze(pattern)
+    x = jax.jit(lambda d, o, r: _multifrontal.cholesky_solve(plan, d, o, r))(diag, off, rhs)
+    dense = _block_pattern.dense_matrix(pattern, diag, off)
     np.testing.assert_allclose(x.reshape(-1), np.linalg.solve(dense, rhs.reshape(-1)), rtol=1e-10)
     assert blas_counts() == two_blas_threads
 
@@ -159,7 +167,7 @@ def test_dense_cholesky_runs_on_one_blas_thread_around_the_compiled_call(
     solve runs (set around the call, so the program holds no host callback: JAX's persistent
     cache can keep it, and `vmap` of it works), the counts restored after; none below."""
     graph = dense_chain_graph(30)  # order 90
-    assert _sparse.dense_threads(graph.layout.pattern) == 1
+    assert _dense_solve.dense_threads(graph.layout.pattern) == 1
     seen = []
     enter = _threads._enter_blas
 
@@ -178,7 +186,7 @@ def test_dense_cholesky_runs_on_one_blas_thread_around_the_compiled_call(
     batched = jax.vmap(lambda v: graph.solve(v, linear_solver="dense", throw=False).cost)(values)
     np.testing.assert_allclose(batched, float(result.cost), rtol=1e-12)
     small = dense_chain_graph(4)  # order 12: OpenBLAS stays on the calling thread
-    assert _sparse.dense_threads(small.layout.pattern) is None
+    assert _dense_solve.dense_threads(small.layout.pattern) is None
 
 
 def test_kdtree_queries_limit_openmp_by_size():

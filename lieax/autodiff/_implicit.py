@@ -22,6 +22,8 @@ import jax
 import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 
+from .._typing import PyTree
+
 
 def _flat_function(function, example):
     """`function` on a flat vector in the layout of `example`, returning a flat vector."""
@@ -29,7 +31,7 @@ def _flat_function(function, example):
     return lambda flat: ravel_pytree(function(unravel(flat)))[0]
 
 
-def inverse_function_jacobian(f_inverse: Callable, y) -> jax.Array:
+def inverse_function_jacobian(f_inverse: Callable, y: PyTree) -> jax.Array:
     r"""$Df(x) = (D f^{-1}(y))^{-1}$ at $x = f^{-1}(y)$: the Jacobian of a hard function $f$ at the
     point whose image is `y`, from its easy inverse.
 
@@ -45,7 +47,7 @@ def inverse_function_jacobian(f_inverse: Callable, y) -> jax.Array:
     return jnp.linalg.inv(jac_inverse)
 
 
-def implicit_jacobian(F: Callable, x, y) -> jax.Array:
+def implicit_jacobian(F: Callable, x: PyTree, y: PyTree) -> jax.Array:
     r"""$Dy(x) = -(D_y F(x, y))^{-1} D_x F(x, y)$ at a solution of $F(x, y) = 0$.
 
     **Arguments:**

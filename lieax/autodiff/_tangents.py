@@ -13,6 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import check_not_foreign, foreign_conversion, to_device
+from .._typing import PyTree
 from ..groups import AbstractManifold, kernels
 from ..retractions import Retraction, exp
 
@@ -79,7 +80,7 @@ def check_retraction(retraction) -> Retraction:
     return retraction
 
 
-def rplus(tree, tangents, retraction: Retraction = exp):
+def rplus(tree: PyTree, tangents: PyTree, retraction: Retraction = exp) -> PyTree:
     r"""$X \oplus \delta$ leaf by leaf: `X.rplus(δ)` for groups, `x + δ` for arrays; with a
     `retraction` from `lieax.retractions` (e.g. `cayley`), $\mathcal{R}_X(\delta)$ instead."""
     retract = check_retraction(retraction).rplus
@@ -88,7 +89,7 @@ def rplus(tree, tangents, retraction: Retraction = exp):
     return treedef.unflatten([retract(leaf, d) for leaf, d in zip(leaves, deltas)])
 
 
-def rminus(tree_a, tree_b, retraction: Retraction = exp):
+def rminus(tree_a: PyTree, tree_b: PyTree, retraction: Retraction = exp) -> PyTree:
     r"""$A \ominus B$ leaf by leaf (`a.rminus(b)` for groups, `a - b` for arrays), so that
     `rplus(tree_b, rminus(tree_a, tree_b)) == tree_a`; with a `retraction`, its inverse
     $\mathcal{R}_B^{-1}(A)$ (the same identity holds with the same `retraction` in `rplus`)."""
@@ -98,7 +99,7 @@ def rminus(tree_a, tree_b, retraction: Retraction = exp):
     return treedef.unflatten([local(a, b) for a, b in zip(leaves_a, leaves_b)])
 
 
-def zero_tangents(tree):
+def zero_tangents(tree: PyTree) -> PyTree:
     """Zero tangents shaped like `tree`'s tangent space (groups become `(*batch, tangent_dim)`)."""
     leaves, treedef = manifold_leaves(tree, "tree")
     return treedef.unflatten(
@@ -106,13 +107,13 @@ def zero_tangents(tree):
     )
 
 
-def tangent_dim(tree) -> int:
+def tangent_dim(tree: PyTree) -> int:
     """The total number of tangent coordinates of `tree`."""
     leaves, _ = manifold_leaves(tree, "tree")
     return sum(math.prod(leaf_tangent_shape(leaf)) for leaf in leaves)
 
 
-def flatten_tangents(tangents) -> jax.Array:
+def flatten_tangents(tangents: PyTree) -> jax.Array:
     """One vector of all tangent coordinates, leaves in pytree order, each raveled row-major."""
     leaves = jax.tree_util.tree_leaves(tangents)
     if not leaves:
@@ -120,7 +121,7 @@ def flatten_tangents(tangents) -> jax.Array:
     return jnp.concatenate([jnp.ravel(t) for t in leaves])
 
 
-def unflatten_tangents(tree, vector):
+def unflatten_tangents(tree: PyTree, vector: jax.Array | np.ndarray) -> PyTree:
     """Tangents of `tree` from one vector laid out as `flatten_tangents` lays it out."""
     leaves, treedef = manifold_leaves(tree, "tree")
     shapes = [leaf_tangent_shape(leaf) for leaf in leaves]

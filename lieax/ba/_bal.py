@@ -17,8 +17,15 @@ camera model is in `lieax.ba.project`.
 import bz2
 import dataclasses
 import os
+from typing import TYPE_CHECKING, Self
 
 import numpy as np
+import numpy.typing as npt
+
+if TYPE_CHECKING:  # this module reads and writes files with NumPy alone
+    import jax
+
+    from ..groups import SE3
 
 
 class BALError(ValueError):
@@ -55,7 +62,7 @@ class BALProblem:
     def num_observations(self) -> int:
         return self.observations.shape[0]
 
-    def camera_variables(self, dtype=None):
+    def camera_variables(self, dtype: npt.DTypeLike | None = None) -> "tuple[SE3, jax.Array]":
         """`(T_camera_world, intrinsics)`: the cameras as one batched `lieax.SE3` and `(n, 3)`
         intrinsics $(f, k_1, k_2)$ (see `lieax.ba.bal_to_camera`), in `dtype` (default: JAX's
         default float; enable x64 for bundle adjustment)."""
@@ -66,7 +73,7 @@ class BALProblem:
         dtype = jax.dtypes.canonicalize_dtype(float if dtype is None else dtype)
         return bal_to_camera(np.asarray(self.cameras, dtype))
 
-    def with_parameters(self, cameras, points) -> "BALProblem":
+    def with_parameters(self, cameras: npt.ArrayLike, points: npt.ArrayLike) -> Self:
         """The same observations with other `(n, 9)` cameras and `(m, 3)` points."""
         cameras = np.asarray(cameras, dtype=np.float64)
         points = np.asarray(points, dtype=np.float64)
@@ -102,7 +109,7 @@ def _numbers(tokens, line_of, where):
     return values
 
 
-def read_bal(path) -> BALProblem:
+def read_bal(path: str | os.PathLike[str]) -> BALProblem:
     """Read a BAL problem file (`.bz2` files are decompressed on the fly).
 
     **Arguments:**
@@ -233,7 +240,7 @@ def checked_arrays(problem):
     return cameras, points, observations, camera_indices, point_indices
 
 
-def write_bal(path, problem: BALProblem) -> None:
+def write_bal(path: str | os.PathLike[str], problem: BALProblem) -> None:
     """Write `problem` as a BAL file (bz2-compressed when `path` ends with `.bz2`), every number
     with `%.16e` (exact for float64), cameras and points one value per line as the dataset does.
 

@@ -46,8 +46,8 @@ class BundlerProblem(BALProblem):
     - `keypoint_indices`: `(k,)` int64, each observation's feature index in its image.
     """
 
-    colors: np.ndarray = None
-    keypoint_indices: np.ndarray = None
+    colors: np.ndarray | None = None
+    keypoint_indices: np.ndarray | None = None
 
 
 def _numbers(fields, number, path, kind=float):
@@ -67,7 +67,7 @@ def _parses(text, kind):
     return True
 
 
-def read_bundler(path) -> BundlerProblem:
+def read_bundler(path: str | os.PathLike[str]) -> BundlerProblem:
     r"""Read a Bundler `.out` file as a `BALProblem` (see the module docstring for the layout and
     the camera conversion).
 
@@ -181,7 +181,7 @@ def read_bundler(path) -> BundlerProblem:
     )
 
 
-def write_bundler(path, problem: BALProblem) -> None:
+def write_bundler(path: str | os.PathLike[str], problem: BALProblem) -> None:
     r"""Write `problem` (a `BALProblem`, e.g. read by `read_bal` or `read_bundler`) as a Bundler
     v0.3 file that `read_bundler` and GTSAM's `SfmData.FromBundlerFile` read: each camera's
     rotation vector as the matrix $R = \mathrm{Exp}(\omega)$, numbers with 17 significant digits

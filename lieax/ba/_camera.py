@@ -8,13 +8,14 @@ tangent, so $R = \mathrm{Exp}(\omega)$), $t$, then $f, k_1, k_2$.
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 
 from .._checks import broadcast_batch, check_last_axis, is_concrete, to_device
 from ..cameras._snavely import check_pose as _check_pose
 from ..groups import SE3, SO3
 
 
-def bal_to_camera(cameras):
+def bal_to_camera(cameras: ArrayLike) -> tuple[SE3, jax.Array]:
     r"""`(T_camera_world, intrinsics)` from BAL's camera 9-vectors.
 
     **Arguments:**
@@ -34,7 +35,7 @@ def bal_to_camera(cameras):
     return pose, intrinsics
 
 
-def camera_to_bal(pose, intrinsics):
+def camera_to_bal(pose: SE3, intrinsics: ArrayLike) -> np.ndarray | jax.Array:
     r"""BAL's camera 9-vectors `(*batch, 9)` from `(T_camera_world, intrinsics)`: the inverse of
     `bal_to_camera` (rotation vectors with angle in $[0, \pi]$).
 

@@ -49,7 +49,7 @@ def _rotation_matrices(rotvecs):
     return np.eye(3) + a * K + b * (K @ K)
 
 
-def project_numpy(cameras, points):
+def project_numpy(cameras: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Snavely's projection (see `lieax.ba.project`) of `points[i]` by `cameras[i]`, in NumPy:
     `(k, 9)` BAL cameras and `(k, 3)` points give `(u (k, 2), P_z (k,))`."""
     R = _rotation_matrices(cameras[:, :3])
@@ -127,17 +127,17 @@ def _track_lengths(rng, num_cameras, num_points, num_observations):
 
 
 def synthetic_bal(
-    num_cameras,
-    num_points,
-    num_observations,
+    num_cameras: int | np.integer,
+    num_points: int | np.integer,
+    num_observations: int | np.integer,
     *,
-    noise=1.0,
-    outlier_fraction=0.0,
-    rotation_noise=5e-3,
-    translation_noise=3e-2,
-    point_noise=3e-2,
-    focal_length=500.0,
-    seed=0,
+    noise: float = 1.0,
+    outlier_fraction: float = 0.0,
+    rotation_noise: float = 5e-3,
+    translation_noise: float = 3e-2,
+    point_noise: float = 3e-2,
+    focal_length: float = 500.0,
+    seed: int | None = 0,
 ) -> SyntheticBAL:
     r"""A generated bundle-adjustment problem with its ground truth.
 

@@ -19,10 +19,12 @@ $$\frac{\partial e}{\partial q} = f B_m^\top + f'(c)\,(B_m^\top q)\, m^\top, \qq
 chained with $\partial P / \partial \xi = [-I, [P]_\times]$ and $\partial P / \partial X = R^\top$.
 """
 
+import jax
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 
 from .._linalg import dot
-from ..groups import S2, kernels
+from ..groups import S2, SE3, kernels
 from ._frame import check_camera_inputs, in_camera, in_camera_jacobians
 
 # below this angle θ/sin θ and its derivative use their series (the closed form loses
@@ -42,7 +44,7 @@ def _broadcast(a, b):
     return jnp.broadcast_to(a, (*batch, a.shape[-1])), jnp.broadcast_to(b, (*batch, b.shape[-1]))
 
 
-def bearing(T_world_camera, point):
+def bearing(T_world_camera: SE3, point: ArrayLike) -> S2:
     r"""The `S2` bearing $q = P / |P|$ of world points in the camera frame (GTSAM's
     `Pose3::bearing`); undefined at the camera's centre."""
     (point,) = _checked("bearing", T_world_camera, point)
@@ -81,7 +83,7 @@ def _error_values(m, q):
     return error, basis_m, projected, f, df, antipodal
 
 
-def bearing_error(T_world_camera, point, measured):
+def bearing_error(T_world_camera: SE3, point: ArrayLike, measured: S2 | ArrayLike) -> jax.Array:
     r"""$e = \frac{\theta}{\sin\theta} B_m^\top q$, shape `(*batch, 2)`: the error of the bearing
     $q$ of `point` seen from `T_world_camera` against `measured` (an `S2` or unit vectors
     `(*batch, 3)`), in S2's tangent at $m$, $|e|$ the angle between them (module docstring).
@@ -92,7 +94,9 @@ def bearing_error(T_world_camera, point, measured):
     return _error_values(m, q)[0]
 
 
-def bearing_error_jacobians(T_world_camera, point, measured):
+def bearing_error_jacobians(
+    T_world_camera: SE3, point: ArrayLike, measured: S2 | ArrayLike
+) -> tuple[jax.Array, jax.Array, jax.Array]:
     r"""`(error, J_error_pose, J_error_point)` in closed form, shapes `(*batch, 2)`,
     `(*batch, 2, 6)` (tangent $(v, \omega)$, right perturbation) and `(*batch, 2, 3)` (module
     docstring). Arguments as `bearing_error`."""

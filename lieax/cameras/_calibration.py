@@ -22,7 +22,9 @@ Jacobians. A calibration is an array whose last axis is GTSAM's `vector()` of th
   (GTSAM's `D2dintrinsic` and `D2dcalibration`).
 """
 
+import jax
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 
 from .._checks import broadcast_batch, check_last_axis
 
@@ -102,7 +104,7 @@ def _k2(calibration):
     return jnp.stack([jnp.stack([fx, s], -1), jnp.stack([zero, fy], -1)], -2)
 
 
-def uncalibrate(calibration, p):
+def uncalibrate(calibration: ArrayLike, p: ArrayLike) -> jax.Array:
     r"""The pixel $(u, v)$ of normalized image coordinates $p$ `(*batch, 2)` under a `Cal3_S2`
     `(*batch, 5)` or `Cal3DS2` `(*batch, 9)` calibration (module docstring; GTSAM's
     `uncalibrate`). Batch shapes broadcast."""
@@ -112,7 +114,9 @@ def uncalibrate(calibration, p):
     return pixel(calibration, p)
 
 
-def uncalibrate_jacobians(calibration, p):
+def uncalibrate_jacobians(
+    calibration: ArrayLike, p: ArrayLike
+) -> tuple[jax.Array, jax.Array, jax.Array]:
     r"""`(pixel, J_pixel_calibration, J_pixel_p)`, shapes `(*batch, 2)`, `(*batch, 2, n)`
     (n = 5 or 9, GTSAM's `Dcal`) and `(*batch, 2, 2)` (GTSAM's `Dp`), in closed form (module
     docstring)."""

@@ -23,11 +23,17 @@ many observations ended behind their camera, `behind_camera` which ones, and
 angle, largest at the mirror image (`_bearing`).
 """
 
+from collections.abc import Iterable
+from typing import Any
+
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 
-from ..factorgraph import Factor
+from .._typing import PyTree
+from ..factorgraph import Factor, FactorGraph, VarRef
+from ..groups import S2, SE3
 from ._bearing import bearing_error, bearing_error_jacobians
 from ._calibration import calibration_size, pixel
 from ._frame import check_camera_inputs, in_camera
@@ -69,7 +75,14 @@ def _fixed(front, residual, fx, blocks):
     return residual, tuple(jnp.where(front[..., None, None], b, 0.0) for b in blocks)
 
 
-def projection_residual(T_world_camera, point, measured, calibration, *, behind="zero"):
+def projection_residual(
+    T_world_camera: SE3,
+    point: ArrayLike,
+    measured: ArrayLike,
+    calibration: ArrayLike,
+    *,
+    behind: str = "zero",
+) -> jax.Array:
     r"""The pixel error $\kappa(P_{xy}/P_z) - u_{obs}$ of a pinhole camera (`project`) under
     the cheirality policy `behind` (module docstring), shape `(*batch, 2)`. Written with lieax
     operations (differentiable by `lieax.jacobian`); `measured` `(*batch, 2)`, `calibration`
@@ -85,7 +98,14 @@ def projection_residual(T_world_camera, point, measured, calibration, *, behind=
     return _fixed(front, residual, calibration[..., 0], ())[0]
 
 
-def projection_residual_jacobians(T_world_camera, point, measured, calibration, *, behind="zero"):
+def projection_residual_jacobians(
+    T_world_camera: SE3,
+    point: ArrayLike,
+    measured: ArrayLike,
+    calibration: ArrayLike,
+    *,
+    behind: str = "zero",
+) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
     """`(residual, (J_pose, J_point))` of `projection_residual` in closed form, blocks
     `(*batch, 2, 6)` and `(*batch, 2, 3)` (`project_jacobians`; zero behind the camera under
     `"zero"`)."""
@@ -96,7 +116,14 @@ def projection_residual_jacobians(T_world_camera, point, measured, calibration, 
     return _fixed(front, pixel_ - measured, calibration[..., 0], (J_pose, J_point))
 
 
-def stereo_residual(T_world_camera, point, measured, calibration, *, behind="zero"):
+def stereo_residual(
+    T_world_camera: SE3,
+    point: ArrayLike,
+    measured: ArrayLike,
+    calibration: ArrayLike,
+    *,
+    behind: str = "zero",
+) -> jax.Array:
     r"""$(u_L, u_R, v) - (u_L, u_R, v)_{obs}$ of the stereo camera (`stereo_project`) under the
     cheirality policy `behind` (module docstring), shape `(*batch, 3)`; `calibration`
     `(*batch, 6)` $(f_x, f_y, s, u_0, v_0, b)$."""
@@ -109,7 +136,14 @@ def stereo_residual(T_world_camera, point, measured, calibration, *, behind="zer
     return _fixed(front, stereo_values(calibration, P) - measured, calibration[..., 0], ())[0]
 
 
-def stereo_residual_jacobians(T_world_camera, point, measured, calibration, *, behind="zero"):
+def stereo_residual_jacobians(
+    T_world_camera: SE3,
+    point: ArrayLike,
+    measured: ArrayLike,
+    calibration: ArrayLike,
+    *,
+    behind: str = "zero",
+) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
     """`(residual, (J_pose, J_point))` of `stereo_residual` in closed form, blocks
     `(*batch, 3, 6)` and `(*batch, 3, 3)`."""
     _check_behind(behind, "stereo_residual_jacobians")
@@ -160,7 +194,15 @@ def _camera_factor(entry, residual, pose, point, measured, calibration, size, be
     )
 
 
-def projection_factor(pose, point, measured, calibration, *, behind="zero", **options):
+def projection_factor(
+    pose: VarRef,
+    point: VarRef,
+    measured: ArrayLike,
+    calibration: ArrayLike,
+    *,
+    behind: str = "zero",
+    **options: Any,
+) -> Factor:
     r"""A pinhole projection factor kind, $\kappa(P_{xy}/P_z) - u_{obs}$ (GTSAM's
     `GenericProjectionFactor<Pose3, Point3, Cal3_S2>` / `<..., Cal3DS2>` with a fixed
     calibration).
@@ -185,7 +227,15 @@ def projection_factor(pose, point, measured, calibration, *, behind="zero", **op
     )
 
 
-def stereo_factor(pose, point, measured, calibration, *, behind="zero", **options):
+def stereo_factor(
+    pose: VarRef,
+    point: VarRef,
+    measured: ArrayLike,
+    calibration: ArrayLike,
+    *,
+    behind: str = "zero",
+    **options: Any,
+) -> Factor:
     r"""A stereo projection factor kind, $(u_L, u_R, v) - (u_L, u_R, v)_{obs}$ (GTSAM's
     `GenericStereoFactor<Pose3, Point3>`): arguments as `projection_factor`, with `measured`
     `(m, 3)` and `calibration` `(6,)` or `(m, 6)` $(f_x, f_y, s, u_0, v_0, b)$."""
@@ -200,7 +250,7 @@ def stereo_factor(pose, point, measured, calibration, *, behind="zero", **option
     )
 
 
-def bearing_factor(pose, point, measured, **options):
+def bearing_factor(pose: VarRef, point: VarRef, measured: S2 | ArrayLike, **options: Any) -> Factor:
     r"""A bearing factor kind: the error $\frac{\theta}{\sin\theta} B_m^\top q$ (`bearing_error`,
     in S2's tangent, $|e| = \theta$ the angle) between the bearing $q$ of `point` from `pose`
     and `measured` (GTSAM's `BearingFactor<Pose3, Point3>`; same cost).
@@ -229,7 +279,9 @@ def _bearing_blocks(pose, point, measured):
     return error, (J_pose, J_point)
 
 
-def behind_camera(graph, values=None):
+def behind_camera(
+    graph: FactorGraph, values: Iterable[PyTree] | None = None
+) -> dict[str, np.ndarray]:
     r"""`{factor name: (m,) bool}`: which observations of the graph's camera factors
     (`projection_factor`, `stereo_factor`) have their point behind the camera, $P_z \le 0$, at
     `values` (a solution's `values`; default the initial values). NumPy, on the host."""
@@ -245,13 +297,13 @@ def behind_camera(graph, values=None):
     return masks
 
 
-def count_behind(graph, values=None):
+def count_behind(graph: FactorGraph, values: Iterable[PyTree] | None = None) -> int:
     """How many observations of the graph's camera factors have their point behind the camera
     at `values` (`behind_camera`; default the initial values)."""
     return int(sum(mask.sum() for mask in behind_camera(graph, values).values()))
 
 
-def check_in_front(graph, values=None):
+def check_in_front(graph: FactorGraph, values: Iterable[PyTree] | None = None) -> None:
     """Raises `CheiralityError` naming each camera factor kind with observations behind the
     camera at `values` and its first instances (GTSAM's `throwCheirality=true`, checked after a
     solve); returns `None` when every point is in front."""

@@ -19,8 +19,11 @@ they return the mirrored projection, finite for $P_z \ne 0$. The factors (`proje
 apply the policy.
 """
 
+import jax
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 
+from ..groups import SE3
 from ._calibration import LAYOUTS, calibration_size, pixel, uncalibrate_jacobians
 from ._frame import check_camera_inputs, in_camera, in_camera_jacobians
 
@@ -42,7 +45,7 @@ def normalized_jacobian(P):
     return p, dp_dP
 
 
-def project(T_world_camera, calibration, point):
+def project(T_world_camera: SE3, calibration: ArrayLike, point: ArrayLike) -> jax.Array:
     r"""The pixel $u = \kappa(P_{xy}/P_z)$, $P = T_{wc}^{-1} X$, shape `(*batch, 2)` (GTSAM's
     `PinholeCamera::project`; module docstring).
 
@@ -62,7 +65,9 @@ def project(T_world_camera, calibration, point):
     return pixel(calibration, P[..., :2] / P[..., 2:])
 
 
-def project_jacobians(T_world_camera, calibration, point):
+def project_jacobians(
+    T_world_camera: SE3, calibration: ArrayLike, point: ArrayLike
+) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
     r"""`(pixel, J_pixel_pose, J_pixel_point, J_pixel_calibration)` in closed form, shapes
     `(*batch, 2)`, `(*batch, 2, 6)` (tangent $(v, \omega)$, right perturbation), `(*batch, 2, 3)`
     and `(*batch, 2, n)` (module docstring). Arguments as `project`."""

@@ -18,7 +18,9 @@ The BAL file's 9-number cameras convert with `lieax.ba.bal_to_camera` / `camera_
 from `lieax.ba`, which re-exports these functions under their old names.
 """
 
+import jax
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 
 from .._checks import broadcast_batch, check_last_axis
 from ..groups import SE3, SO3
@@ -41,7 +43,7 @@ def _check_inputs(pose, intrinsics, point, observation=None):
     return intrinsics, point, observation
 
 
-def project(pose, intrinsics, point):
+def project(pose: SE3, intrinsics: ArrayLike, point: ArrayLike) -> jax.Array:
     r"""The pixel $u = f\,r(p)\,p$ of a world point, $p = -P_{xy}/P_z$, $P = T_{cw} X$ (see the
     module docstring), written with lieax operations so that `lieax.jacobian` differentiates it
     through SE3's closed-form action rule. Batch shapes broadcast."""
@@ -53,7 +55,9 @@ def project(pose, intrinsics, point):
     return f * (1 + s * (k1 + k2 * s)) * p
 
 
-def reprojection_residual(pose, intrinsics, point, observation):
+def reprojection_residual(
+    pose: SE3, intrinsics: ArrayLike, point: ArrayLike, observation: ArrayLike
+) -> jax.Array:
     """$u - u_{obs}$, the `(*batch, 2)` reprojection error of Snavely's camera (Ceres'
     `SnavelyReprojectionError`).
 
@@ -72,7 +76,9 @@ def reprojection_residual(pose, intrinsics, point, observation):
     return project(pose, intrinsics, point) - observation
 
 
-def reprojection_jacobians(pose, intrinsics, point, observation):
+def reprojection_jacobians(
+    pose: SE3, intrinsics: ArrayLike, point: ArrayLike, observation: ArrayLike
+) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
     r"""`(residual, J_res_pose, J_res_intrinsics, J_res_point)` in closed form, shapes
     `(*batch, 2)`, `(*batch, 2, 6)`, `(*batch, 2, 3)`, `(*batch, 2, 3)`.
 
@@ -127,7 +133,9 @@ def reprojection_jacobians(pose, intrinsics, point, observation):
     )
 
 
-def camera_residual(camera, point, observation):
+def camera_residual(
+    camera: tuple[SE3, ArrayLike], point: ArrayLike, observation: ArrayLike
+) -> jax.Array:
     r"""`reprojection_residual` with the camera as one variable `(T_camera_world, intrinsics)`,
     whose 9-coordinate tangent is the pose's $(v, \omega)$ then $(f, k_1, k_2)$: the residual of
     ONE camera and ONE point, as a factor graph's factor takes it."""
@@ -135,7 +143,9 @@ def camera_residual(camera, point, observation):
     return reprojection_residual(pose, intrinsics, point, observation)
 
 
-def camera_jacobians(camera, point, observation):
+def camera_jacobians(
+    camera: tuple[SE3, ArrayLike], point: ArrayLike, observation: ArrayLike
+) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
     """`(residual, (J_res_camera, J_res_point))` of `camera_residual` in closed form, blocks
     `(*batch, 2, 9)` and `(*batch, 2, 3)` (`reprojection_jacobians`' pose and intrinsics blocks
     side by side): the `jacobian_fn` of a factor graph's factor."""

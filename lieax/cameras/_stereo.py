@@ -17,8 +17,11 @@ No policy for points behind the camera ($P_z \le 0$, where GTSAM throws
 `StereoCheiralityException`): the factors (`stereo_factor`) apply it.
 """
 
+import jax
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 
+from ..groups import SE3
 from ._frame import check_camera_inputs, in_camera, in_camera_jacobians
 
 LAYOUT = "Cal3_S2Stereo: fx, fy, s, u0, v0, b"
@@ -36,7 +39,7 @@ def stereo_values(calibration, P):
     return jnp.stack([u0 + fx * x * d, u0 + fx * (x - b) * d, v0 + fy * y * d], -1)
 
 
-def stereo_project(T_world_camera, calibration, point):
+def stereo_project(T_world_camera: SE3, calibration: ArrayLike, point: ArrayLike) -> jax.Array:
     r"""$(u_L, u_R, v)$, shape `(*batch, 3)`, of a world point (GTSAM's `StereoCamera::project`;
     module docstring).
 
@@ -52,7 +55,9 @@ def stereo_project(T_world_camera, calibration, point):
     return stereo_values(calibration, in_camera(T_world_camera, point))
 
 
-def stereo_project_jacobians(T_world_camera, calibration, point):
+def stereo_project_jacobians(
+    T_world_camera: SE3, calibration: ArrayLike, point: ArrayLike
+) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
     r"""`(uvv, J_pose, J_point, J_calibration)` in closed form, shapes `(*batch, 3)`,
     `(*batch, 3, 6)` (tangent $(v, \omega)$, right perturbation), `(*batch, 3, 3)` and
     `(*batch, 3, 6)` (module docstring). Arguments as `stereo_project`."""

@@ -19,9 +19,19 @@ Levenberg-Marquardt loop in one jitted `lax.while_loop` with the dense, sparse C
 """
 
 from ..lstsq._solution import SolveResult
-from ._factors import Factor
+from ._factors import Factor, square_root_information
 from ._graph import FactorGraph
 from ._marginals import marginal_covariances
-from ._variables import Var
+from ._structure import connected_components
+from ._variables import Var, VarRef
 
-__all__ = ["Factor", "FactorGraph", "SolveResult", "Var", "marginal_covariances"]
+__all__ = [
+    "Factor",
+    "FactorGraph",
+    "SolveResult",
+    "Var",
+    "VarRef",
+    "connected_components",
+    "marginal_covariances",
+    "square_root_information",
+]

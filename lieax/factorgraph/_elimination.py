@@ -5,7 +5,7 @@ eliminated (`_linear.schur_solve`); that pays when its instances are seen by few
 point by 2-3 cameras: the reduced camera system is small), and costs when they are seen by
 many (a landmark seen by most poses links them all: the reduced pose system is dense where
 the whole system was a chain with a few long rows, and its factorization is the whole cost).
-The model is the multifrontal Cholesky's own (`_sparse._batch_seconds`, which chooses its
+The model is the multifrontal Cholesky's own (`_cholesky_analysis._batch_seconds`, which chooses its
 ordering), in modelled seconds of one solve:
 
 - the sparse block Cholesky of a system padded to block size $D$: per block column $j$ of
@@ -37,13 +37,13 @@ import dataclasses
 
 import numpy as np
 
-from ._sparse import (
+from ._cholesky_analysis import (
     _ENTRY_SECONDS,
     _FLOP_SECONDS,
     _elimination_structure,
     _front_work,
-    minimum_degree_order,
 )
+from ._ordering import minimum_degree_order
 from ._structure import reduced_layout
 
 # seconds per multiply-add of the dense Cholesky in JAX: half the multifrontal's, as

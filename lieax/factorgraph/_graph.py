@@ -17,9 +17,10 @@ from .._checks import to_device
 from .._runtime_error import raise_if
 from .._threads import lapack_limited
 from ..autodiff._tangents import check_retraction, manifold_leaves
-from ..lstsq import LevenbergMarquardt, NonFiniteStartError, SolveError, Status
+from ..lstsq import LevenbergMarquardt, NonFiniteStartError, SolveError, Status, Termination
 from ..lstsq._solution import SolveResult, is_failure, nonfinite_leaves
 from ..retractions import exp
+from ._dense_solve import dense_threads
 from ._elimination import (
     candidates,
     elimination_cost,
@@ -30,7 +31,6 @@ from ._elimination import (
 from ._factors import Factor, linearize_one, residual_one, variables_dtype
 from ._implicit import solve_implicit
 from ._solve import PARAMETERS, make_loop, numeric_options, static_options
-from ._sparse import dense_threads
 from ._structure import analyze, digest, schur_layout
 from ._variables import Var, instance
 
@@ -47,6 +47,7 @@ _DENSE_FILLED_LIMIT = 800
 _DENSE_FILL = 0.5
 _SOLVERS = ("auto", "dense", "cholesky", "cg")
 GTSAM = LevenbergMarquardt.gtsam()  # `solve`'s default options (immutable, so shared)
+GTSAM_TERMINATION = Termination.gtsam()
 _CACHE = {}
 _CACHE_SIZE = 16
 
@@ -220,11 +221,9 @@ class FactorGraph:
         data=None,
         *,
         solver=GTSAM,
+        termination=GTSAM_TERMINATION,
         linear_solver="auto",
         eliminate="auto",
-        max_iterations=100,
-        relative_tolerance=1e-5,
-        absolute_tolerance=1e-5,
         retraction=None,
         cg_tolerance=1e-8,
         cg_max_iterations=None,
@@ -248,6 +247,12 @@ class FactorGraph:
           `"clipped"` and `"jacobi"` and the damping updates `"gtsam"` and `"nielsen"`;
           GTSAM's ×10 / ÷10 with a diagonal scaling ping-pongs between two dampings (see
           `_solve`).
+        - `termination`: when to stop, a `lieax.lstsq.Termination` (default
+          `Termination.gtsam()`: 100 outer iterations, linearizations as GTSAM counts them;
+          `function_tolerance` and `absolute_function_tolerance` $10^{-5}$, GTSAM's
+          `relativeErrorTol` and `absoluteErrorTol`; see `_solve`). This loop counts
+          `counting="outer"` and runs no gradient or step test (`gradient_tolerance` and
+          `parameter_tolerance` 0); it refuses other settings with a `ValueError`.
         - `linear_solver`: `"dense"`, `"cholesky"` (host multifrontal), `"cg"` (block-Jacobi
           PCG) or `"auto"` (dense up to 300 padded unknowns, or up to 800 when the sparse factor
           would be at least half dense, else cholesky); with `eliminate`, the solver of the
@@ -261,9 +266,6 @@ class FactorGraph:
           are not (they would make the reduced pose system dense). An explicit `Var` that the
           model finds costlier than no elimination is still eliminated, with a `UserWarning`
           naming both costs.
-        - `max_iterations`: outer iterations (linearizations) at most, as GTSAM counts them.
-        - `relative_tolerance`, `absolute_tolerance`: GTSAM's `relativeErrorTol` and
-          `absoluteErrorTol` (see `_solve`).
         - `retraction`: how a step moves the values, a `lieax.retractions.Retraction` (default
           `lieax.retractions.exp`, $x \oplus \delta$; `cayley` is GTSAM's default Pose3 chart).
           The Jacobians and the optimum do not depend on it, the path to the optimum does.
@@ -280,8 +282,14 @@ class FactorGraph:
         **Returns:** a `SolveResult`.
         """
         self._check_x64()
+        if not isinstance(termination, Termination):
+            raise TypeError(f"termination must be a lieax.lstsq.Termination, got {termination!r}.")
+        termination.require(
+            "FactorGraph.solve", "outer", zero=("gradient_tolerance", "parameter_tolerance"),
+            given=("function_tolerance", "absolute_function_tolerance"),
+        )  # fmt: skip
         loop, layout, method = self._loop(
-            solver, linear_solver, eliminate, max_iterations, retraction, verbose,
+            solver, linear_solver, eliminate, termination.max_iterations, retraction, verbose,
             cg_max_iterations,
         )  # fmt: skip
         if values is None:
@@ -292,9 +300,8 @@ class FactorGraph:
             leaves = self._checked_leaves(values)
         data = self._data(data)
         params = self._parameters(
-            solver, relative_tolerance, absolute_tolerance, cg_tolerance, max_iterations,
-            np.result_type(*(x.dtype for x in leaves)),
-        )  # fmt: skip
+            solver, termination, cg_tolerance, np.result_type(*(x.dtype for x in leaves))
+        )
         traced = any(isinstance(x, jax.core.Tracer) for x in leaves) or any(
             isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(data)
         )
@@ -310,19 +317,17 @@ class FactorGraph:
             result = _raise_on_failure(self, result, values, data)
         return result
 
-    def _parameters(self, solver, *values):
-        """The loop's array of `_solve.PARAMETERS` (`solver`'s damping constants, the
-        tolerances, the iteration limit, in the values' dtype, the last of `values`), kept by
+    def _parameters(self, solver, termination, cg_tolerance, dtype):
+        """The loop's array of `_solve.PARAMETERS` (`solver`'s constants, `termination`'s
+        tolerances and iteration limit, `cg_tolerance`, in the values' `dtype`), kept by
         their values: a repeated call reuses it."""
         try:
-            key = (solver, *values)
+            key = (solver, termination, cg_tolerance, dtype)
             params = self._params.get(key)
         except TypeError:  # an unhashable value: built, not kept
             key, params = None, None
         if params is None:
-            *numbers, dtype = values
-            names = ("relative_tolerance", "absolute_tolerance", "cg_tolerance", "max_iterations")
-            options = numeric_options(solver, **dict(zip(names, numbers)))
+            options = numeric_options(solver, termination, cg_tolerance)
             params = np.asarray([options[name] for name in PARAMETERS], dtype)
             params.flags.writeable = False
             if key is not None:
@@ -340,8 +345,8 @@ class FactorGraph:
         solver, kept by the options: a repeated call skips their checks."""
         static = static_options(solver)
         try:
-            key = (static, linear_solver, eliminate, type(max_iterations), max_iterations,
-                   retraction, verbose, type(cg_max_iterations), cg_max_iterations)  # fmt: skip
+            key = (static, linear_solver, eliminate, max_iterations, retraction, verbose,
+                   type(cg_max_iterations), cg_max_iterations)  # fmt: skip
             prepared = self._prepared.get(key)
         except TypeError:  # an unhashable argument: checked (and refused) below
             key, prepared = None, None
@@ -366,7 +371,6 @@ class FactorGraph:
         call skips the checks)."""
         if solver not in _SOLVERS:
             raise ValueError(f"linear_solver must be one of {_SOLVERS}, got {solver!r}.")
-        max_iterations = _count(max_iterations, "max_iterations")
         if cg_max_iterations is not None:
             cg_max_iterations = _count(cg_max_iterations, "cg_max_iterations")
         retraction = exp if retraction is None else check_retraction(retraction)
@@ -384,7 +388,7 @@ class FactorGraph:
             solver = _auto_method(layout)
         if solver == "cholesky":
             layout.start_plan()  # analysed while the loop is traced and compiled
-        gauss_newton, scaling, damping_update, floor = static
+        gauss_newton, scaling, damping_update, floor, inclusive_gain, inclusive_damping = static
         options = {
             "method": solver,
             "schur": schur,
@@ -392,6 +396,8 @@ class FactorGraph:
             "damping_update": damping_update,
             "gauss_newton": gauss_newton,
             "floor": floor,
+            "inclusive_gain_ratio": inclusive_gain,
+            "inclusive_max_damping": inclusive_damping,
             "retraction": retraction,
             "history_size": max(16, 1 << int(max_iterations).bit_length()),
             "verbose": bool(verbose),
@@ -408,6 +414,8 @@ class FactorGraph:
                     "damping_update",
                     "gauss_newton",
                     "floor",
+                    "inclusive_gain_ratio",
+                    "inclusive_max_damping",
                     "retraction",
                     "history_size",
                     "verbose",

@@ -23,8 +23,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._dense_solve import dense_solve
 from ._gram import gram_sum, small_matmul, small_matvec
-from ._sparse import cholesky_solve, dense_solve, pcg
+from ._multifrontal import cholesky_solve
+from ._pcg import pcg
 
 
 def to_padded(layout, diag, off, rhs):

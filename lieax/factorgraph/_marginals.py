@@ -12,8 +12,8 @@ import numpy as np
 
 from .. import _cpu_emitters as cpu_emitters
 from ._assembly import linearize
+from ._block_pattern import dense_matrix
 from ._linear import to_padded
-from ._sparse import dense_matrix
 
 _DENSE_LIMIT = 2000
 

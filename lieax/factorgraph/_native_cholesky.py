@@ -1,6 +1,6 @@
 """The numeric phase of the multifrontal `CholeskyPlan` in C++ (`csrc/cholesky.cc`), called from
 compiled programs as the XLA FFI target `lieax_cholesky_solve`, which JAX's persistent
-compilation cache can keep (a program holding the host callback of `_sparse.cholesky_solve`'s
+compilation cache can keep (a program holding the host callback of `_multifrontal.cholesky_solve`'s
 NumPy path is recompiled in every process).
 
 The plan is large host data that differs in nothing across processes but its address, so the
@@ -95,10 +95,10 @@ def analysis_key(pattern, options):
 
 
 def register(plan, key, symbolic, single_thread):
-    """Registers `symbolic` (a `_sparse._Symbolic`) of `plan` under `key` for as long as `plan`
+    """Registers `symbolic` (a `_cholesky_analysis._Symbolic`) of `plan` under `key` for as long as `plan`
     lives. `single_thread`: the library's BLAS calls for it run on the calling thread (OpenBLAS's
     thread-local count, set and restored around each call), else on lieax's setting
-    (`lieax.set_threads`; `None`: the library's own), as `_sparse._host_solve` does."""
+    (`lieax.set_threads`; `None`: the library's own), as `_multifrontal._host_solve` does."""
     lib = _initialized()
     pattern = plan.pattern
 

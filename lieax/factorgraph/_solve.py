@@ -28,34 +28,37 @@ step at $\mu$, fails at $\mu/10$, takes one at $\mu$ again, and so on, solving t
 and damping up to 10× more than needed (on `lieax.ba.synthetic_bal(3, 7, 18)`, exactly
 solvable: 19 of 32 solves rejected; Nielsen's, which shrinks $\mu$ by the gain ratio and grows
 it by a doubling factor, 8 of 22, both to a cost of 1e-27): pair the diagonal with
-`damping_update="nielsen"`. `GaussNewton()` takes every finite step with $\mu = 0$. These
+`damping_update="nielsen"`. `GaussNewton()` takes every finite step with $\mu = 0$, and stops
+`DIVERGED` when the cost exceeds its `divergence_factor` times the start's. These
 rules (formulas and sources in `lieax.lstsq._trust_region`), the gain ratio, the precedence of
 the status codes and the iteration itself (`lieax.lstsq._iteration.body`: evaluate the trial
 point, decide, test, relinearize the kept point, propose the next step) are shared with
 `lieax.lstsq.least_squares`; this loop's own are the phases' contents (`_Phases`): the
 block-sparse linear algebra, the one evaluation per pass and GTSAM's stopping rules, which follow.
 
-An iteration ends with a taken step or, without one, when the cost change is below
-`relative_tolerance` × cost; the run stops when an iteration decreases the cost by at most
-`absolute_tolerance` or `relative_tolerance` × cost (`CONVERGED`), after `max_iterations`
-iterations (`MAX_ITERATIONS`), when $\mu$ reaches `max_damping` without a decrease
-(`DIVERGED`) or when the linearization is not finite (`NONFINITE`). An exact fit is
-`CONVERGED`: `absolute_tolerance` is raised to $\varepsilon c_0$, the rounding error of the
-start's cost $c_0$ (a smaller change of the cost is rounding noise, so `absolute_tolerance=0`
+When the loop stops is `lieax.lstsq.Termination` (default `Termination.gtsam()`), with
+`counting="outer"`: an iteration ends with a taken step or, without one, when the cost change is
+below `function_tolerance` × cost; the run stops when an iteration decreases the cost by at most
+`absolute_function_tolerance` or `function_tolerance` × cost (`CONVERGED`; GTSAM's
+`absoluteErrorTol` and `relativeErrorTol`), after `max_iterations` iterations
+(`MAX_ITERATIONS`), when $\mu$ reaches `max_damping` without a decrease (`DIVERGED`) or when
+the linearization is not finite (`NONFINITE`). An exact fit is `CONVERGED`:
+`absolute_function_tolerance` is raised to $\varepsilon c_0$, the rounding error of the start's
+cost $c_0$ (a smaller change of the cost is rounding noise, so `absolute_function_tolerance=0`
 stops at the floating-point floor instead of iterating on noise), and running out of damping at
 a cost at most $\varepsilon c_0$ is convergence at that floor, not divergence. A point whose
 gradient is exactly zero (a zero error, as GTSAM's `errorTol` of 0) is `CONVERGED` (there is no
 step to try; at the start, after 0 iterations); no other start is: every other convergence test
-compares a tried step's decrease.
+compares a tried step's decrease. GTSAM has no gradient or step test, and neither has this loop
+(`Termination.gradient_tolerance` and `parameter_tolerance` must be 0).
 
-What depends on the size of the residual, as in GTSAM: `absolute_tolerance` (GTSAM's
-`absoluteErrorTol`) is a cost, absolute by definition (a problem whose whole cost is below it
-stops after its first iteration; pass 0 to make every test relative), and $\mu$ with
-`scaling="identity"` is in the units of $H$ (`initial_damping`, `max_damping`); with the
-diagonal scalings only the clip of $\mathrm{diag}(H)$ to `min_diagonal` is. The relative
-tests (`relative_tolerance`, the predicted decrease against $\varepsilon$ × cost) are
-invariant. A non-finite start (values, or data where the factors read them) ends `NONFINITE`
-after 0 iterations with the values unchanged.
+What depends on the size of the residual, as in GTSAM: `absolute_function_tolerance` is a cost,
+absolute by definition (a problem whose whole cost is below it stops after its first iteration;
+pass 0 to make every test relative), and $\mu$ with `scaling="identity"` is in the units of $H$
+(`initial_damping`, `max_damping`); with the diagonal scalings only the clip of
+$\mathrm{diag}(H)$ to `min_diagonal` is. The relative tests (`function_tolerance`, the predicted
+decrease against $\varepsilon$ × cost) are invariant. A non-finite start (values, or data where
+the factors read them) ends `NONFINITE` after 0 iterations with the values unchanged.
 
 Each pass of the loop evaluates one trial point (`_assembly.evaluate`: whitened residuals,
 Jacobian blocks and weights of every factor kind, in one trace), decides, and when the step is
@@ -93,8 +96,9 @@ PARAMETERS = (
     "min_gain_ratio",
     "min_diagonal",
     "max_diagonal",
-    "relative_tolerance",
-    "absolute_tolerance",
+    "divergence_factor",
+    "function_tolerance",
+    "absolute_function_tolerance",
     "cg_tolerance",
     "max_iterations",
 )
@@ -103,11 +107,13 @@ DAMPING_UPDATES = ("gtsam", "nielsen")
 
 
 def static_options(solver):
-    """`(gauss_newton, scaling, damping_update, floor)`: what of `solver` (a `LevenbergMarquardt`
-    or `GaussNewton`) shapes the compiled loop (`floor`: whether the damping has a positive lower
-    bound to keep, `min_damping`), checked against what this backend supports."""
+    """`(gauss_newton, scaling, damping_update, floor, inclusive_gain_ratio,
+    inclusive_max_damping)`: what of `solver` (a `LevenbergMarquardt` or `GaussNewton`) shapes
+    the compiled loop (`floor`: whether the damping has a positive lower bound to keep,
+    `min_damping`), checked against what this backend supports (a `ValueError` names the
+    option it cannot honour)."""
     if isinstance(solver, GaussNewton):
-        return True, "identity", "gtsam", False
+        return True, "identity", "gtsam", False, False, True
     if not isinstance(solver, LevenbergMarquardt):
         raise TypeError(
             "solver must be a lieax.lstsq.LevenbergMarquardt (e.g. LevenbergMarquardt.gtsam(), "
@@ -116,22 +122,33 @@ def static_options(solver):
         )
     if solver.scaling not in SCALINGS:
         raise ValueError(
-            f"FactorGraph.solve supports the scalings {SCALINGS}, got {solver.scaling!r} (its "
-            "running column norms are least_squares' only)."
+            f"FactorGraph.solve supports the scalings {SCALINGS} (LevenbergMarquardt.scaling), "
+            f"got {solver.scaling!r} (its running column norms are least_squares' only)."
         )
     if solver.damping_update not in DAMPING_UPDATES:
         raise ValueError(
-            f"FactorGraph.solve supports the damping updates {DAMPING_UPDATES}, got "
-            f"{solver.damping_update!r} (MINPACK's radius needs least_squares' dense solves)."
+            f"FactorGraph.solve supports the damping updates {DAMPING_UPDATES} "
+            f"(LevenbergMarquardt.damping_update), got {solver.damping_update!r} (MINPACK's radius "
+            "needs least_squares' dense solves)."
         )
-    return False, solver.scaling, solver.damping_update, bool(solver.min_damping > 0)
+    return (
+        False,
+        solver.scaling,
+        solver.damping_update,
+        bool(solver.min_damping > 0),
+        solver.inclusive_gain_ratio,
+        solver.inclusive_max_damping,
+    )
 
 
-def numeric_options(solver, **others):
-    """The values of `PARAMETERS`: `solver`'s damping constants (a `GaussNewton` has none: its
-    loop does not read them) and `others` (the tolerances and the iteration limit)."""
-    damping = {name: getattr(solver, name, 0.0) for name in PARAMETERS[:7]}
-    return {**damping, **others}
+def numeric_options(solver, termination, cg_tolerance):
+    """The values of `PARAMETERS`: `solver`'s constants (the damping's of a `LevenbergMarquardt`,
+    the divergence factor of a `GaussNewton`; each loop reads its own), the tolerances and the
+    iteration limit of `termination` (a `Termination`) and `cg_tolerance`."""
+    constants = {name: getattr(solver, name, 0.0) for name in PARAMETERS[:8]}
+    stopping = {name: getattr(termination, name) for name in PARAMETERS[8:10]}
+    return {**constants, **stopping, "cg_tolerance": cg_tolerance,
+            "max_iterations": termination.max_iterations}  # fmt: skip
 
 
 class _State(NamedTuple):
@@ -273,9 +290,12 @@ class _Phases:
             success = (
                 valid
                 & (predicted > jnp.finfo(self.dtype).eps * cost)
-                & trust_region.accepts(fidelity, params["min_gain_ratio"], inclusive=False)
-            )
-            stop_search = valid & ~success & (jnp.abs(change) < params["relative_tolerance"] * cost)
+                & trust_region.accepts(
+                    fidelity, params["min_gain_ratio"],
+                    inclusive=self.options["inclusive_gain_ratio"],
+                )
+            )  # fmt: skip
+            stop_search = valid & ~success & (jnp.abs(change) < params["function_tolerance"] * cost)
             if self.options["damping_update"] == "nielsen":
                 new_lam, new_nu = trust_region.nielsen(success, fidelity, lam, nu)
             else:
@@ -286,7 +306,9 @@ class _Phases:
             gave_up = (
                 ~success
                 & ~stop_search
-                & trust_region.damping_exhausted(new_lam, params["max_damping"], inclusive=True)
+                & trust_region.damping_exhausted(
+                    new_lam, params["max_damping"], inclusive=self.options["inclusive_max_damping"]
+                )
             )
         # the start is taken as it is
         success = jnp.where(started, success, jnp.isfinite(new_cost))
@@ -310,15 +332,20 @@ class _Phases:
             done
             & ~gave_up
             & (
-                (jnp.abs(decrease) <= jnp.maximum(params["absolute_tolerance"], floor))
-                | (jnp.abs(decrease) <= params["relative_tolerance"] * cost)
+                (jnp.abs(decrease) <= jnp.maximum(params["absolute_function_tolerance"], floor))
+                | (jnp.abs(decrease) <= params["function_tolerance"] * cost)
             )
         ) | (gave_up & (next_cost <= floor))
         # no step decreased the cost: Levenberg-Marquardt ran out of damping, Gauss-Newton's
         # step was not finite
         nonfinite, diverged = ~jnp.isfinite(next_cost), gave_up & (decrease <= 0)
-        if self.gauss_newton:
-            nonfinite, diverged = nonfinite | diverged, False
+        if (
+            self.gauss_newton
+        ):  # its divergence: the cost grew past `divergence_factor` x the start's
+            nonfinite = nonfinite | diverged
+            diverged = trust_region.cost_diverged(
+                next_cost, state.history[0], params["divergence_factor"]
+            )
         status = trust_region.status(
             nonfinite, converged, diverged, (done | ~started) & (iterations >= self.max_iterations)
         )

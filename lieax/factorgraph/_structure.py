@@ -24,8 +24,9 @@ import threading
 
 import numpy as np
 
+from ._block_pattern import BlockPattern
 from ._gram import gram_plan
-from ._sparse import BlockPattern, CholeskyPlan
+from ._multifrontal import CholeskyPlan
 
 
 @dataclasses.dataclass

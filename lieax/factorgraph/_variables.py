@@ -60,7 +60,14 @@ class Var:
 
 
 class VarRef:
-    """Instances `index` of the variable kind `var`, one per factor instance (`var[index]`)."""
+    """Instances `index` of the variable kind `var`, one per factor instance: what `var[index]`
+    returns and `Factor` takes for each argument of its residual.
+
+    **Attributes:** `var` (the `Var`) and `index` (the instances, an integer array with one entry
+    per factor instance, as given). A function that builds a factor from such references (e.g.
+    `lieax.graph.bearing_range_factor`) reads the variable's kind from `ref.var.value` and checks
+    its arguments with `isinstance(ref, VarRef)`.
+    """
 
     def __init__(self, var, index):
         self.var = var

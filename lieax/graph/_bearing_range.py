@@ -32,8 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._linalg import dot
-from ..factorgraph import Factor
-from ..factorgraph._variables import VarRef
+from ..factorgraph import Factor, VarRef
 from ..groups import S2, SE2, SE3, SO2, kernels
 
 # θ/sin θ = asin(s)/s = Σ (2k)! / (4^k (k!)² (2k + 1)) s^(2k) for cos θ > 0, summed in s² below

@@ -133,26 +133,7 @@ def read_g2o(path, *, information="nearest", dtype=None) -> PoseGraph:
         records.edge_pairs, records.edge_values, records.edge_lines
     )  # fmt: skip
     fixed_ids = records.fixed_ids
-    if skipped:
-        counts = list(skipped.items())
-        listed = ", ".join(f"{tag!r} ×{n}" for tag, n in counts[:_LISTED_TAGS])
-        if len(counts) > _LISTED_TAGS:
-            listed += f" and {len(counts) - _LISTED_TAGS} other tags"
-        warnings.warn(
-            f"{path}: skipped {sum(skipped.values())} lines with tags lieax does not read "
-            f"({listed}); read_g2o reads pose graphs ({', '.join(_TAGS)}).",
-            G2oWarning,
-            stacklevel=2,
-        )
-    if dim is None:
-        raise G2oError(
-            f"{path}: no pose-graph vertices or edges"
-            + (
-                f" (only skipped tags: {', '.join(list(skipped)[:_LISTED_TAGS])})."
-                if skipped
-                else "."
-            )
-        )
+    _report_skipped(dim, skipped, path)
     group = SE2 if dim == 2 else SE3
     d = group.tangent_dim
     edge_pairs = np.asarray(edge_pairs, dtype=np.int64).reshape(-1, 2)
@@ -187,13 +168,7 @@ def read_g2o(path, *, information="nearest", dtype=None) -> PoseGraph:
         np.concatenate([vertex_lines_array, edge_lines]),
         path,
     )
-    lookup = {int(v): k for k, v in enumerate(ids)}
-    for vertex, number in fixed_ids:
-        if vertex not in lookup:
-            raise G2oError(
-                f"{path}:{number}: FIX refers to vertex {vertex}, which the file does not define."
-            )
-    fixed = np.unique(np.asarray([lookup[v] for v, _ in fixed_ids], dtype=np.int64))
+    fixed = _fixed_index(fixed_ids, ids, path)
 
     # one transfer per array: `jnp.asarray` would compile a conversion per shape (issue 30)
     to_dtype = (
@@ -204,18 +179,62 @@ def read_g2o(path, *, information="nearest", dtype=None) -> PoseGraph:
     if has_vertices:
         poses = kernels.element(group, to_dtype(poses))
     else:
-        from ._init import spanning_tree_poses
-
-        n = len(ids)
-        placeholder = PoseGraph(group.identity((n,), dtype=measured.dtype), ids, between)
-        count, _ = placeholder.components()
-        if count > 1:
-            raise G2oError(
-                f"{path}: the file has no vertices and its edges form {count} "
-                "disconnected components, so no initial poses can be composed."
-            )
-        poses = spanning_tree_poses(placeholder)
+        poses = _composed_poses(group, ids, between, path)
     return PoseGraph(poses, ids, between, fixed=fixed)
+
+
+def _report_skipped(dim, skipped, path):
+    """One `G2oWarning` counting the lines of each skipped tag (`skipped`), and a `G2oError`
+    for a file with no pose-graph element (`dim` None)."""
+    if skipped:
+        counts = list(skipped.items())
+        listed = ", ".join(f"{tag!r} ×{n}" for tag, n in counts[:_LISTED_TAGS])
+        if len(counts) > _LISTED_TAGS:
+            listed += f" and {len(counts) - _LISTED_TAGS} other tags"
+        warnings.warn(
+            f"{path}: skipped {sum(skipped.values())} lines with tags lieax does not read "
+            f"({listed}); read_g2o reads pose graphs ({', '.join(_TAGS)}).",
+            G2oWarning,
+            stacklevel=3,
+        )
+    if dim is None:
+        raise G2oError(
+            f"{path}: no pose-graph vertices or edges"
+            + (
+                f" (only skipped tags: {', '.join(list(skipped)[:_LISTED_TAGS])})."
+                if skipped
+                else "."
+            )
+        )
+
+
+def _fixed_index(fixed_ids, ids, path):
+    """The sorted positions in `ids` of the `FIX` lines' vertices (`(vertex id, line number)`
+    pairs); a `G2oError` names the line of one the file does not define."""
+    lookup = {int(v): k for k, v in enumerate(ids)}
+    for vertex, number in fixed_ids:
+        if vertex not in lookup:
+            raise G2oError(
+                f"{path}:{number}: FIX refers to vertex {vertex}, which the file does not define."
+            )
+    return np.unique(np.asarray([lookup[v] for v, _ in fixed_ids], dtype=np.int64))
+
+
+def _composed_poses(group, ids, between, path):
+    """Initial poses for a file with edges but no vertices: the measurements composed along a
+    breadth-first spanning tree (`lieax.graph.spanning_tree_poses`); a `G2oError` when the
+    edges are not connected."""
+    from ._init import spanning_tree_poses
+
+    n = len(ids)
+    placeholder = PoseGraph(group.identity((n,), dtype=between.measured.dtype), ids, between)
+    count, _ = placeholder.components()
+    if count > 1:
+        raise G2oError(
+            f"{path}: the file has no vertices and its edges form {count} "
+            "disconnected components, so no initial poses can be composed."
+        )
+    return spanning_tree_poses(placeholder)
 
 
 def _vertex_index(vertex_ids, edge_pairs, edge_lines, path):

@@ -12,8 +12,7 @@ import dataclasses
 import jax.numpy as jnp
 import numpy as np
 
-from ..factorgraph._factors import square_root_information
-from ..factorgraph._structure import connected_components
+from ..factorgraph import connected_components, square_root_information
 from ..groups import SE2, SE3, AbstractGroup, kernels
 
 GROUPS = {2: SE2, 3: SE3}

@@ -10,10 +10,11 @@ structure reuse its analysis and its compiled loop.
 Semantics: `lieax.lstsq.LevenbergMarquardt.gtsam()`, GTSAM 4.3's defaults, so that iteration
 counts compare: $\mu_0 = 10^{-5}$, factor 10, $\mu \ge 10^5$ gives up; a step is taken when
 the model fidelity (actual over predicted cost decrease) exceeds $10^{-3}$, otherwise $\mu$
-grows and the same linearization is solved again; an outer iteration ends with a taken step, or
-without one when the cost change is below `relative_tolerance` × cost; the run stops when the
-cost decrease of an iteration is at most `absolute_tolerance` or `relative_tolerance` × cost,
-or after `max_iterations` iterations (`lieax.factorgraph._solve`).
+grows and the same linearization is solved again; `lieax.lstsq.Termination.gtsam()`: an outer
+iteration ends with a taken step, or without one when the cost change is below
+`function_tolerance` × cost; the run stops when the cost decrease of an iteration is at most
+`absolute_function_tolerance` or `function_tolerance` × cost, or after `max_iterations`
+iterations (`lieax.factorgraph._solve`).
 """
 
 import dataclasses
@@ -22,12 +23,13 @@ import hashlib
 import jax
 import numpy as np
 
-from ..lstsq import LevenbergMarquardt, Status
+from ..lstsq import LevenbergMarquardt, Status, Termination
 from ..lstsq._solution import SolverResult
 from ._factor_graph import refuse_sightings, to_factor_graph
 
 _LINEAR_SOLVERS = ("cholesky", "cg")
 _GTSAM = LevenbergMarquardt.gtsam()
+_GTSAM_TERMINATION = Termination.gtsam()
 
 
 @dataclasses.dataclass(frozen=True, repr=False)
@@ -61,10 +63,8 @@ def optimize(
     graph,
     *,
     solver=_GTSAM,
+    termination=_GTSAM_TERMINATION,
     linear_solver="cholesky",
-    max_iterations=100,
-    relative_tolerance=1e-5,
-    absolute_tolerance=1e-5,
     jacobian="exact",
     retraction=None,
     cg_tolerance=1e-8,
@@ -78,6 +78,9 @@ def optimize(
     - `graph`: the `PoseGraph`; its poses are the initial values.
     - `solver`: the Levenberg-Marquardt options (default `LevenbergMarquardt.gtsam()`), as
       `FactorGraph.solve`'s.
+    - `termination`: when to stop (default `lieax.lstsq.Termination.gtsam()`: GTSAM's
+      `maxIterations` 100, `relativeErrorTol` and `absoluteErrorTol` $10^{-5}$), as
+      `FactorGraph.solve`'s.
     - `linear_solver`: `"cholesky"` (default): exact steps, so the iterates follow GTSAM's.
       Graphs of more than 300 unknowns (poses × tangent dimension) use the host's multifrontal
       block Cholesky (numpy and LAPACK, called from the jitted loop); smaller ones factor the
@@ -89,8 +92,6 @@ def optimize(
       early). `"cg"`: block-Jacobi preconditioned conjugate gradients, all in JAX, for
       accelerators (no host round trip; inexact steps, slower to converge on poorly
       conditioned graphs).
-    - `max_iterations`, `relative_tolerance`, `absolute_tolerance`: GTSAM's `maxIterations`,
-      `relativeErrorTol`, `absoluteErrorTol`.
     - `jacobian`: `"exact"` (default) differentiates the residual $\mathrm{Log}(Z^{-1}X_i^{-1}X_j)$
       exactly (with $J_r^{-1}(e)$), so the optimizer converges to a stationary point of the cost.
       GTSAM 4.3's iterates match these (same iteration counts, final costs equal to 1e-12 on the
@@ -124,9 +125,7 @@ def optimize(
         solver=solver,
         linear_solver="auto" if linear_solver == "cholesky" else "cg",
         eliminate=None,
-        max_iterations=max_iterations,
-        relative_tolerance=relative_tolerance,
-        absolute_tolerance=absolute_tolerance,
+        termination=termination,
         retraction=retraction,
         cg_tolerance=cg_tolerance,
         cg_max_iterations=cg_max_iterations,

@@ -65,7 +65,7 @@ import warnings
 import jax.numpy as jnp
 import numpy as np
 
-from ..factorgraph._factors import square_root_information
+from ..factorgraph import square_root_information
 from ..groups import SE2, SE3, kernels
 from ._graph import BetweenFactors, PoseGraph
 

@@ -38,10 +38,12 @@ on every one of them, and `to_local` / `from_local` ($B_p^\top \dot p$, $B_p \xi
 """
 
 import sys
-from typing import ClassVar, Self
+from collections.abc import Callable, Sequence
+from typing import Any, ClassVar, Self, overload
 
 import jax
 import numpy as np
+from jax.typing import ArrayLike, DTypeLike
 
 from .._checks import (
     broadcast_batch,
@@ -52,6 +54,7 @@ from .._checks import (
     match_dtype,
     to_device,
 )
+from .._eager import compiled_when_eager
 from . import _host
 
 # The kernel namespace of a group: these names, bound to the class as `_exp`, `_log`, ...
@@ -77,6 +80,7 @@ class AbstractManifold:
     tangent_dim: ClassVar[int]
     parameters_dim: ClassVar[int]
     parameters_layout: ClassVar[str]
+    _params: jax.Array  # the parameter leaf, in the tangent carrier's form (module docstring)
 
     __slots__ = ("_params",)
 
@@ -87,7 +91,7 @@ class AbstractManifold:
                 cls, _flatten, lambda _, leaves: cls._wrap(leaves[0])
             )
 
-    def __init__(self, parameters):
+    def __init__(self, parameters: ArrayLike) -> None:
         """Wraps parameters as given (after checking shape and dtype); see `normalize()`."""
         name = f"{type(self).__name__} parameters"
         params = check_last_axis(parameters, self.parameters_dim, name, self.parameters_layout)
@@ -121,22 +125,22 @@ class AbstractManifold:
         return self._to_parameters(params) if isinstance(params, jax.core.Tracer) else params
 
     @property
-    def batch_shape(self) -> tuple:
+    def batch_shape(self) -> tuple[int, ...]:
         return tuple(self._params.shape[:-1])
 
     @property
-    def dtype(self):
+    def dtype(self) -> np.dtype:
         return self._params.dtype
 
-    def __getitem__(self, index) -> Self:
+    def __getitem__(self, index: Any) -> Self:
         index = index if isinstance(index, tuple) else (index,)
         return self._wrap(self._params[(*index, slice(None))])
 
-    def rplus(self, tangent) -> Self:
+    def rplus(self, tangent: ArrayLike) -> Self:
         r"""$X \oplus \xi$ for tangents of shape `(*batch, tangent_dim)`."""
         raise NotImplementedError
 
-    def rminus(self, other) -> jax.Array:
+    def rminus(self, other: Self) -> jax.Array:
         r"""$X \ominus Y$, so that `Y.rplus(X.rminus(Y)) == X`."""
         raise NotImplementedError
 
@@ -149,8 +153,8 @@ class AbstractGroup(AbstractManifold):
     matrix_dim: ClassVar[int]
     # NumPy versions of `exp` and `from_matrix` for concrete inputs (`lieax.groups._host`), where a
     # group has them: constructors then compile nothing.
-    _host_exp: ClassVar = None  # a staticmethod
-    _host_from_matrix: ClassVar = None  # a staticmethod
+    _host_exp: ClassVar[Callable[[np.ndarray], np.ndarray] | None] = None  # a staticmethod
+    _host_from_matrix: ClassVar[Callable[[np.ndarray], np.ndarray] | None] = None
 
     __slots__ = ()
 
@@ -171,18 +175,21 @@ class AbstractGroup(AbstractManifold):
                 "lieax.groups._base.KERNELS."
             )
         for name in KERNELS:
-            setattr(cls, _ATTRIBUTES.get(name, f"_{name}"), staticmethod(getattr(kernels, name)))
+            kernel = getattr(kernels, name)
+            if name != "sample_uniform":  # (its shape and dtype arguments are static)
+                kernel = compiled_when_eager(kernel)
+            setattr(cls, _ATTRIBUTES.get(name, f"_{name}"), staticmethod(kernel))
 
     # ---- construction ------------------------------------------------------------------------
     @classmethod
-    def identity(cls, batch_shape=(), dtype=None) -> Self:
+    def identity(cls, batch_shape: Sequence[int] = (), dtype: DTypeLike | None = None) -> Self:
         """The identity element, repeated over `batch_shape`."""
         dtype = jax.dtypes.canonicalize_dtype(float if dtype is None else dtype)
         params = _host.identity(cls.parameters_dim, tuple(batch_shape), dtype)
         return cls._wrap(to_device(params))
 
     @classmethod
-    def exp(cls, tangent) -> Self:
+    def exp(cls, tangent: ArrayLike) -> Self:
         r"""$\mathrm{Exp}(\xi)$ for tangents of shape `(*batch, tangent_dim)`."""
         tangent = check_last_axis(tangent, cls.tangent_dim, f"{cls.__name__}.exp tangent")
         if cls._host_exp is not None and is_concrete(tangent):  # no compilation
@@ -190,7 +197,7 @@ class AbstractGroup(AbstractManifold):
         return cls._wrap(cls._exp(tangent))
 
     @classmethod
-    def from_matrix(cls, matrix) -> Self:
+    def from_matrix(cls, matrix: ArrayLike) -> Self:
         """The element nearest to a homogeneous matrix (rotations are re-orthogonalized)."""
         matrix = check_matrix(matrix, cls.matrix_dim, f"{cls.__name__}.from_matrix matrix")
         if cls._host_from_matrix is not None and is_concrete(matrix):  # no compilation
@@ -198,7 +205,9 @@ class AbstractGroup(AbstractManifold):
         return cls._wrap(cls._from_matrix(matrix))
 
     @classmethod
-    def sample_uniform(cls, key, batch_shape=(), dtype=None) -> Self:
+    def sample_uniform(
+        cls, key: ArrayLike, batch_shape: Sequence[int] = (), dtype: DTypeLike | None = None
+    ) -> Self:
         """Random elements: rotations uniform (Haar), translations uniform in [-1, 1]."""
         return cls._wrap(cls._sample_uniform(key, tuple(batch_shape), dtype))
 
@@ -217,7 +226,7 @@ class AbstractGroup(AbstractManifold):
         broadcast_batch(f"{type(self).__name__} compose", self.batch_shape, other.batch_shape)
         return self._wrap(self._compose(self._params, other._params))
 
-    def act(self, points) -> jax.Array:
+    def act(self, points: ArrayLike) -> jax.Array:
         r"""$X \cdot p$ for points of shape `(*batch, space_dim)`, broadcasting against the group's
         batch shape (a single element acts on a whole cloud)."""
         name = f"{type(self).__name__} acting on points"
@@ -226,6 +235,10 @@ class AbstractGroup(AbstractManifold):
         broadcast_batch(name, self.batch_shape, points.shape[:-1])
         return self._act(self._params, points)
 
+    @overload
+    def __matmul__(self, other: Self) -> Self: ...
+    @overload
+    def __matmul__(self, other: ArrayLike) -> jax.Array: ...
     def __matmul__(self, other):
         if isinstance(other, AbstractGroup):
             return self.compose(other)
@@ -249,18 +262,18 @@ class AbstractGroup(AbstractManifold):
         constructor are used as given, so call this on data that may have drifted."""
         return self._wrap(self._normalize(self._params))
 
-    def rplus(self, tangent) -> Self:
+    def rplus(self, tangent: ArrayLike) -> Self:
         r"""$X \oplus \xi = X\,\mathrm{Exp}(\xi)$."""
         name = type(self).__name__
         tangent = match_dtype(tangent, self.dtype, f"{name}.rplus tangent", f"the {name}")
         return self.compose(type(self).exp(tangent))
 
-    def rminus(self, other) -> jax.Array:
+    def rminus(self, other: Self) -> jax.Array:
         r"""$X \ominus Y = \mathrm{Log}(Y^{-1} X)$, so that `Y.rplus(X.rminus(Y)) == X`."""
         self._check_same_group(other, "rminus")
         return other.between(self).log()
 
-    def interpolate(self, other: Self, t) -> Self:
+    def interpolate(self, other: Self, t: ArrayLike) -> Self:
         r"""$X \oplus t\,(Y \ominus X)$: `self` at `t = 0`, `other` at `t = 1`, along the geodesic;
         `t` of shape `(*batch,)` broadcasts against both batch shapes (a Python or NumPy number
         takes the group's dtype)."""
@@ -272,33 +285,33 @@ class AbstractGroup(AbstractManifold):
 
     # ---- tangent-space maps ------------------------------------------------------------------
     @classmethod
-    def hat(cls, tangent) -> jax.Array:
+    def hat(cls, tangent: ArrayLike) -> jax.Array:
         """The Lie algebra matrix of a tangent, shape `(*batch, matrix_dim, matrix_dim)`."""
         return cls._hat(check_last_axis(tangent, cls.tangent_dim, f"{cls.__name__}.hat tangent"))
 
     @classmethod
-    def vee(cls, algebra) -> jax.Array:
+    def vee(cls, algebra: ArrayLike) -> jax.Array:
         """The tangent of a Lie algebra matrix; inverse of `hat`."""
         return cls._vee(check_matrix(algebra, cls.matrix_dim, f"{cls.__name__}.vee matrix"))
 
     @classmethod
-    def right_jacobian(cls, tangent) -> jax.Array:
+    def right_jacobian(cls, tangent: ArrayLike) -> jax.Array:
         r"""$J_r(\xi)$ with $\mathrm{Exp}(\xi + \delta) \approx \mathrm{Exp}(\xi)\,\mathrm{Exp}(J_r\delta)$."""
         return cls._right_jacobian(cls._check_tangent(tangent))
 
     @classmethod
-    def right_jacobian_inverse(cls, tangent) -> jax.Array:
+    def right_jacobian_inverse(cls, tangent: ArrayLike) -> jax.Array:
         r"""$J_r(\xi)^{-1}$, the derivative of Log: $\mathrm{Log}(X\,\mathrm{Exp}(\delta)) \approx
         \mathrm{Log}(X) + J_r^{-1}\delta$."""
         return cls._right_jacobian_inverse(cls._check_tangent(tangent))
 
     @classmethod
-    def left_jacobian(cls, tangent) -> jax.Array:
+    def left_jacobian(cls, tangent: ArrayLike) -> jax.Array:
         r"""$J_l(\xi) = J_r(-\xi)$, with $\mathrm{Exp}(\xi + \delta) \approx \mathrm{Exp}(J_l\delta)\,\mathrm{Exp}(\xi)$."""
         return cls._right_jacobian(-cls._check_tangent(tangent))
 
     @classmethod
-    def left_jacobian_inverse(cls, tangent) -> jax.Array:
+    def left_jacobian_inverse(cls, tangent: ArrayLike) -> jax.Array:
         r"""$J_l(\xi)^{-1} = J_r(-\xi)^{-1}$."""
         return cls._right_jacobian_inverse(-cls._check_tangent(tangent))
 

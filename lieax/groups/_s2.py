@@ -45,11 +45,13 @@ operation is a few rational functions and square roots of $p$ (no trigonometry),
 differentiates them directly; rotations go through SO3's kernels and their closed-form rules.
 """
 
+from collections.abc import Sequence
 from typing import Self
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike, DTypeLike
 
 from .._checks import broadcast_batch, check_last_axis, check_same_dtype, match_dtype
 from .._linalg import cross, dot
@@ -150,13 +152,15 @@ class S2(AbstractManifold):
     _tangent_from_local = staticmethod(from_local)
 
     @classmethod
-    def from_vector(cls, vector) -> Self:
+    def from_vector(cls, vector: ArrayLike) -> Self:
         """The direction of nonzero vectors of shape `(*batch, 3)` (normalized)."""
         vector = check_last_axis(vector, 3, "S2.from_vector vector", "3D vectors")
         return cls(_normalize(vector))
 
     @classmethod
-    def sample_uniform(cls, key, batch_shape=(), dtype=None) -> Self:
+    def sample_uniform(
+        cls, key: ArrayLike, batch_shape: Sequence[int] = (), dtype: DTypeLike | None = None
+    ) -> Self:
         """Directions uniform on the sphere (normalized standard normal vectors)."""
         return cls._wrap(_normalize(jax.random.normal(key, (*tuple(batch_shape), 3), dtype=dtype)))
 
@@ -164,7 +168,7 @@ class S2(AbstractManifold):
         """$p$, shape `(*batch, 3)` (the same as `parameters()`)."""
         return self.parameters()
 
-    def normalize(self):
+    def normalize(self) -> Self:
         """$p / |p|$, for parameters that may have drifted off the sphere."""
         return self._wrap(_normalize(self._params))
 
@@ -173,35 +177,35 @@ class S2(AbstractManifold):
         of the circle $1 + r^\top p = 0.3$ around $-r$ (module docstring)."""
         return basis(self._params)
 
-    def rplus(self, tangent):
+    def rplus(self, tangent: ArrayLike) -> Self:
         r"""$p \oplus \xi = (p + B_p\xi)/|p + B_p\xi|$, broadcasting batch shapes."""
         tangent = match_dtype(tangent, self.dtype, "S2.rplus tangent", "the S2")
         tangent = check_last_axis(tangent, 2, "S2.rplus tangent")
         broadcast_batch("S2.rplus", self.batch_shape, tangent.shape[:-1])
         return self._wrap(retract(self._params, tangent))
 
-    def rminus(self, other) -> jax.Array:
+    def rminus(self, other: Self) -> jax.Array:
         r"""$p \ominus q = B_q^\top p / (q^\top p)$ (`self` is $p$), so `other.rplus(self.rminus(other))
         == self`; defined for $q^\top p > 0$."""
         self._check_same(other, "rminus")
         return inverse_retract(self._params, other._params)
 
-    def error(self, other) -> jax.Array:
+    def error(self, other: Self) -> jax.Array:
         r"""$e(p, q) = B_p^\top q$ with `self` $= p$, `other` $= q$: zero at $q = p$, Jacobian
         $B_p^\top B_q$ with respect to $q$ (GTSAM's `Unit3::errorVector`)."""
         self._check_same(other, "error")
         return error(self._params, other._params)
 
-    def distance(self, other) -> jax.Array:
+    def distance(self, other: Self) -> jax.Array:
         r"""The geodesic angle between two directions, in $[0, \pi]$."""
         self._check_same(other, "distance")
         return distance(self._params, other._params)
 
-    def dot(self, other) -> jax.Array:
+    def dot(self, other: Self) -> jax.Array:
         self._check_same(other, "dot")
         return dot(self._params, other._params)
 
-    def rotate(self, rotation: SO3):
+    def rotate(self, rotation: SO3) -> Self:
         r"""$R p$ (through SO3's action and its closed-form rule), broadcasting batch shapes; local
         Jacobian $[-B_{Rp}^\top R [p]_\times,\ B_{Rp}^\top R B_p]$."""
         if not isinstance(rotation, SO3):
@@ -210,7 +214,7 @@ class S2(AbstractManifold):
         broadcast_batch("S2.rotate", self.batch_shape, rotation.batch_shape)
         return self._wrap(so3.act(rotation._params, self._params))
 
-    def unrotate(self, rotation: SO3):
+    def unrotate(self, rotation: SO3) -> Self:
         r"""$R^\top p$."""
         return self.rotate(rotation.inverse())
 

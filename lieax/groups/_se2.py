@@ -25,6 +25,7 @@ from typing import Self
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 
 from .._checks import (
     broadcast_batch,
@@ -295,7 +296,7 @@ class SE2(AbstractGroup):
     )
 
     @classmethod
-    def from_rotation_and_translation(cls, rotation: SO2, translation) -> Self:
+    def from_rotation_and_translation(cls, rotation: SO2, translation: ArrayLike) -> Self:
         """$X = (R, t)$ from an `SO2` and translations of shape `(*batch, 2)`, broadcasting batch
         shapes."""
         if not isinstance(rotation, SO2):
@@ -314,7 +315,7 @@ class SE2(AbstractGroup):
         return cls._wrap(join(rotation._params, translation))
 
     @classmethod
-    def from_xy_theta(cls, x, y, theta) -> Self:
+    def from_xy_theta(cls, x: ArrayLike, y: ArrayLike, theta: ArrayLike) -> Self:
         """From positions and headings (radians), each of shape `(*batch,)`, broadcast together; the
         dtype is that of the arrays among them (Python and NumPy numbers take it)."""
         if is_concrete(x, y, theta):  # no compilation (`lieax.groups._host`)
@@ -332,7 +333,7 @@ class SE2(AbstractGroup):
         r"""`(x, y, theta)` on the last axis, theta in $(-\pi, \pi]$; inverse of `from_xy_theta`."""
         return jnp.concatenate([self.translation(), so2.log(self._params[..., :2])], axis=-1)
 
-    def bearing(self, target) -> SO2:
+    def bearing(self, target: Self | ArrayLike) -> SO2:
         r"""The direction of `target` seen from this pose, as an `SO2` (GTSAM's `Pose2::bearing`,
         which returns a `Rot2`): $\mathrm{atan2}(d_y, d_x)$ of $d = X^{-1} p$, for points $p$ of
         shape `(*batch, 2)` or the positions $p = t_Y$ of another `SE2` $Y$, broadcasting batch
@@ -348,7 +349,7 @@ class SE2(AbstractGroup):
         points = target_points(self, target, "bearing", 2)
         return SO2._wrap(so2.relative_bearing(transform_to(self._params, points)))
 
-    def range(self, target) -> jax.Array:
+    def range(self, target: Self | ArrayLike) -> jax.Array:
         r"""The distance $|p - t|$ from this pose to `target`, points of shape `(*batch, 2)` or
         another `SE2`'s position, shape `(*batch,)` (GTSAM's `Pose2::range`). Jacobians
         (right-local): $\partial r / \partial X = (-u^\top R, 0)$, $\partial r / \partial p = u^\top$

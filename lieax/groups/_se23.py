@@ -23,6 +23,7 @@ from typing import Self
 
 import jax
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 
 from .._checks import broadcast_batch, check_last_axis, match_dtype
 from .._linalg import blocks, matvec, quat_conjugate, quat_multiply, quat_rotate, rotate_back, skew
@@ -185,7 +186,7 @@ class SE23(AbstractGroup):
     parameters_layout = "quaternion wxyz, then position xyz, then velocity xyz"
 
     @classmethod
-    def from_pose_and_velocity(cls, pose: SE3, velocity) -> Self:
+    def from_pose_and_velocity(cls, pose: SE3, velocity: ArrayLike) -> Self:
         """$(R, p, v)$ from a pose $(R, p)$ and a velocity in the world frame."""
         name = "SE23.from_pose_and_velocity"
         if not isinstance(pose, SE3):

@@ -16,11 +16,12 @@ Robotics" (2017), eq. 7.86, with coefficients rewritten as the $g_n$ of `lieax.g
 """
 
 import sys
-from typing import Self
+from typing import Literal, Self, overload
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 
 from .._checks import broadcast_batch, check_last_axis, is_concrete, match_dtype, to_device
 from .._linalg import (
@@ -347,7 +348,7 @@ class SE3(AbstractGroup):
         return self.parameters()
 
     @classmethod
-    def from_rotation_and_translation(cls, rotation: SO3, translation) -> Self:
+    def from_rotation_and_translation(cls, rotation: SO3, translation: ArrayLike) -> Self:
         """$T = [R, t; 0, 1]$, broadcasting batch shapes (a translation that states no dtype takes
         the rotation's)."""
         name = "SE3.from_rotation_and_translation"
@@ -368,14 +369,51 @@ class SE3(AbstractGroup):
         return cls.from_rotation_and_translation(rotation, np.zeros(3, dtype=rotation.dtype))
 
     @classmethod
-    def from_translation(cls, translation) -> Self:
+    def from_translation(cls, translation: ArrayLike) -> Self:
         translation = check_last_axis(translation, 3, "SE3 translation")
         return cls.from_rotation_and_translation(
             SO3.identity(translation.shape[:-1], dtype=translation.dtype), translation
         )
 
+    @overload
     @classmethod
-    def align(cls, points_a, points_b, weights=None, *, with_scale=False) -> "SE3 | Sim3":
+    def align(
+        cls,
+        points_a: ArrayLike,
+        points_b: ArrayLike,
+        weights: ArrayLike | None = None,
+        *,
+        with_scale: Literal[False] = False,
+    ) -> Self: ...
+    @overload
+    @classmethod
+    def align(
+        cls,
+        points_a: ArrayLike,
+        points_b: ArrayLike,
+        weights: ArrayLike | None = None,
+        *,
+        with_scale: Literal[True],
+    ) -> Sim3: ...
+    @overload
+    @classmethod
+    def align(
+        cls,
+        points_a: ArrayLike,
+        points_b: ArrayLike,
+        weights: ArrayLike | None = None,
+        *,
+        with_scale: bool,
+    ) -> Self | Sim3: ...
+    @classmethod
+    def align(
+        cls,
+        points_a: ArrayLike,
+        points_b: ArrayLike,
+        weights: ArrayLike | None = None,
+        *,
+        with_scale: bool = False,
+    ) -> Self | Sim3:
         r"""The least-squares $T_{ab}$ with $a_i \approx T_{ab} b_i$ (SVD of the correlation matrix,
         proper rotation; Umeyama scale and a `Sim3` result with `with_scale`), differentiable with
         respect to the points and weights; see `lieax.align` and `lieax.groups._procrustes`."""
@@ -384,7 +422,7 @@ class SE3(AbstractGroup):
         q, t, _ = _procrustes.solve(points_a, points_b, weights, with_scale=False, what="SE3.align")
         return cls._wrap(join(q, t))
 
-    def bearing(self, target) -> S2:
+    def bearing(self, target: Self | ArrayLike) -> S2:
         r"""The direction of `target` seen from this pose, in the pose's frame, as an `S2`
         (GTSAM's `Pose3::bearing`, which returns a `Unit3`): $d / |d|$ of $d = T^{-1} p$, for
         points $p$ of shape `(*batch, 3)` or the positions $p = t_Y$ of another `SE3` $Y$,
@@ -398,7 +436,7 @@ class SE3(AbstractGroup):
         points = bearing_range.target_points(self, target, "bearing", 3)
         return S2._wrap(bearing_range.direction(transform_to(self._params, points)))
 
-    def range(self, target) -> jax.Array:
+    def range(self, target: Self | ArrayLike) -> jax.Array:
         r"""The distance $|p - t|$ from this pose to `target`, points of shape `(*batch, 3)` or
         another `SE3`'s position, shape `(*batch,)` (GTSAM's `Pose3::range`). Jacobians
         (right-local): $\partial r / \partial T = (-u^\top R, 0)$, $\partial r / \partial p = u^\top$

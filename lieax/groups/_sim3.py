@@ -44,11 +44,12 @@ Formulas.
 
 import math
 import sys
-from typing import Self
+from typing import Protocol, Self
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 
 from .._checks import as_float_array, broadcast_batch, check_last_axis, check_positive, match_dtype
 from .._linalg import (
@@ -494,6 +495,15 @@ def sample_uniform(key, batch_shape, dtype):
     return jnp.concatenate([q, t, sigma], axis=-1)
 
 
+class _RotationAndTranslation(Protocol):
+    """What `Sim3.from_se3` reads of its pose: an `SE3` (which this module cannot import, as
+    `_se3` imports it), or anything with an `SO3` rotation and a translation."""
+
+    def rotation(self) -> SO3: ...
+
+    def translation(self) -> jax.Array: ...
+
+
 class Sim3(AbstractGroup):
     r"""Similarity transforms in 3D: parameters `(w, x, y, z, tx, ty, tz, σ)`, shape `(*batch, 8)`,
     with scale $s = e^\sigma$; tangent `(vx, vy, vz, ωx, ωy, ωz, σ)`, shape `(*batch, 7)`;
@@ -510,7 +520,9 @@ class Sim3(AbstractGroup):
         return self.parameters()
 
     @classmethod
-    def from_rotation_translation_scale(cls, rotation: SO3, translation, scale=1.0) -> Self:
+    def from_rotation_translation_scale(
+        cls, rotation: SO3, translation: ArrayLike, scale: ArrayLike = 1.0
+    ) -> Self:
         r"""$T = [sR, t; 0, 1]$ from an `SO3`, a translation `(*batch, 3)` and a positive scale
         `(*batch)`, broadcasting batch shapes (stored as $\sigma = \log s$); a translation or scale
         that states no dtype (a Python or NumPy number) takes the rotation's.
@@ -531,12 +543,12 @@ class Sim3(AbstractGroup):
         return cls._wrap(join(rotation._params, translation, jnp.log(scale)[..., None]))
 
     @classmethod
-    def from_se3(cls, pose, scale=1.0) -> Self:
+    def from_se3(cls, pose: _RotationAndTranslation, scale: ArrayLike = 1.0) -> Self:
         """The similarity with the rotation and translation of an `SE3` and the given scale."""
         return cls.from_rotation_translation_scale(pose.rotation(), pose.translation(), scale)
 
     @classmethod
-    def from_scale(cls, scale) -> Self:
+    def from_scale(cls, scale: ArrayLike) -> Self:
         """A pure scaling about the origin by positive scales of shape `(*batch)` (checked as in
         `from_rotation_translation_scale`)."""
         scale = as_float_array(scale, "Sim3.from_scale scale")
@@ -548,7 +560,9 @@ class Sim3(AbstractGroup):
         )
 
     @classmethod
-    def align(cls, points_a, points_b, weights=None) -> Self:
+    def align(
+        cls, points_a: ArrayLike, points_b: ArrayLike, weights: ArrayLike | None = None
+    ) -> Self:
         r"""The similarity $T_{ab}$ minimizing $\sum_i w_i |a_i - T_{ab} b_i|^2$ (Umeyama); see
         `lieax.align` and `lieax.groups._procrustes`."""
         q, t, sigma = _procrustes.solve(

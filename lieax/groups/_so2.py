@@ -20,6 +20,7 @@ from typing import Self
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 
 from .._checks import as_float_array, check_last_axis, is_concrete, to_device
 from . import _generic, _host, _rules
@@ -243,7 +244,7 @@ class SO2(AbstractGroup):
     _host_from_matrix = staticmethod(_host.so2_nearest_rotation)
 
     @classmethod
-    def from_angle(cls, theta) -> Self:
+    def from_angle(cls, theta: ArrayLike) -> Self:
         """From angles of shape `(*batch,)` (radians, counter-clockwise)."""
         theta = as_float_array(theta, "SO2.from_angle theta")
         if is_concrete(theta):  # no compilation (`lieax.groups._host`)
@@ -251,7 +252,7 @@ class SO2(AbstractGroup):
         return cls._wrap(exp(theta[..., None]))
 
     @classmethod
-    def relative_bearing(cls, direction):
+    def relative_bearing(cls, direction: ArrayLike) -> Self:
         r"""The rotation by the angle $\mathrm{atan2}(d_y, d_x)$ of 2D vectors $d$ of shape
         `(*batch, 2)`: GTSAM's `Rot2::relativeBearing`, the bearing of a point $d$ seen from the
         origin (`SE2.bearing` is it of $X^{-1} p$). The identity where $d = 0$, with a zero

@@ -22,6 +22,7 @@ from typing import Self
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 
 from .._checks import (
     broadcast_batch,
@@ -449,7 +450,7 @@ class SO3(AbstractGroup):
         return self.parameters()
 
     @classmethod
-    def from_xyzw(cls, xyzw) -> Self:
+    def from_xyzw(cls, xyzw: ArrayLike) -> Self:
         """From scalar-last quaternions (SciPy, ROS, Eigen's `coeffs()`)."""
         xyzw = check_last_axis(xyzw, 4, "SO3.from_xyzw quaternion", "xyzw")
         if is_concrete(xyzw):  # no compilation (`lieax.groups._host`)
@@ -461,7 +462,7 @@ class SO3(AbstractGroup):
         return jnp.roll(self.parameters(), -1, axis=-1)
 
     @classmethod
-    def from_rotvec(cls, rotvec) -> Self:
+    def from_rotvec(cls, rotvec: ArrayLike) -> Self:
         """From axis times angle (the same as `exp`)."""
         return cls.exp(rotvec)
 
@@ -470,7 +471,7 @@ class SO3(AbstractGroup):
         return self.log()
 
     @classmethod
-    def from_rpy(cls, roll, pitch, yaw) -> Self:
+    def from_rpy(cls, roll: ArrayLike, pitch: ArrayLike, yaw: ArrayLike) -> Self:
         r"""$R = R_z(\text{yaw})\,R_y(\text{pitch})\,R_x(\text{roll})$ (extrinsic x-y-z, as ROS), angles
         of shapes that broadcast; the dtype is that of the arrays among them (Python and NumPy
         numbers take it)."""
@@ -489,14 +490,14 @@ class SO3(AbstractGroup):
         return about(zero, zero, yaw) @ about(zero, pitch, zero) @ about(roll, zero, zero)
 
     @classmethod
-    def exp_and_right_jacobian(cls, tangent) -> tuple[Self, jax.Array]:
+    def exp_and_right_jacobian(cls, tangent: ArrayLike) -> tuple[Self, jax.Array]:
         r"""`(SO3.exp(tangent), SO3.right_jacobian(tangent))` from one set of coefficients
         (`exp_and_right_jacobian`)."""
         tangent = check_last_axis(tangent, 3, "SO3.exp_and_right_jacobian tangent")
         q, jr = exp_and_right_jacobian(tangent)
         return cls._wrap(q), jr
 
-    def log_and_right_jacobian_inverse(self):
+    def log_and_right_jacobian_inverse(self) -> tuple[jax.Array, jax.Array]:
         r"""`(X.log(), SO3.right_jacobian_inverse(X.log()))` from one `atan2`
         (`log_and_right_jacobian_inverse`)."""
         return log_and_right_jacobian_inverse(self._params)

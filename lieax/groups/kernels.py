@@ -13,6 +13,7 @@ this module only (`tests/test_layout.py` keeps it so).
 
 from ._bearing_range import unit_and_length
 from ._host import so3_as_matrix as host_so3_as_matrix
+from ._procrustes import rotation as kabsch_rotation
 from ._s2 import basis as s2_basis
 from ._s2 import error as s2_error
 from ._se2 import transform_to as se2_transform_to
@@ -50,6 +51,7 @@ __all__ = [
     "element",
     "g",
     "host_so3_as_matrix",
+    "kabsch_rotation",
     "s2_basis",
     "s2_error",
     "se2_transform_to",

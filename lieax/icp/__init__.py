@@ -7,9 +7,8 @@
   solver), `ICPResult` a `lieax.lstsq.SolverResult` and `ICPError` a `lieax.lstsq.SolveError`.
 - `build_index`, `nearest`: the nearest-neighbour searches they use, built once per target and
   exact within a radius: `search="kdtree"` (a k-d tree in the native library, else on the host,
-  called from the compiled loop, the CPU default), `"graph"` (a k-d tree of equal leaves and a neighbour graph, in JAX), `"grid"` (a
-  voxel hash grid, in JAX), `"brute"` (chunked brute force, for accelerators); `"auto"` chooses
-  by backend and size.
+  called from the compiled loop, the CPU default), `"grid"` (a voxel hash grid, in JAX),
+  `"brute"` (chunked brute force, for accelerators); `"auto"` chooses by backend and size.
 - `estimate_normals`, `estimate_covariances`, `voxel_downsample`: preprocessing.
 - `pad_clouds`: clouds of different sizes into one masked array, for `vmap` over pairs.
 - `synthetic_scene`, `synthetic_pair`: generated clouds with known normals and motion.
@@ -24,7 +23,6 @@ from ._gicp import estimate_covariances, gicp
 from ._grid import GridIndex
 from ._host_kdtree import KDTreeIndex
 from ._multiscale import multi_scale
-from ._neighbors import NeighborIndex, Neighbors
 from ._normals import estimate_normals
 from ._registration import (
     ICPError,
@@ -34,7 +32,7 @@ from ._registration import (
     point_to_plane,
     point_to_point,
 )
-from ._search import SEARCHES, BruteIndex, build_index, nearest
+from ._search import SEARCHES, BruteIndex, Neighbors, build_index, nearest
 from ._synthetic import synthetic_pair, synthetic_scene
 
 __all__ = [
@@ -45,7 +43,6 @@ __all__ = [
     "ICPInputError",
     "ICPResult",
     "KDTreeIndex",
-    "NeighborIndex",
     "Neighbors",
     "Status",
     "build_index",

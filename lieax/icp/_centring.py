@@ -5,8 +5,8 @@ origin).
 
 About the origin, the Jacobian rows $[R, -R[s_i]_\times]$ of points $s_i$ a distance $L$ away
 make the rotation block of the 6x6 normal equations $L^2$ times the translation block: at
-$L = 10^4$ m a ridge at rounding level (`lieax.icp._registration._solve_spd`) swamps the rotation
-about the centroid, and the iterations stop short of it.
+$L = 10^4$ m a ridge at rounding level relative to the largest diagonal entry (ICP's own solve
+before it used `lieax.lstsq._normal_equations.solve_spd`) swamps the rotation about the centroid, and the iterations stop short of it.
 """
 
 import jax

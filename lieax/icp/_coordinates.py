@@ -1,5 +1,5 @@
-"""Sums written out for XLA's CPU backend: over the three coordinates of points, and of several
-arrays over their rows at once.
+"""Sums and the rigid motion of points written out for XLA's CPU backend: over the three
+coordinates of points, and of several arrays over their rows at once.
 
 XLA's CPU backend (jaxlib 0.10.2) compiles `jnp.sum(x, axis=-1)` of an `(n, 3)` array as a
 YNNPACK reduction kernel of its own, 3-4x slower than the two additions of the columns, which
@@ -9,6 +9,8 @@ fuse with the gathers and products around them into one loop (10k float64 rows: 
 
 import jax
 import jax.numpy as jnp
+
+from .._linalg import quat_to_matrix
 
 
 def coordinate_sum(x):
@@ -28,3 +30,22 @@ def row_sums(terms):
     zeros = tuple(jnp.zeros((), term.dtype) for term in terms)
     add = lambda a, b: tuple(x + y for x, y in zip(a, b))
     return list(jax.lax.reduce(tuple(terms), zeros, add, (0,)))
+
+
+def transform_points(params, points):
+    """$R p + t$ for SE3 parameters `(w, x, y, z, tx, ty, tz)` and points `(n, 3)`, written out per
+    coordinate: `SE3.act`'s values (its contraction agrees with float64 in float32 at 20k points,
+    `tests/test_icp_invariance.py`), 1.5-7x faster on 20k points on the CPU and 7-10x under
+    `vmap` (jaxlib 0.10.2, float64 and float32)."""
+    return jnp.stack(transformed_columns(params, points), axis=1)
+
+
+def transformed_columns(params, points):
+    """The three coordinates of `transform_points(params, points)`, each `(n,)` (a step that
+    reduces over them needs no `(n, 3)` array)."""
+    rotation = quat_to_matrix(params[:4])
+    x, y, z = points[:, 0], points[:, 1], points[:, 2]
+    return [
+        rotation[i, 0] * x + rotation[i, 1] * y + rotation[i, 2] * z + params[4 + i]
+        for i in range(3)
+    ]

@@ -3,9 +3,9 @@ r"""Generalized ICP (plane-to-plane; Segal, Haehnel, Thrun, "Generalized-ICP", R
 Every point carries a covariance of its local surface; a pair $(s_i, d_i)$ (source point, its
 nearest target point) has the residual $r_i = T s_i - d_i$ and the Mahalanobis weight
 $M_i = (C^d_i + R C^s_i R^\top)^{-1}$, and the pose minimizes $\sum_i \rho(r_i^\top M_i r_i)$.
-It runs in the loop of `point_to_plane` (`lieax.icp._registration`: match, update, re-match, the
-same statuses, stopping rule and exact check), with this module's Gauss-Newton update and, as
-small_gicp, a stop on the size of the step as well.
+It runs in the ICP loop (`lieax.icp._loop`: match, update, re-match, the same statuses and
+stopping rule as `point_to_plane`), handed this module's Gauss-Newton update (`GICP`, a
+`lieax.icp._parts.Step`) and, as small_gicp, a stop on the size of the step as well.
 
 Conventions (right perturbation, translation-first tangents, `T_a_b` maps b into a) are the
 docs/conventions.md.
@@ -22,11 +22,13 @@ from .. import _cpu_emitters as cpu_emitters
 from .._checks import as_float_array, is_concrete, to_device
 from .._host_call import host_call
 from ..groups import SE3, kernels
+from ..lstsq._normal_equations import solve_spd
 from . import _host_kdtree, _native_kdtree, _neighbors, _normals, _search
 from ._batch import pad_to_bucket
 from ._checks import check_cloud, check_count, check_mask, check_parameter
 from ._normals import _UPPER, offset_covariances, smallest_eigenvector
-from ._registration import ICPResult, _register, _solve_spd
+from ._parts import Step
+from ._registration import ICPResult, _register
 
 EPSILON = 1e-3  # the smallest regularized eigenvalue (GICP, fast_gicp, small_gicp)
 ROTATION_EPSILON = 0.1 * math.pi / 180  # small_gicp's default step tolerance, 0.1°
@@ -82,7 +84,7 @@ def _estimate(points, mask, *, k):
     safe = jnp.where(mask[:, None] & jnp.isfinite(points), points, 0.0)
     # 16 adjacent leaves of 16 points: 99.96% of the bunny's 20-neighbourhoods are exact (24 leaves:
     # 99.97%, at twice the build time; the rest swap a far neighbour for an almost as near one).
-    index = _neighbors.build_index(safe, mask, degree=k - 1, links=0, adjacent_leaves=16)
+    index = _neighbors.build_index(safe, mask, degree=k - 1, adjacent_leaves=16)
     centre = index.points  # slot order
     neighbours = jnp.concatenate([centre[:, :, None], index.graph_points], axis=2)  # (slots, 3, k)
     # Clouds of fewer valid points than k fill the graph with invalid slots, the point itself and
@@ -289,7 +291,7 @@ def gicp_normal_equations(params, source, matched, source_covariances, target_co
 
 
 def gicp_step(
-    params, source, matched, source_covariances, target_covariances, inliers, loss_weights
+    params, source, source_covariances, matched, target_covariances, inliers, loss_weights
 ):  # fmt: skip
     r"""One Gauss-Newton step $T \leftarrow T \oplus \delta$, $\delta = -H^{-1} g$ (see
     `gicp_normal_equations`), with the IRLS weights $w_i = \rho'(r_i^\top M_i r_i)$ of the
@@ -301,8 +303,13 @@ def gicp_step(
         params, source, matched, source_covariances, target_covariances,
         lambda costs: inliers.astype(params.dtype) * loss_weights(costs),
     )  # fmt: skip
-    step = -_solve_spd(hessian, gradient)
+    step = -solve_spd(hessian, gradient)
     return kernels.element(SE3, params).rplus(step).parameters()
+
+
+# The GICP update as the ICP loop's step (`lieax.icp._parts.Step`): its per-point data are the
+# source's and the matched target points' covariances.
+GICP = Step("gicp", gicp_step)
 
 
 # ---- entry point --------------------------------------------------------------------------------
@@ -340,7 +347,7 @@ def gicp(
     on either of two rules, after the update that meets it:
     - small_gicp's: the update just made, $T_\text{old}^{-1} T_\text{new}$ in the clouds' own
       frames, rotates by less than `rotation_epsilon` and translates by less than
-      `translation_epsilon` (see `lieax.icp._registration._small_step`). small_gicp's
+      `translation_epsilon` (see `lieax.icp._loop._small_step`). small_gicp's
       translation default (1 mm) is absolute; the default here is $10^{-3}$
       `max_correspondence_distance`, which is small_gicp's 1 mm at its default distance (1 m,
       LiDAR) and scales with the clouds (10 µm for a 1 cm distance on an object scan): a stop
@@ -371,7 +378,7 @@ def gicp(
     - `loss`: robust loss with a `weight(s)` method of the squared Mahalanobis residual (the
       `lieax.lstsq` losses); default least squares.
     - `source_mask`, `target_mask`: `(n,)`, `(m,)` bools, False for padding (see `pad_clouds`).
-    - `exact`: verify the final matches with an exact search (as `point_to_plane`).
+    - `exact`: accepted for compatibility and ignored (as for `point_to_plane`).
     - `covariances_k`: neighbours for the default covariances (small_gicp's default, 20), found
       as `search` says (`"auto"`: see `estimate_covariances`).
     - `verbose`: print the fitness and inlier RMSE after every iteration.
@@ -400,10 +407,9 @@ def gicp(
         check_parameter(max_correspondence_distance, "max_correspondence_distance", positive=True)
         translation_epsilon = TRANSLATION_EPSILON_PER_DISTANCE * max_correspondence_distance
     return _register(
-        "gicp", source, target, max_correspondence_distance, None, init, max_iterations,
-        relative_fitness, relative_rmse, loss, source_mask, target_mask, exact, 0, verbose, throw,
-        search=search, source_covariances=source_covariances,
-        target_covariances=target_covariances, buckets=buckets,
+        GICP, source, target, max_correspondence_distance, init, max_iterations,
+        relative_fitness, relative_rmse, loss, source_mask, target_mask, verbose, throw, search,
+        buckets, source_rows=source_covariances, target_rows=target_covariances,
         step_tolerance=(rotation_epsilon, translation_epsilon),
     )  # fmt: skip
 

@@ -90,9 +90,7 @@ def _graph_neighbourhoods(points, mask, *, k):
     """The point and its `k - 1` neighbours in the graph of `_neighbors.build_index`, in the
     cloud's own order."""
     safe = jnp.where(mask[:, None] & jnp.isfinite(points), points, 0.0)
-    index = _neighbors.build_index(
-        safe, mask, degree=k - 1, links=0, adjacent_leaves=16 if k <= 16 else 24
-    )
+    index = _neighbors.build_index(safe, mask, degree=k - 1, adjacent_leaves=16 if k <= 16 else 24)
     slots = jnp.arange(index.points.shape[0], dtype=jnp.int32)
     members = jnp.concatenate([slots[:, None], index.graph], axis=1)  # (slots, k), itself first
     rows = jnp.where(index.valid[members], index.order[members], -1)

@@ -1,8 +1,5 @@
 """Nearest-neighbour search backends, one interface: `build_index(..., search=...)`, `nearest`.
 
-- `"graph"`: `NeighborIndex`, a k-d tree of equal leaves and a k-NN graph (`_neighbors`); a
-  warm-started graph descent per iteration, an exact check at the end. Fastest per iteration,
-  slowest to build.
 - `"grid"`: `GridIndex`, a voxel hash grid with cells of the radius (`_grid`); the 27 cells
   around a query, each scanned in full. Cheap to build, inside JAX (accelerators).
 - `"kdtree"`: `KDTreeIndex`, a k-d tree in the native library (`_native_kdtree`, one custom call
@@ -10,13 +7,15 @@
   host call per query batch). Cheapest to build on a CPU.
 - `"brute"`: `BruteIndex`, every target point against every query, chunk by chunk.
 
-All but `"graph"` answer exactly (the nearest valid target point within the radius, up to ties,
-or none) in every call; `"graph"` is exact after its check (`exact=True`).
+All answer exactly (the nearest valid target point within the radius, up to ties, or none) in
+every call.
 
 `"auto"` picks `"kdtree"` on a CPU: in ICP (`benchmarks/icp.py`, "Every kind of scan") it is the
-fastest backend on the object scans, the LiDAR scans and the Kinect frame alike (its build costs a
-few ms where the graph's costs 0.1-3 s, and it needs no exact check), and `"grid"` is 2-9x slower
-on a CPU. Elsewhere it picks `"brute"` for targets of at most `BRUTE_MAX_TARGET` points and
+fastest backend on the object scans, the LiDAR scans and the Kinect frame alike, and `"grid"` is
+2-9x slower on a CPU. (A warm-started descent on a k-nearest-neighbour graph, `search="graph"`,
+was removed: per registration it was 4.5-12.5x slower than the k-d tree on the four scans of
+`benchmarks/icp.py`, its build alone 0.03-6 s, and with its index prebuilt and reused 2-6x
+slower on three of them and 9% faster on the full bunny; see the changelog.) Elsewhere it picks `"brute"` for targets of at most `BRUTE_MAX_TARGET` points and
 `"grid"` above (`"brute"` when no radius is given): a rule not yet measured on an accelerator.
 """
 
@@ -26,13 +25,32 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from . import _grid, _host_kdtree, _neighbors
+from . import _grid, _host_kdtree
 from ._checks import check_parameter
 from ._coordinates import squared_norms
 
-SEARCHES = ("auto", "graph", "grid", "kdtree", "brute")
+SEARCHES = ("auto", "grid", "kdtree", "brute")
 BRUTE_MAX_TARGET = 16384
 _BRUTE_BLOCK = 2**21  # query chunk x target elements per step of the brute-force search
+
+
+class Neighbors(NamedTuple):
+    """The nearest target point of each query (`nearest`).
+
+    **Fields:**
+
+    - `index`: `(n,)` int32, index of the nearest point in the original target cloud, `-1` for
+      none within the radius.
+    - `slot`: `(n,)` int32, the same point's slot in the index (for warm starts).
+    - `distance`: `(n,)` Euclidean distance to it (`inf` where there is none).
+    - `certified`: `(n,)` bool, the match is exact within the search radius (every query that
+      was searched: all backends are exact).
+    """
+
+    index: jax.Array
+    slot: jax.Array
+    distance: jax.Array
+    certified: jax.Array
 
 
 class BruteIndex(NamedTuple):
@@ -61,7 +79,7 @@ def resolve(search, target_size, has_radius=True, platform=None) -> str:
     return "grid" if has_radius and target_size > BRUTE_MAX_TARGET else "brute"
 
 
-def build_index(points, mask=None, *, search="graph", max_distance=None, **options):
+def build_index(points, mask=None, *, search="auto", max_distance=None, **options):
     """Prepare a target cloud `points` (shape `(n, 3)`) for nearest-neighbour queries; runs under
     `jit` and `vmap`.
 
@@ -70,17 +88,15 @@ def build_index(points, mask=None, *, search="graph", max_distance=None, **optio
     - `points`, `mask`: the target cloud; rows where `mask` is False are ignored (padding).
     - `search`: the backend (see the module docstring).
     - `max_distance`: the largest query radius; needed by `"grid"` (its cell size).
-    - `options`: passed on to the backend's builder (`_neighbors.build_index` for `"graph"`:
-      `leaf_size`, `degree`, ...; `library` for `"kdtree"`; `capacity` for `"grid"`).
+    - `options`: passed on to the backend's builder (`library` for `"kdtree"`; `capacity` for
+      `"grid"`).
 
-    **Returns:** a `NeighborIndex`, `GridIndex`, `KDTreeIndex` or `BruteIndex`.
+    **Returns:** a `GridIndex`, `KDTreeIndex` or `BruteIndex`.
     """
     points = jnp.asarray(points)
     if points.ndim != 2 or points.shape[-1] != 3:
         raise ValueError(f"points must have shape (n, 3), got shape {tuple(points.shape)}.")
     search = resolve(search, points.shape[0], max_distance is not None, platform_of(points))
-    if search == "graph":
-        return _neighbors.build_index(points, mask, **options)
     if search == "grid":
         if max_distance is None:
             raise ValueError("search='grid' needs max_distance (the cell size of the grid).")
@@ -107,7 +123,6 @@ def platform_of(points):
 def search_name(index) -> str:
     """The backend of an index."""
     for name, kind in (
-        ("graph", _neighbors.NeighborIndex),
         ("grid", _grid.GridIndex),
         ("kdtree", _host_kdtree.KDTreeIndex),
         ("brute", BruteIndex),
@@ -118,8 +133,7 @@ def search_name(index) -> str:
 
 
 def match(index, queries, radius, mask=None, previous=None):
-    """Exact matches from a `"grid"`, `"kdtree"` or `"brute"` index: the nearest valid target
-    point within `radius` (inclusive) of each query, or none. `previous`: slots of earlier
+    """Exact matches from an index: the nearest valid target point within `radius` (inclusive) of each query, or none. `previous`: slots of earlier
     matches, a warm start for `"kdtree"` (see `lieax.icp._host_kdtree`).
 
     The search sees the queries through `stop_gradient`; the squared distance is then recomputed
@@ -136,10 +150,8 @@ def match(index, queries, radius, mask=None, previous=None):
         slot, d2 = _host_kdtree.nearest_in_kdtree(
             index, fixed, radius, mask=mask, previous=previous
         )
-    elif name == "brute":
-        slot, d2 = _brute_force(index, fixed, radius, mask)
     else:
-        raise TypeError("match needs an exact index; use nearest for search='graph'.")
+        slot, d2 = _brute_force(index, fixed, radius, mask)
     found = d2 < jnp.inf
     gap = jnp.where(found[:, None], queries - index.points[slot].astype(queries.dtype), 0.0)
     return slot, jnp.where(found, squared_norms(gap), jnp.inf)
@@ -160,7 +172,7 @@ def _brute_force(index: BruteIndex, queries, radius, mask):
 
     def one_chunk(q):
         d2 = sum((q[:, None, axis] - targets[None, :, axis]) ** 2 for axis in range(3))
-        return _neighbors._min_and_argmin(jnp.where(jnp.isnan(d2), jnp.inf, d2))
+        return _min_and_argmin(jnp.where(jnp.isnan(d2), jnp.inf, d2))
 
     d2, slot = jax.lax.map(one_chunk, padded)
     d2, slot = d2.reshape(-1)[:m], slot.reshape(-1)[:m]
@@ -169,21 +181,29 @@ def _brute_force(index: BruteIndex, queries, radius, mask):
     return jnp.where(found, slot, 0), jnp.where(found, d2, jnp.inf)
 
 
-def nearest(
-    index, queries, *, radius=jnp.inf, initial=None, mask=None, exact=True
-) -> _neighbors.Neighbors:
+def _min_and_argmin(d2):
+    """Row minima and the first column attaining them (two plain reductions: XLA's variadic
+    argmin reduction is much slower on the CPU)."""
+    d2 = jax.lax.optimization_barrier(d2)
+    smallest = jnp.min(d2, axis=-1)
+    columns = d2.shape[-1]
+    first = jnp.min(
+        jnp.where(d2 == smallest[..., None], jnp.arange(columns, dtype=jnp.int32), columns), axis=-1
+    )
+    return smallest, jnp.minimum(first, columns - 1)
+
+
+def nearest(index, queries, *, radius=jnp.inf, initial=None, mask=None) -> Neighbors:
     """The nearest target point of every query, exact within `radius`.
 
     **Arguments:**
 
     - `index`: from `build_index` (any backend).
     - `queries`: shape `(n, 3)`.
-    - `radius`: the search radius. `"grid"` searches within its cell size at most; `"grid"`,
-      `"kdtree"` and `"brute"` report no match (`index = -1`, `distance = inf`) beyond `radius`;
-      `"graph"` reports its best match there, not necessarily the nearest.
+    - `radius`: the search radius. `"grid"` searches within its cell size at most; every
+      backend reports no match (`index = -1`, `distance = inf`) beyond `radius`.
     - `initial`: slots of earlier matches (a previous `Neighbors.slot`), a warm start for
-      `"graph"` and `"kdtree"`.
-    - `exact`: for `"graph"` (see `lieax.icp._neighbors.nearest`); the others are always exact.
+      `"kdtree"`.
     - `mask`: queries to skip (their result is meaningless).
 
     **Returns:** `Neighbors`.
@@ -191,14 +211,10 @@ def nearest(
     queries = jnp.asarray(queries)
     if queries.ndim != 2 or queries.shape[-1] != 3:
         raise ValueError(f"queries must have shape (n, 3), got shape {tuple(queries.shape)}.")
-    if search_name(index) == "graph":
-        return _neighbors.nearest(
-            index, queries, radius=radius, initial=initial, mask=mask, exact=exact
-        )
     active = jnp.ones(queries.shape[:1], bool) if mask is None else jnp.asarray(mask, bool)
     slot, d2 = match(index, queries, radius, active, previous=initial)
     found = d2 < jnp.inf
-    return _neighbors.Neighbors(jnp.where(found, index.order[slot], -1), slot, jnp.sqrt(d2), active)
+    return Neighbors(jnp.where(found, index.order[slot], -1), slot, jnp.sqrt(d2), active)
 
 
 def check_icp_search(search, target, max_distance):
@@ -208,7 +224,7 @@ def check_icp_search(search, target, max_distance):
         check_search(search)
         return resolve(search, target.shape[0], True, platform_of(target)), None
     name = search_name(search)
-    if search.points.shape[-2:] != target.shape and name != "graph":
+    if search.points.shape[-2:] != target.shape:
         raise ValueError(
             f"the prebuilt index holds {search.points.shape[-2]} points, the target "
             f"{target.shape[0]}: build it on this target."

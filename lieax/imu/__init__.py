@@ -13,6 +13,8 @@ gyro=[...], dt=...)` (padded with masks to bucketed lengths: one compilation per
 (`error_mode="component_wise"` for `ComponentWise`).
 """
 
+from ._associative import preintegrate_associative
+from ._combined import preintegrate_combined
 from ._factors import (
     bias_random_walk_factor,
     combined_imu_factor,
@@ -23,16 +25,10 @@ from ._factors import (
     imu_residual,
 )
 from ._intervals import bucket_size, preintegrate_intervals
-from ._preintegration import (
-    BiasRandomWalk,
-    ImuError,
-    ImuParams,
-    Preintegrated,
-    predict,
-    preintegrate,
-    preintegrate_associative,
-    preintegrate_combined,
-)
+from ._params import BiasRandomWalk, ImuError, ImuParams
+from ._predict import predict
+from ._preintegrated import Preintegrated
+from ._sequential import preintegrate
 
 __all__ = [
     "BiasRandomWalk",

@@ -35,9 +35,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._linalg import cross, dot, skew
-from ..factorgraph._factors import Factor, square_root_information
+from ..factorgraph import Factor, square_root_information
 from ..groups import SE23, SO3, kernels
-from ._preintegration import ImuError, ImuParams, Preintegrated, predict
+from ._params import ImuError, ImuParams
+from ._predict import predict
+from ._preintegrated import Preintegrated
 
 ERROR_MODES = ("logmap", "component_wise")
 
@@ -204,7 +206,7 @@ def _logmap_from_component_wise(residual, jr_inv, blocks):
     + \theta u^\top - 2u\theta^\top) + 2D_\theta'\,\theta\times(\theta\times u)\,\theta^\top$ from
     $J_l^{-1}(\theta) = I - \tfrac12[\theta]_\times + D_\theta[\theta]_\times^2$ (Solà eq. 146;
     $D_\theta$, $D_\theta' = dD/ds$ at $s = \theta\cdot\theta$ of
-    `lieax.groups._so3.jr_inverse_coefficients`; `_so3_at` of `lieax.imu._preintegration` has
+    `lieax.groups._so3.jr_inverse_coefficients`; `_so3_at` of `lieax.imu._block_scan` has
     the $J_r^{-1}$ twin)."""
     theta, c_p, c_v = residual[0:3], residual[3:6], residual[6:9]
     s = dot(theta, theta)

@@ -7,13 +7,9 @@ compile one program per pair of buckets, not one per length.
 import jax
 import numpy as np
 
-from ._preintegration import (
-    BiasRandomWalk,
-    ImuError,
-    ImuParams,
-    preintegrate,
-    preintegrate_combined,
-)
+from ._combined import preintegrate_combined
+from ._params import BiasRandomWalk, ImuError, ImuParams
+from ._sequential import preintegrate
 
 
 def bucket_size(n: int) -> int:

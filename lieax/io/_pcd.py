@@ -2,9 +2,11 @@
 format" (v0.7; `binary_compressed` stores each field's column contiguously, LZF-compressed)."""
 
 import io
+import os
 import warnings
 
 import numpy as np
+import numpy.typing as npt
 
 from ._common import (
     PointCloudData,
@@ -23,7 +25,7 @@ _SINGLE = ("x", "y", "z", "normal_x", "normal_y", "normal_z", "rgb", "rgba")
 _MODES = ("ascii", "binary", "binary_compressed")
 
 
-def read_pcd(path, *, dtype=np.float64) -> PointCloudData:
+def read_pcd(path: str | os.PathLike[str], *, dtype: npt.DTypeLike = np.float64) -> PointCloudData:
     """Read a PCD file (v0.5 to v0.7).
 
     **Arguments:**
@@ -268,7 +270,13 @@ def _read_compressed(data, offset, kinds, counts, n, path):
     return raw
 
 
-def write_pcd(path, points, normals=None, *, binary: bool = True) -> None:
+def write_pcd(
+    path: str | os.PathLike[str],
+    points: npt.ArrayLike,
+    normals: npt.ArrayLike | None = None,
+    *,
+    binary: bool = True,
+) -> None:
     """Write points (and optional normals) as a PCD v0.7 file of float32 fields, DATA binary (or
     ascii with `binary=False`)."""
     points = as_rows(points, "points")

@@ -1,9 +1,11 @@
 """PLY point clouds (ascii, binary little and big endian), after Greg Turk's specification
 (Stanford, 1994) as Open3D (rply) and MeshLab read and write it."""
 
+import os
 import re
 
 import numpy as np
+import numpy.typing as npt
 
 from ._common import (
     PointCloudData,
@@ -25,7 +27,7 @@ _PLY_TYPES = {
 _FORMATS = ("ascii", "binary_little_endian", "binary_big_endian")
 
 
-def read_ply(path, *, dtype=np.float64) -> PointCloudData:
+def read_ply(path: str | os.PathLike[str], *, dtype: npt.DTypeLike = np.float64) -> PointCloudData:
     """Read the `vertex` element of a PLY file.
 
     **Arguments:**
@@ -320,7 +322,14 @@ def _binary_short(path, offset, name, count, row):
     )  # fmt: skip
 
 
-def write_ply(path, points, normals=None, colors=None, *, binary: bool = True) -> None:
+def write_ply(
+    path: str | os.PathLike[str],
+    points: npt.ArrayLike,
+    normals: npt.ArrayLike | None = None,
+    colors: npt.ArrayLike | None = None,
+    *,
+    binary: bool = True,
+) -> None:
     """Write points (and optional normals, colors in `[0, 1]`) as a PLY file: float32 x y z, nx ny
     nz, uchar red green blue; binary little endian, or ascii with `binary=False`."""
     points = as_rows(points, "points")

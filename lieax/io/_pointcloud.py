@@ -8,13 +8,16 @@ Everything here runs on the host with NumPy and returns NumPy arrays (wrap them 
 import os
 
 import numpy as np
+import numpy.typing as npt
 
 from ._common import PointCloudData
 from ._pcd import read_pcd
 from ._ply import read_ply
 
 
-def read_point_cloud(path, *, key=None, dtype=np.float64) -> PointCloudData:
+def read_point_cloud(
+    path: str | os.PathLike[str], *, key: str | None = None, dtype: npt.DTypeLike = np.float64
+) -> PointCloudData:
     """Read a `.ply`, `.pcd`, `.npy` or `.npz` file, choosing the format by the extension.
 
     **Arguments:**

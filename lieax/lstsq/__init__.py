@@ -9,6 +9,7 @@ from ._least_squares import least_squares
 from ._losses import AbstractLoss, Cauchy, GemanMcClure, Huber, Tukey
 from ._solution import NonFiniteStartError, Solution, SolveError, SolverResult, Status
 from ._solvers import AbstractSolver, GaussNewton, LevenbergMarquardt
+from ._termination import Termination
 
 __all__ = [
     "AbstractLoss",
@@ -23,6 +24,7 @@ __all__ = [
     "SolveError",
     "SolverResult",
     "Status",
+    "Termination",
     "Tukey",
     "least_squares",
 ]

@@ -22,9 +22,9 @@ What the phases do is each loop's own where the loops differ in substance: the l
 (dense or block-sparse), how much of a linearization a trial point gets (`least_squares`
 linearizes every trial point, so the kept point's normal equations are at hand; the factor graph
 evaluates residuals and Jacobian blocks at every trial point and assembles the normal equations
-only for a kept one, inside a `cond`), what an iteration counts (every trial point, as MINPACK
-counts function evaluations; a taken step, as GTSAM counts iterations) and the stopping rules
-(MINPACK-style scaled tests; GTSAM's cost-change tests). The body adds no operation of its own:
+only for a kept one, inside a `cond`) and the stopping tests each runs of the one
+`Termination` (MINPACK-style scaled tests counting every trial point; GTSAM's cost-change tests
+counting outer iterations). The body adds no operation of its own:
 a loop's compiled program is its phases' in sequence. `run` is the one loop that runs a body.
 """
 

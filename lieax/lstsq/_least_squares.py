@@ -15,7 +15,7 @@ Every problem of a `vmap` runs this same loop in lockstep; a problem that has st
 state while the others run on (the batching rule of `while_loop`).
 """
 
-import operator
+import dataclasses
 from typing import NamedTuple
 
 import jax
@@ -49,13 +49,13 @@ from ._solution import (
     nonfinite_leaves,
 )
 from ._solvers import AbstractSolver, LevenbergMarquardt
+from ._termination import Termination
 
-_DEFAULT_TOLERANCES = {  # (function, gradient, parameter) by dtype
-    np.dtype(np.float64): (1e-10, 1e-10, 1e-10),
-    np.dtype(np.float32): (1e-6, 1e-6, 1e-6),
-}
+_DEFAULT_TOLERANCE = {np.dtype(np.float64): 1e-10, np.dtype(np.float32): 1e-6}
 _DIFFERENTIATION = ("implicit", "unrolled")
 _LEVENBERG_MARQUARDT = LevenbergMarquardt()  # the default solver (immutable, so shared)
+_TERMINATION = Termination()  # the default stopping rules (immutable, so shared)
+_RESOLVED = {}  # (termination, dtype) -> termination with the dtype's default tolerances
 
 
 def least_squares(
@@ -65,10 +65,7 @@ def least_squares(
     *,
     solver: AbstractSolver = _LEVENBERG_MARQUARDT,
     loss=None,
-    max_iterations: int = 100,
-    function_tolerance=None,
-    gradient_tolerance=None,
-    parameter_tolerance=None,
+    termination: Termination = _TERMINATION,
     differentiation: str = "implicit",
     retraction: Retraction = exp,
     verbose: bool = False,
@@ -90,35 +87,31 @@ def least_squares(
     - `solver`: `LevenbergMarquardt()` (default) or `GaussNewton()`.
     - `loss`: `None`, a robust loss (`Huber`, `Cauchy`, `Tukey`, `GemanMcClure`), or a pytree
       prefix of the residual with a loss or `None` per leaf. Applied by reweighting.
-    - `max_iterations`: the most iterations (rejected steps count).
-    - `function_tolerance`: converged when a kept step changes the cost by less than this
-      fraction of it, or a rejected step was predicted to decrease it by less (0 turns the test
-      off).
-    - `gradient_tolerance`: converged when
-      $\max_j |g_j| / (c_j \|r\|) \le \text{tol}$, the largest cosine between the (weighted)
-      residual and a column of the Jacobian, $g = J^\top W r$, $c_j$ the column's norm and
-      $\|r\| = \sqrt{2\,\text{cost}}$ (MINPACK's `gtol`; a zero residual passes): independent
-      of the units of the unknowns and of the residual. At `x0`, where no step has been tried,
-      only an exactly zero gradient (a stationary start, such as a zero residual) stops the
-      solve, with `iterations == 0`.
-    - `parameter_tolerance`: converged when a step $\delta$ has
-      $\|D\delta\| \le \text{tol}\,(\|D|x|\| + \text{tol}\,\|d\|/\sqrt{n})$, with
-      $D = \mathrm{diag}(d)$ the solver's scaling of the variables (`solver.scale`: for
-      `LevenbergMarquardt()` the largest column norms of the Jacobian so far; the identity for
-      `GaussNewton()`), $|x|$ the state's magnitude per tangent coordinate (an array's absolute
-      values; a group element's parameter norm spread over its coordinates) and $n$ the tangent
-      dimension: relative to the state as MINPACK's `xtol`, so that it holds for unknowns of any
-      size (with $D = I$: $\|\delta\| \le \text{tol}\,(\|x\| + \text{tol})$).
-      The three tolerances default to $10^{-10}$ in float64 and $10^{-6}$ in float32. Every
-      test is relative (to the cost, the residual norm, the state): multiplying the residual by a
-      constant changes neither the iterates (up to rounding) nor the status, with the default
-      `LevenbergMarquardt()` and `GaussNewton()` (the `"jacobi"` and `"clipped"` scalings'
-      absolute clip of the damping diagonal is Ceres' and does depend on the residual's size).
+    - `termination`: when to stop, a `Termination` (`counting="trials"`: every trial point is an
+      iteration, rejected steps included). Default `Termination()`: 100 iterations, the
+      tolerances $10^{-10}$ in float64 and $10^{-6}$ in float32 (`None` reads as these);
+      `Termination.ceres()` and `Termination.minpack()` are their peers' defaults. Converged
+      when a kept step changes the cost by less than `function_tolerance` times it (or by less
+      than `absolute_function_tolerance`), when a rejected step was predicted to decrease it by
+      less than `function_tolerance` times it, when
+      $\max_j |g_j| / (c_j \|r\|) \le$ `gradient_tolerance` (the largest cosine between the
+      weighted residual and a Jacobian column, $g = J^\top W r$, $c_j$ the column's norm,
+      $\|r\| = \sqrt{2\,\text{cost}}$: MINPACK's `gtol`; a zero residual passes), or when a step
+      has $\|D\delta\| \le \text{tol}\,(\|D|x|\| + \text{tol}\,\|d\|/\sqrt{n})$,
+      tol = `parameter_tolerance`, $D = \mathrm{diag}(d)$ the solver's scaling
+      (`AbstractSolver.scale`), $|x|$ the state's magnitude per tangent coordinate (a group
+      element's parameter norm spread over its coordinates), $n$ the tangent dimension
+      (MINPACK's `xtol`; with $D = I$: $\|\delta\| \le \text{tol}\,(\|x\| + \text{tol})$).
+      A tolerance of 0 turns its test off. At `x0` only an exactly zero gradient stops the solve
+      (`iterations == 0`). Every test but the absolute one is relative: multiplying the residual
+      by a constant changes neither the iterates (up to rounding) nor the status with
+      `LevenbergMarquardt()` or `GaussNewton()`. A new tolerance reuses the compiled solve
+      (they are traced); `max_iterations` compiles its own.
     - `differentiation`: `"implicit"` (default): derivatives of `value` and `cost` with respect
       to `args` (and the loss's scale) by the implicit function theorem at the solution, with no
       iteration unrolled; the start `x0` gets zero derivative, and a solve that did not converge
       gets the derivative of the point it returned as if it were the optimum. `"unrolled"`: the
-      loop runs as a `lax.scan` of `max_iterations + 1` masked iterations and JAX differentiates
+      loop runs as a `lax.scan` of `termination.max_iterations + 1` masked iterations and JAX differentiates
       through it (for comparison: every iteration runs, and reverse mode stores them all).
     - `retraction`: how a step moves the state, from `lieax.retractions`: `exp` (default,
       $X\,\mathrm{Exp}(\delta)$), `cayley` (SO3, SE3) or `first_order` (SE3); leaves it has
@@ -154,30 +147,11 @@ def least_squares(
     solution = lieax.lstsq.least_squares(residual, lieax.SO3.identity(), (source, target))
     ```
     """
-    if not callable(residual_fn):
-        raise TypeError(f"residual_fn must be callable, got {residual_fn!r}.")
-    if not isinstance(solver, AbstractSolver):
-        raise TypeError(
-            f"solver must be a lieax.lstsq solver (e.g. LevenbergMarquardt()), got {solver!r}."
-        )
-    max_iterations = _non_negative_int(max_iterations, "max_iterations")
-    if differentiation not in _DIFFERENTIATION:
-        raise ValueError(
-            f"differentiation must be one of {_DIFFERENTIATION}, got {differentiation!r}."
-        )
-    _check_loss(loss)
+    _check_arguments(residual_fn, solver, termination, differentiation, loss)
     leaves, _ = manifold_leaves(x0, "x0")
     dtype = np.dtype(jnp.result_type(*(leaf_array(leaf) for leaf in leaves)))
-    defaults = _DEFAULT_TOLERANCES.get(dtype, _DEFAULT_TOLERANCES[np.dtype(np.float32)])
-    tolerances = tuple(
-        default if given is None else given
-        for given, default in zip(
-            (function_tolerance, gradient_tolerance, parameter_tolerance), defaults
-        )
-    )
     solution = _solve(
         residual_fn,
-        max_iterations,
         bool(verbose),
         differentiation,
         check_retraction(retraction),
@@ -185,23 +159,53 @@ def least_squares(
         args,
         solver,
         loss,
-        tolerances,
+        _with_default_tolerances(termination, dtype),
     )
     if throw:
         solution = _raise_on_failure(solution, x0, args, loss)
     return solution
 
 
-def _non_negative_int(value, name) -> int:
-    """`value` as a Python int (anything `operator.index` takes: int, NumPy integers), or a
-    `ValueError` naming `name`."""
+def _check_arguments(residual_fn, solver, termination, differentiation, loss):
+    """A `TypeError` or `ValueError` naming the first argument of `least_squares` that it cannot
+    take (`termination`: one whose counting or tests this loop does not run)."""
+    if not callable(residual_fn):
+        raise TypeError(f"residual_fn must be callable, got {residual_fn!r}.")
+    if not isinstance(solver, AbstractSolver):
+        raise TypeError(
+            f"solver must be a lieax.lstsq solver (e.g. LevenbergMarquardt()), got {solver!r}."
+        )
+    if not isinstance(termination, Termination):
+        raise TypeError(f"termination must be a lieax.lstsq.Termination, got {termination!r}.")
+    termination.require("least_squares", "trials")
+    if differentiation not in _DIFFERENTIATION:
+        raise ValueError(
+            f"differentiation must be one of {_DIFFERENTIATION}, got {differentiation!r}."
+        )
+    _check_loss(loss)
+
+
+def _with_default_tolerances(termination, dtype) -> Termination:
+    """`termination` with its `None` tolerances set to the dtype's default ($10^{-10}$ in
+    float64, $10^{-6}$ otherwise), kept by `(termination, dtype)` (building one takes tens of
+    microseconds, a lookup one: a loop of small solves calls this every time)."""
     try:
-        value = operator.index(value)
-    except TypeError:
-        raise ValueError(f"{name} must be a non-negative int, got {value!r}.") from None
-    if value < 0:
-        raise ValueError(f"{name} must be a non-negative int, got {value!r}.")
-    return value
+        return _RESOLVED[termination, dtype]
+    except KeyError:
+        pass
+    except TypeError:  # an array tolerance: not hashable, built every time
+        return _resolve(termination, dtype)
+    if len(_RESOLVED) >= 64:
+        _RESOLVED.clear()
+    resolved = _RESOLVED[termination, dtype] = _resolve(termination, dtype)
+    return resolved
+
+
+def _resolve(termination, dtype) -> Termination:
+    default = _DEFAULT_TOLERANCE.get(dtype, _DEFAULT_TOLERANCE[np.dtype(np.float32)])
+    names = ("function_tolerance", "gradient_tolerance", "parameter_tolerance")
+    unset = {name: default for name in names if getattr(termination, name) is None}
+    return dataclasses.replace(termination, **unset) if unset else termination
 
 
 def _check_loss(loss):
@@ -269,32 +273,20 @@ def _gain_ratio(values, trial_finite):
     return jnp.where(unmeasurable, 1.0, ratio), actual, predicted
 
 
-@jax.jit(static_argnums=(0, 1, 2, 3, 4))
-def _solve(
-    residual_fn,
-    max_iterations,
-    verbose,
-    differentiation,
-    retraction,
-    x0,
-    args,
-    solver,
-    loss,
-    tolerances,
-):
+@jax.jit(static_argnums=(0, 1, 2, 3))
+def _solve(residual_fn, verbose, differentiation, retraction, x0, args, solver, loss, termination):
     implicit = differentiation == "implicit"
     if implicit:  # the loop is not differentiated: derivatives come from with_implicit_derivatives
         x0, args_loop, loss_loop = lax.stop_gradient((x0, args, loss))
     else:
         args_loop, loss_loop = args, loss
     phases = _DensePhases(
-        residual_fn, solver, retraction, x0, args_loop, loss_loop, tolerances, max_iterations,
-        verbose,
-    )  # fmt: skip
+        residual_fn, solver, retraction, x0, args_loop, loss_loop, termination, verbose
+    )
     # implicit: a `while_loop`; unrolled: a fixed number of masked iterations, so that reverse
     # mode can go through them
     final = _iteration.run(
-        phases, phases.initial_state(x0), None if implicit else max_iterations + 1
+        phases, phases.initial_state(x0), None if implicit else termination.max_iterations + 1
     )
     sg = lax.stop_gradient
     if verbose:
@@ -320,13 +312,10 @@ class _DensePhases:
     compiled once). Decisions are not differentiated, they only select between differentiable
     values."""
 
-    def __init__(
-        self, residual_fn, solver, retraction, x0, args, loss, tolerances, max_iterations,
-        verbose,
-    ):  # fmt: skip
+    def __init__(self, residual_fn, solver, retraction, x0, args, loss, termination, verbose):
         self.residual_fn, self.solver, self.retraction = residual_fn, solver, retraction
-        self.args, self.loss, self.tolerances = args, loss, tolerances
-        self.max_iterations, self.verbose = max_iterations, verbose
+        self.args, self.loss, self.termination = args, loss, termination
+        self.max_iterations, self.verbose = termination.max_iterations, verbose
         self.n = tangent_dim(x0)
         x0_arrays = [leaf_array(leaf) for leaf in manifold_leaves(x0, "x0")[0]]
         self.dtype = jnp.result_type(*x0_arrays)
@@ -385,7 +374,9 @@ class _DensePhases:
         a cosine at the kept point, the step in the solver's scaled variables (see
         `AbstractSolver.scale`)."""
         sg, solver, n = lax.stop_gradient, self.solver, self.n
-        function_tolerance, gradient_tolerance, parameter_tolerance = self.tolerances
+        termination = self.termination
+        function_tolerance = termination.function_tolerance
+        parameter_tolerance = termination.parameter_tolerance
         first, accept = state.first, decision["accept"]
         _, cost, hessian, gradient = decision["point"]
         column_norms = jnp.sqrt(jnp.maximum(sg(jnp.diagonal(hessian)), 0.0))
@@ -400,7 +391,11 @@ class _DensePhases:
         small_step = ~first & (
             step_norm <= parameter_tolerance * (x_norm + parameter_tolerance * scale_norm)
         )
-        small_change = ~first & (jnp.abs(decision["actual"]) < function_tolerance * sg(state.cost))
+        change = jnp.abs(decision["actual"])
+        small_change = ~first & (
+            (change < function_tolerance * sg(state.cost))
+            | (change < termination.absolute_function_tolerance)
+        )
         # a rejected step that promised less than the tolerance: no measurable progress is left
         # (the cost's rounding noise, not the model, decided the rejection)
         small_promise = (
@@ -408,7 +403,7 @@ class _DensePhases:
         )
         # at x0 no step has been tried: only an exactly stationary start stops there
         small_gradient = jnp.where(
-            first, jnp.all(sg(gradient) == 0), gradient_norm <= gradient_tolerance
+            first, jnp.all(sg(gradient) == 0), gradient_norm <= termination.gradient_tolerance
         )
         trial_finite = evaluation["finite"]
         converged = (

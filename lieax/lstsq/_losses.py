@@ -20,12 +20,14 @@ positive and finite evaluates to NaN (value and weight), and a solve that uses i
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 
 
 class AbstractLoss:
     r"""A robust loss with a positive `scale` $c$; subclasses give $\rho(s)$ and $\rho'(s)$ (each
     passed through `_checked`, so that a traced scale that is not positive gives NaN)."""
 
+    scale: ArrayLike  # a positive number, or a traced array
     __slots__ = ("scale",)
 
     def __init_subclass__(cls, **kwargs):
@@ -34,7 +36,7 @@ class AbstractLoss:
             cls, lambda loss: ((loss.scale,), None), lambda _, leaves: cls._unchecked(leaves[0])
         )
 
-    def __init__(self, scale=1.0):
+    def __init__(self, scale: ArrayLike = 1.0) -> None:
         if not isinstance(scale, jax.core.Tracer):
             value = np.asarray(scale)
             if not np.issubdtype(value.dtype, np.number) or np.iscomplexobj(value):
@@ -83,13 +85,13 @@ class Huber(AbstractLoss):
     $\|r\|$. Weight $\min(1, c/\|r\|)$. Convex: it bounds the influence of outliers without
     rejecting them."""
 
-    def __call__(self, s):
+    def __call__(self, s: jax.Array) -> jax.Array:
         c2 = self.scale**2
         inside = s <= c2
         safe_s = jnp.where(inside, c2, s)
         return self._checked(jnp.where(inside, s, 2.0 * self.scale * jnp.sqrt(safe_s) - c2))
 
-    def weight(self, s):
+    def weight(self, s: jax.Array) -> jax.Array:
         inside = s <= self.scale**2
         safe_s = jnp.where(inside, self.scale**2, s)
         return self._checked(jnp.where(inside, jnp.ones_like(s), self.scale / jnp.sqrt(safe_s)))
@@ -99,11 +101,11 @@ class Cauchy(AbstractLoss):
     r"""$\rho(s) = c^2 \log(1 + s/c^2)$, weight $1 / (1 + s/c^2)$: the influence of a residual
     decays like $1/\|r\|$ (Lorentzian)."""
 
-    def __call__(self, s):
+    def __call__(self, s: jax.Array) -> jax.Array:
         c2 = self.scale**2
         return self._checked(c2 * jnp.log1p(s / c2))
 
-    def weight(self, s):
+    def weight(self, s: jax.Array) -> jax.Array:
         return self._checked(1.0 / (1.0 + s / self.scale**2))
 
 
@@ -112,13 +114,13 @@ class Tukey(AbstractLoss):
     $c^2/3$ beyond; weight $(1 - s/c^2)^2$, zero beyond $c$: outliers are rejected outright.
     Not convex: start near the answer (a block beyond $c$ everywhere pulls on nothing)."""
 
-    def __call__(self, s):
+    def __call__(self, s: jax.Array) -> jax.Array:
         c2 = self.scale**2
         u = jnp.minimum(s / c2, 1.0)
         # c²/3 (1 - (1 - u)³) without cancellation
         return self._checked(c2 * u * (1.0 - u + u**2 / 3.0))
 
-    def weight(self, s):
+    def weight(self, s: jax.Array) -> jax.Array:
         u = jnp.minimum(s / self.scale**2, 1.0)
         return self._checked((1.0 - u) ** 2)
 
@@ -127,10 +129,10 @@ class GemanMcClure(AbstractLoss):
     r"""$\rho(s) = c^2 s / (c^2 + s)$, weight $c^4 / (c^2 + s)^2$: bounded like Tukey's and
     smooth everywhere (Geman and McClure 1987; Black and Rangarajan 1996). Not convex."""
 
-    def __call__(self, s):
+    def __call__(self, s: jax.Array) -> jax.Array:
         c2 = self.scale**2
         return self._checked(c2 * s / (c2 + s))
 
-    def weight(self, s):
+    def weight(self, s: jax.Array) -> jax.Array:
         c2 = self.scale**2
         return self._checked((c2 / (c2 + s)) ** 2)

@@ -20,7 +20,7 @@ class Status(enum.IntEnum):
 
     - `CONVERGED`: a tolerance was met (step, relative cost change or gradient) after a tried
       step, or the start is exactly stationary (a zero gradient; `iterations == 0`).
-    - `MAX_ITERATIONS`: `max_iterations` iterations ran without meeting a tolerance.
+    - `MAX_ITERATIONS`: `Termination.max_iterations` iterations ran without meeting a tolerance.
     - `DIVERGED`: the cost grew without bound (Gauss-Newton) or no damping, however large, made
       the cost decrease (Levenberg-Marquardt).
     - `NONFINITE`: the residual or its Jacobian was NaN or infinite at the current point (or,

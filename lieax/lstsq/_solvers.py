@@ -120,8 +120,8 @@ class LevenbergMarquardt(AbstractSolver):
     `lieax.lstsq.least_squares(..., solver=...)` (dense) and
     `lieax.factorgraph.FactorGraph.solve(solver=...)` (block-sparse; it supports the scalings
     `"identity"`, `"clipped"` and `"jacobi"` and the damping updates `"gtsam"` and
-    `"nielsen"`, accepts a step when $\varrho >$ `min_gain_ratio` and gives up when
-    $\mu \ge$ `max_damping`, GTSAM's conventions). The presets reproduce the defaults of the
+    `"nielsen"`, and refuses the others with a `ValueError`). When they stop is the other
+    options object, `lieax.lstsq.Termination`. The presets reproduce the defaults of the
     libraries they name: `LevenbergMarquardt.gtsam()` (`FactorGraph.solve`'s and
     `lieax.graph.optimize`'s default), `LevenbergMarquardt.ceres()` and
     `LevenbergMarquardt.minpack()`; each takes keyword changes, e.g.
@@ -205,13 +205,20 @@ class LevenbergMarquardt(AbstractSolver):
     - `scaling`: `"minpack"`, `"jacobi"`, `"clipped"` or `"identity"` (static: each compiles its
       own solve).
     - `damping_update`: `"nielsen"`, `"minpack"` or `"gtsam"` (static).
+    - `inclusive_gain_ratio`: a step is kept when $\varrho \ge$ `min_gain_ratio` (True,
+      MINPACK's `ratio >= p0001`) or $\varrho >$ `min_gain_ratio` (False, GTSAM's
+      `modelFidelity > minModelFidelity`, Ceres' `relative_decrease > min_relative_decrease`)
+      (static).
+    - `inclusive_max_damping`: the solve gives up when $\mu \ge$ `max_damping` (True,
+      GTSAM's `lambda >= lambdaUpperBound`) or $\mu >$ `max_damping` (False, Ceres' trust
+      radius below `min_trust_region_radius`) (static).
 
-    | preset | scaling | damping update | `initial_damping` | `max_damping` | `min_gain_ratio` |
-    |---|---|---|---|---|---|
-    | `LevenbergMarquardt()` | `"minpack"` | `"nielsen"` | $10^{-4}$ | $10^{32}$ | $10^{-3}$ |
-    | `.gtsam()` (GTSAM 4.3) | `"identity"` | `"gtsam"`, ×10 | $10^{-5}$ | $10^{5}$ | $10^{-3}$ |
-    | `.ceres()` (Ceres 2) | `"jacobi"` | `"nielsen"` | $10^{-4}$ | $10^{32}$ | $10^{-3}$ |
-    | `.minpack()` (`lmder`) | `"minpack"` | `"minpack"` | unused | $10^{32}$ | $10^{-4}$ |
+    | preset | scaling | damping update | `initial_damping` | `max_damping` | `min_gain_ratio` | inclusive: gain ratio, max damping |
+    |---|---|---|---|---|---|---|
+    | `LevenbergMarquardt()` | `"minpack"` | `"nielsen"` | $10^{-4}$ | $10^{32}$ | $10^{-3}$ | $\ge$, $>$ |
+    | `.gtsam()` (GTSAM 4.3) | `"identity"` | `"gtsam"`, ×10 | $10^{-5}$ | $10^{5}$ | $10^{-3}$ | $>$, $\ge$ |
+    | `.ceres()` (Ceres 2) | `"jacobi"` | `"nielsen"` | $10^{-4}$ | $10^{32}$ | $10^{-3}$ | $>$, $>$ |
+    | `.minpack()` (`lmder`) | `"minpack"` | `"minpack"` | unused | $10^{32}$ | $10^{-4}$ | $\ge$, $>$ |
 
     `.gtsam()` has `min_damping=0` (GTSAM's `lambdaLowerBound`); the others $10^{-16}$ (Ceres'
     `max_trust_region_radius` $10^{16}$).
@@ -227,6 +234,8 @@ class LevenbergMarquardt(AbstractSolver):
     damping_factor: float = 10.0
     scaling: str = dataclasses.field(default="minpack", metadata={"static": True})
     damping_update: str = dataclasses.field(default="nielsen", metadata={"static": True})
+    inclusive_gain_ratio: bool = dataclasses.field(default=True, metadata={"static": True})
+    inclusive_max_damping: bool = dataclasses.field(default=False, metadata={"static": True})
 
     @classmethod
     def gtsam(cls, **changes) -> "LevenbergMarquardt":
@@ -235,7 +244,8 @@ class LevenbergMarquardt(AbstractSolver):
         exceeds $10^{-3}$ (`changes`: fields to set otherwise)."""
         preset = dict(
             scaling="identity", damping_update="gtsam", initial_damping=1e-5, damping_factor=10.0,
-            max_damping=1e5, min_damping=0.0, min_gain_ratio=1e-3,
+            max_damping=1e5, min_damping=0.0, min_gain_ratio=1e-3, inclusive_gain_ratio=False,
+            inclusive_max_damping=True,
         )  # fmt: skip
         return cls(**{**preset, **changes})
 
@@ -243,9 +253,10 @@ class LevenbergMarquardt(AbstractSolver):
     def ceres(cls, **changes) -> "LevenbergMarquardt":
         r"""Ceres 2's `Solver::Options` defaults for Levenberg-Marquardt: `jacobi_scaling`,
         Nielsen's rule from the trust radius $10^4$ ($\mu_0 = 10^{-4}$), the diagonal clipped
-        to `[1e-6, 1e32]`, `min_relative_decrease` $10^{-3}$ (`changes`: fields to set
-        otherwise)."""
-        return cls(**{"scaling": "jacobi", "damping_update": "nielsen", **changes})
+        to `[1e-6, 1e32]`, a step kept when its relative decrease exceeds
+        `min_relative_decrease` $10^{-3}$ (`changes`: fields to set otherwise)."""
+        preset = dict(scaling="jacobi", damping_update="nielsen", inclusive_gain_ratio=False)
+        return cls(**{**preset, **changes})
 
     @classmethod
     def minpack(cls, **changes) -> "LevenbergMarquardt":
@@ -310,7 +321,9 @@ class LevenbergMarquardt(AbstractSolver):
 
     def update(self, state, gain_ratio, finite, actual, cost):
         damping, factor, scale = state[:3]
-        accept = finite & trust_region.accepts(gain_ratio, self.min_gain_ratio, inclusive=True)
+        accept = finite & trust_region.accepts(
+            gain_ratio, self.min_gain_ratio, inclusive=self.inclusive_gain_ratio
+        )
         if self.damping_update == "minpack":
             step_norm, slope = state[3:]
             factor, damping = trust_region.minpack(
@@ -326,7 +339,9 @@ class LevenbergMarquardt(AbstractSolver):
         return accept, (damping, factor.astype(damping.dtype), scale)
 
     def diverged(self, state, cost, initial_cost):
-        return trust_region.damping_exhausted(state[0], self.max_damping, inclusive=False)
+        return trust_region.damping_exhausted(
+            state[0], self.max_damping, inclusive=self.inclusive_max_damping
+        )
 
     def damping(self, state):
         return state[0]

@@ -16,8 +16,10 @@ module:
 - what to report: `status`, from the loop's own stopping tests.
 
 What stays in each loop is what differs in substance: the linear algebra (dense or block-sparse),
-how a trial point is linearized, and each loop's documented stopping rules (MINPACK-style scaled
-tests for `least_squares`, GTSAM's cost-change tests for the factor graph). Everything here is a
+how a trial point is linearized, and which tests of the one `Termination` each loop runs
+(MINPACK-style scaled tests for `least_squares`, GTSAM's cost-change tests for the factor graph).
+Where the peers differ in a comparison ($\ge$ or $>$), the caller's options say which
+(`LevenbergMarquardt.inclusive_gain_ratio`, `inclusive_max_damping`). Everything here is a
 pure `jnp` function of scalars (or arrays of them, under `vmap`): it adds no kernels of its own
 to a compiled loop, the loop's XLA fusions absorb it.
 """
