@@ -13,21 +13,16 @@ import argparse
 import os
 import sys
 
-if os.environ.get("LIEAX_BENCH_PIN", "1") != "0" and hasattr(os, "sched_setaffinity"):
-    os.sched_setaffinity(0, {max(os.sched_getaffinity(0))})
-for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
-os.environ.setdefault(
-    "XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
-)
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import _environment
+
+_environment.one_core()
 
 import jax
 
 jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp
-
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _timing import (
     format_ratio,
     format_seconds,
@@ -68,7 +63,7 @@ def solvers(plan, system):
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", default=os.environ.get("LIEAX_DATA_DIR", "../shared/data"))
+    _environment.add_data_dir(parser)
     parser.add_argument("--rounds", type=int, default=15)
     parser.add_argument("--sets", default=",".join(SETS))
     args = parser.parse_args(argv)
@@ -78,7 +73,7 @@ def main(argv=None):
     print()
     rows = []
     for name in args.sets.split(","):
-        plan, system = system_of(os.path.join(args.data, "g2o", SETS[name][0]))
+        plan, system = system_of(os.path.join(args.data_dir, "g2o", SETS[name][0]))
         variants = solvers(plan, system)
         native, host = variants["native"](), variants["numpy"]()
         difference = float(jnp.max(jnp.abs(native - host)) / jnp.max(jnp.abs(host)))

@@ -31,6 +31,7 @@ from lieax.icp import _host_kdtree
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
+import _environment
 import neighbors
 from _timing import (
     format_ratio,
@@ -39,7 +40,7 @@ from _timing import (
     markdown_table,
     time_interleaved,
 )
-from icp import scan_normals
+from icp import SCAN_NORMALS, scan_normals
 
 KNOWN = _cpu_emitters.known
 COMPILE_SECONDS = {"classic": 0.0, "default": 0.0}
@@ -88,7 +89,7 @@ def with_emitters(variant, run):
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data-dir", default=os.environ.get("LIEAX_DATA_DIR", "../shared/data"))
+    _environment.add_data_dir(parser)
     parser.add_argument("--rounds", type=int, default=7)
     args = parser.parse_args()
     print(machine_description(), "\n")
@@ -98,7 +99,7 @@ def main():
     monitoring.register_event_duration_secs_listener(_count_compile)
     rows = []
     for label, (source, target, radius, _) in neighbors.load_clouds(args.data_dir).items():
-        normals = scan_normals(label, target)
+        normals = scan_normals(target, SCAN_NORMALS[label])
         for name, run in programs(source, target, normals, radius).items():
             variants = {name: with_emitters(name, run) for name in COMPILE_SECONDS}
             COMPILE_SECONDS.update(classic=0.0, default=0.0)

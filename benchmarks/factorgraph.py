@@ -35,6 +35,7 @@ import sys
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import time
 
+import _environment
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -345,7 +346,7 @@ def schur_choice(rounds):
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", default=os.environ.get("LIEAX_DATA_DIR", "../shared/data"))
+    _environment.add_data_dir(parser)
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--sets", default=",".join(pgo.SETS))
     parser.add_argument("--poses", type=int, default=10000)
@@ -362,7 +363,9 @@ def main(argv=None):
     rows = []
     for name in [s for s in args.sets.split(",") if s]:
         file, is3d = pgo.SETS[name]
-        rows.append(benchmark_set(name, os.path.join(args.data, "g2o", file), is3d, args.rounds))
+        rows.append(
+            benchmark_set(name, os.path.join(args.data_dir, "g2o", file), is3d, args.rounds)
+        )
         print(f"  {name}: done", file=sys.stderr)
     if rows:
         headers = [

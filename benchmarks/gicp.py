@@ -15,9 +15,12 @@ at its defaults, and in float64 at small_gicp's rule).
 
 Clouds:
 - the Stanford bunny at 2 mm and in full (reference: `bun.conf`'s `T_target_source`), 1 cm;
-- the LiDAR scans (scan1 to scan0, 0.25 m voxels, 1 m; no reference: the gap to small_gicp);
 - the Kinect office frame registered against a moved copy of itself, resampled (2 cm voxels of
-  an independent random half of the points) and cropped (reference: the known motion), 5 cm.
+  an independent random half of the points) and cropped (reference: the known motion), 5 cm;
+- `benchmarks/_scan_pairs.py`'s pairs of consecutive scans: the LiDAR scans (scan1 to scan0, 0.25 m
+  voxels, 1 m; no reference: the gap to small_gicp) and the Kinect frame on a 1 cm and a 3 cm grid
+  against an independently resampled, cropped, moved copy (reference: the known motion), three
+  voxels.
 
 Run `LIEAX_DATA_DIR=../shared/data python benchmarks/gicp.py` (needs the `bench` extra:
 small_gicp). `--quick` runs the 2 mm bunny only, with fewer rounds.
@@ -27,19 +30,17 @@ import argparse
 import os
 import sys
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
 import jax
 
 jax.config.update("jax_enable_x64", True)  # float64 variants; float32 ones pass float32 arrays
 
+import _environment
+import _scan_pairs
 import jax.numpy as jnp
 import numpy as np
 import small_gicp
-
-import lieax
-from lieax import SE3, icp
-
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-
 from _timing import (
     format_ratio,
     format_seconds,
@@ -47,6 +48,9 @@ from _timing import (
     markdown_table,
     time_interleaved,
 )
+
+import lieax
+from lieax import SE3, icp
 
 K = 20
 MAX_ITERATIONS = 30
@@ -58,13 +62,6 @@ MAX_ITERATIONS = 30
 def bunny(data_dir, name):
     data = np.load(os.path.join(data_dir, "clouds", "bunny_045_to_000", name))
     return data["source"], data["target"], data["T_target_source"]
-
-
-def lidar(data_dir):
-    data = np.load(os.path.join(data_dir, "clouds", "lidar_scans_0_1_2", "scans.npz"))
-    source = np.asarray(icp.voxel_downsample(jnp.asarray(data["scan1"]), 0.25))
-    target = np.asarray(icp.voxel_downsample(jnp.asarray(data["scan0"]), 0.25))
-    return source, target, None
 
 
 def kinect(data_dir, voxel=0.02):
@@ -251,20 +248,19 @@ def case(label, source, target, reference, distance, rounds):
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", default=os.environ.get("LIEAX_DATA_DIR"))
+    _environment.add_data_dir(parser)
     parser.add_argument("--rounds", type=int, default=7)
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--only", help="run the clouds whose label contains this (e.g. LiDAR)")
     args = parser.parse_args()
-    if args.data is None:
-        sys.exit("set LIEAX_DATA_DIR (or --data) to the shared data folder")
-    cases = [("bunny 2 mm", lambda: bunny(args.data, "bunny_v0.002.npz"), 0.01)]
+    cases = [("bunny 2 mm", lambda: bunny(args.data_dir, "bunny_v0.002.npz"), 0.01)]
     if not args.quick:
         cases += [
-            ("bunny full", lambda: bunny(args.data, "bunny_full.npz"), 0.01),
-            ("LiDAR 0.25 m", lambda: lidar(args.data), 1.0),
-            ("Kinect 2 cm", lambda: kinect(args.data), 0.05),
+            ("bunny full", lambda: bunny(args.data_dir, "bunny_full.npz"), 0.01),
+            ("Kinect 2 cm", lambda: kinect(args.data_dir), 0.05),
         ]
+        for label, pair in _scan_pairs.scan_pairs(args.data_dir).items():
+            cases.append((label, lambda p=pair: (p.source, p.target, p.truth), pair.distance))
     if args.only:
         cases = [c for c in cases if args.only.lower() in c[0].lower()]
     rounds = 3 if args.quick else args.rounds
@@ -275,7 +271,7 @@ def main():
         rows.append(r)
         accuracy.append(a)
         profile.append(p)
-    print(machine_description())
+    print(f"{machine_description()}; {rounds} rounds; load average {os.getloadavg()[0]:.1f}")
     print()
     print(markdown_table(
         ["cloud", "points (source/target)", "small_gicp total", "lieax total f64", "ratio",
@@ -295,6 +291,7 @@ def main():
          "small_gicp covariances + tree", "small_gicp per iteration", "lieax compile f64 (total)",
          "lieax compile f32 (gicp)", "covariances equal to small_gicp's (source / target)"], profile,
     ))  # fmt: skip
+    print(f"\nLoad average at the end: {os.getloadavg()[0]:.1f}")
 
 
 if __name__ == "__main__":

@@ -16,9 +16,13 @@ Tables:
    Gauss-Newton step) and the totals.
 3. Every kind of scan (`benchmarks/neighbors.py`'s clouds: the bunny at 2 mm and in full, 1 cm;
    outdoor LiDAR on a 0.5 m grid, 1 m; a Kinect frame on a 1 cm grid against a shifted-grid,
-   cropped, moved copy, 5 cm): Open3D against lieax with each `search` backend, float64, Open3D's
-   target normals given to both, Open3D's criteria 1e-6 / 30 and 1e-10 / 60; then the per-phase
-   profile (index build, matching, normal equations) at the converged pose.
+   cropped, moved copy, 5 cm; and `benchmarks/_scan_pairs.py`'s pairs of consecutive scans:
+   LiDAR on a 0.25 m grid, 1 m; the Kinect frame on a 1 cm and a 3 cm grid against an
+   independently resampled, cropped, moved copy, three voxels), `--only` choosing among them by
+   label: Open3D against lieax with each `search` backend (`kdtree` is the default on a CPU),
+   float64, Open3D's target normals given to both, Open3D's criteria 1e-6 / 30 and 1e-10 / 60;
+   then the per-phase profile (index build, matching, normal equations) at the converged
+   pose.
 
 Run `LIEAX_DATA_DIR=../shared/data python benchmarks/icp.py` (needs the `bench` extra: open3d,
 scipy; Open3D needs the system library libusb-1.0-0). `--quick` runs a small smoke version.
@@ -30,11 +34,10 @@ import os
 import sys
 import time
 
-# OpenMP threads wait passively (set before Open3D and pykdtree load their OpenMP runtimes): with
-# the default policy, Open3D's idle threads slowed the lieax call that follows an Open3D call in
-# this interleaved timing (LiDAR pair: 15.2 ms against 12.6 ms alone), and passive waiting leaves
-# Open3D's own time as it is alone (28.2 against 28.8 ms). `OMP_WAIT_POLICY=ACTIVE` overrides.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import _environment
+
+_environment.passive_openmp()  # before Open3D loads its OpenMP runtime
 
 import jax
 
@@ -43,13 +46,6 @@ jax.config.update("jax_enable_x64", True)  # float64 variants; float32 ones pass
 import jax.numpy as jnp
 import numpy as np
 import open3d as o3d
-from scipy.spatial import cKDTree
-
-from lieax import SE3, icp
-from lieax.icp import _coordinates, _host_kdtree, _plane_step, _search
-
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-
 from _timing import (
     format_ratio,
     format_seconds,
@@ -57,6 +53,10 @@ from _timing import (
     markdown_table,
     time_interleaved,
 )
+from scipy.spatial import cKDTree
+
+from lieax import SE3, icp
+from lieax.icp import _coordinates, _host_kdtree, _plane_step, _search
 
 MAX_DISTANCE = 0.01
 MAX_ITERATIONS = 30
@@ -283,29 +283,44 @@ SCAN_NORMALS = {"bunny 2 mm": 0.006, "bunny full": 0.006, "LiDAR": 1.5, "Kinect"
 SCAN_SEARCHES = "grid,kdtree"
 
 
-def scan_normals(label, target):
-    """Open3D's normals of the scan `label`'s target (radius `SCAN_NORMALS[label]`, 30
-    neighbours), the ones handed to both libraries."""
+def scan_clouds(data_dir, only=None):
+    """`{label: (source, target, max distance, T_target_source or None, normals radius)}`:
+    `neighbors.load_clouds`' scans and `_scan_pairs`' pairs (the labels containing `only`)."""
+    import _scan_pairs
+    import neighbors
+
+    clouds = {
+        label: (*cloud, SCAN_NORMALS[label])
+        for label, cloud in neighbors.load_clouds(data_dir).items()
+    }
+    for label, pair in _scan_pairs.scan_pairs(data_dir).items():
+        clouds[label] = (pair.source, pair.target, pair.distance, pair.truth, pair.normals_radius)
+    return {k: v for k, v in clouds.items() if only is None or only.lower() in k.lower()}
+
+
+def scan_normals(target, radius):
+    """Open3D's normals of a scan's target (`radius`, at most 30 neighbours), the ones handed to
+    both libraries."""
     cloud = open3d_cloud(target)
-    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(SCAN_NORMALS[label], 30))
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius, 30))
     return np.asarray(cloud.normals).copy()
 
 
-def scans(data_dir, rounds, criteria, searches):
-    """One registration per scan (`neighbors.load_clouds`), Open3D against lieax with each search
-    backend (float64, Open3D's target normals given to both), for each `(tolerance, cap)`."""
-    import neighbors
-
+def scans(data_dir, rounds, criteria, searches, only=None):
+    """One registration per scan (`scan_clouds`), Open3D against lieax with each search backend
+    (float64, Open3D's target normals given to both), for each `(tolerance, cap)`."""
     rows, notes, profiles = [], [], []
-    for label, (source, target, radius, truth) in neighbors.load_clouds(data_dir).items():
-        normals = scan_normals(label, target)
+    for label, (source, target, radius, truth, normals_radius) in scan_clouds(
+        data_dir, only
+    ).items():
+        normals = scan_normals(target, normals_radius)
         clouds = (source, target, normals, radius, truth)
         for tolerance, cap in criteria:
             row, row_notes = scan_row(label, clouds, tolerance, cap, rounds, searches)
             rows.append(row)
             notes += row_notes
         profiles.append([label, "kdtree", *scan_profile("kdtree", clouds, rounds)])
-    headers = ["cloud", "points (source/target)", "criteria", "Open3D"] + [
+    headers = ["cloud", "points (source/target)", "distance", "criteria", "Open3D"] + [
         f"lieax {name} (ratio)" for name in searches
     ]
     profile_headers = ["cloud", "search", "index build", "match / it.", "normal equations / it."]
@@ -340,7 +355,7 @@ def scan_row(label, clouds, tolerance, cap, rounds, searches):
     timings = time_interleaved(variants, rounds, warmup=1, min_sample_s=0)
     full = o3d_run()
     o3d_pose = np.asarray(full.transformation)
-    row = [label, f"{len(source)}/{len(target)}", f"{tolerance:g} / {cap}",
+    row = [label, f"{len(source)}/{len(target)}", f"{radius:g} m", f"{tolerance:g} / {cap}",
            format_seconds(timings["open3d"].median)]  # fmt: skip
     notes = []
     for name in searches:
@@ -393,7 +408,7 @@ def scan_profile(name, clouds, rounds):
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data-dir", default=os.environ.get("LIEAX_DATA_DIR"))
+    _environment.add_data_dir(parser)
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--sizes", default="10000,40000,160000,640000")
     parser.add_argument("--quick", action="store_true", help="2 rounds, 10k only")
@@ -402,14 +417,14 @@ def main():
         "--skip", default="",
         help="comma-separated sections to skip: single,growth,scans",
     )  # fmt: skip
+    parser.add_argument("--only", help="in the scans table, the clouds whose label contains this")
     args = parser.parse_args()
-    if args.data_dir is None:
-        sys.exit("Set LIEAX_DATA_DIR (or --data-dir) to the shared data folder.")
     if args.quick:
         args.rounds, args.sizes = 2, "10000"
     skip = set(filter(None, args.skip.split(",")))
     print(f"# ICP benchmark\n\n{machine_description()}, Open3D {o3d.__version__}, "
-          f"{os.cpu_count()} CPUs; {time.strftime('%Y-%m-%d %H:%M')}\n")  # fmt: skip
+          f"{os.cpu_count()} CPUs; {time.strftime('%Y-%m-%d %H:%M')}, load average "
+          f"{os.getloadavg()[0]:.1f}\n")  # fmt: skip
     if "single" not in skip:
         table, notes = single(args.data_dir, args.rounds)
         print("## One registration from the identity\n\n" + table + "\n")
@@ -424,10 +439,12 @@ def main():
     if "scans" not in skip:
         criteria = [(1e-6, 30)] if args.quick else [(1e-6, 30), (1e-10, 60)]
         searches = args.searches.split(",")
-        table, notes, profile = scans(args.data_dir, max(2, args.rounds // 2), criteria, searches)
+        rounds = max(2, args.rounds // 2)
+        table, notes, profile = scans(args.data_dir, rounds, criteria, searches, args.only)
         print("## Every kind of scan (float64; lieax time and ratio to Open3D)\n\n" + table + "\n")
         print("\n".join(f"- {note}" for note in notes) + "\n")
         print("### Per-phase profile at the converged pose (float64)\n\n" + profile + "\n")
+        print(f"Load average at the end: {os.getloadavg()[0]:.1f}\n")
 
 
 if __name__ == "__main__":

@@ -24,25 +24,19 @@ import argparse
 import os
 import sys
 
-# OpenMP threads wait passively (set before Open3D and pykdtree load their OpenMP runtimes): with
-# the default policy, Open3D's idle threads slowed the lieax call that follows an Open3D call in
-# this interleaved timing (LiDAR pair: 15.2 ms against 12.6 ms alone), and passive waiting leaves
-# Open3D's own time as it is alone (28.2 against 28.8 ms). `OMP_WAIT_POLICY=ACTIVE` overrides.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import _environment
+
+_environment.passive_openmp()  # before Open3D loads its OpenMP runtime
 
 import jax
 
 jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp
+import neighbors
 import numpy as np
 import open3d as o3d
-
-from lieax import SE3, icp
-
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-
-import neighbors
 from _timing import (
     format_ratio,
     format_seconds,
@@ -50,7 +44,9 @@ from _timing import (
     markdown_table,
     time_interleaved,
 )
-from icp import open3d_cloud, rotation_deg, scan_normals, timed
+from icp import SCAN_NORMALS, open3d_cloud, rotation_deg, scan_normals, timed
+
+from lieax import SE3, icp
 
 TOLERANCE, CAP = 1e-6, 30
 KEEP = 0.9  # share of each cloud kept in a "pairs" element
@@ -153,7 +149,7 @@ def run_batch(label, elements, radius, rounds):
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data-dir", default=os.environ.get("LIEAX_DATA_DIR", "../shared/data"))
+    _environment.add_data_dir(parser)
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--count", type=int, default=64)
     parser.add_argument("--clouds", default="bunny 2 mm,LiDAR,Kinect")
@@ -166,7 +162,7 @@ def main():
     rows, notes = [], []
     for label in args.clouds.split(","):
         source, target, radius, _ = clouds[label]
-        normals = scan_normals(label, target)
+        normals = scan_normals(target, SCAN_NORMALS[label])
         for kind in args.batches.split(","):
             elements = makers[kind](source, target, normals, radius, args.count)
             row, note = run_batch(f"{label}, {kind}", elements, radius, args.rounds)

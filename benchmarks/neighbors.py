@@ -43,11 +43,12 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.spatial import cKDTree
 
-from lieax import read_point_cloud
 from lieax.icp import _host_kdtree, _search
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
+import _environment
+import _scan_pairs
 from _timing import format_seconds, machine_description, markdown_table, time_interleaved
 
 LIDAR_VOXEL = 0.5
@@ -58,53 +59,19 @@ BACKENDS = ("grid", "kdtree native", "kdtree pykdtree", "kdtree scipy", "brute")
 # ---- clouds --------------------------------------------------------------------------------------
 
 
-def voxel_centroids(points, size, offset=0.0):
-    """The centroid of the points in each cell of a grid of `size`, shifted by `offset`."""
-    cells = np.floor((points - offset) / size).astype(np.int64)
-    _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
-    sums = np.zeros((counts.size, 3))
-    np.add.at(sums, inverse.reshape(-1), points)
-    return sums / counts[:, None]
-
-
-def motion(degrees, translation, seed):
-    """A 4x4 rigid motion: `degrees` about a random axis, `translation` in a random direction."""
-    rng = np.random.default_rng(seed)
-    axis = rng.normal(size=3)
-    axis /= np.linalg.norm(axis)
-    angle = np.deg2rad(degrees)
-    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    rotation = np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
-    direction = rng.normal(size=3)
-    out = np.eye(4)
-    out[:3, :3], out[:3, 3] = rotation, translation * direction / np.linalg.norm(direction)
-    return out
-
-
 def load_clouds(data_dir):
     """`{label: (source, target, radius, T_target_source or None)}` (float64 numpy)."""
     clouds = {}
     for name, label in (("bunny_v0.002.npz", "bunny 2 mm"), ("bunny_full.npz", "bunny full")):
         data = np.load(os.path.join(data_dir, "clouds", "bunny_045_to_000", name))
         clouds[label] = (data["source"], data["target"], 0.01, data["T_target_source"])
-    scans = np.load(os.path.join(data_dir, "clouds", "lidar_scans_0_1_2", "scans.npz"))
-    clouds["LiDAR"] = (
-        voxel_centroids(scans["scan1"], LIDAR_VOXEL),
-        voxel_centroids(scans["scan0"], LIDAR_VOXEL),
-        1.0,
-        None,
-    )
-    office = read_point_cloud(os.path.join(data_dir, "clouds", "office_kinect", "office1.pcd"))
-    points = np.asarray(office.points)
-    points = points[np.all(np.isfinite(points), axis=1)]
-    target = voxel_centroids(points, KINECT_VOXEL)
-    resampled = voxel_centroids(points, KINECT_VOXEL, offset=KINECT_VOXEL / 2)
-    x_cut = np.quantile(resampled[:, 0], 0.2)  # crop a fifth of the view
-    resampled = resampled[resampled[:, 0] > x_cut]
-    T_target_source = motion(3.0, 0.05, seed=5)
-    rotation, translation = T_target_source[:3, :3], T_target_source[:3, 3]
-    source = (resampled - translation) @ rotation  # source frame: T_target_source maps it back
-    clouds["Kinect"] = (source, target, 0.05, T_target_source)
+    lidar = _scan_pairs.lidar_pair(data_dir, voxel=LIDAR_VOXEL, distance=1.0)
+    clouds["LiDAR"] = (lidar.source, lidar.target, lidar.distance, None)
+    kinect = _scan_pairs.kinect_pair(
+        _scan_pairs.kinect_points(data_dir), KINECT_VOXEL, 0.05, keep=1.0, crop=0.2, degrees=3.0,
+        translation=0.05, seed=5,
+    )  # fmt: skip
+    clouds["Kinect"] = (kinect.source, kinect.target, kinect.distance, kinect.truth)
     return clouds
 
 
@@ -340,14 +307,12 @@ def host_tree_table(clouds, repeats):
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data-dir", default=os.environ.get("LIEAX_DATA_DIR"))
+    _environment.add_data_dir(parser)
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--dtype", default="float32", choices=["float32", "float64"])
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--libraries", action="store_true", help="only the host trees' table")
     args = parser.parse_args()
-    if args.data_dir is None:
-        sys.exit("Set LIEAX_DATA_DIR (or --data-dir) to the shared data folder.")
     rounds, skip_brute_above = (2, 10_000) if args.quick else (args.rounds, 10**9)
     clouds = load_clouds(args.data_dir)
     if args.libraries:

@@ -27,15 +27,10 @@ import argparse
 import os
 import sys
 
-if os.environ.get("LIEAX_BENCH_PIN", "1") != "0" and hasattr(os, "sched_setaffinity"):
-    os.sched_setaffinity(0, {max(os.sched_getaffinity(0))})
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import _environment
 
-_THREADS = "1"
-for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, _THREADS)
-os.environ.setdefault(
-    "XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
-)
+_environment.one_core()
 
 import time
 
@@ -45,8 +40,6 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp
 import numpy as np
-
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _timing import (
     format_ratio,
     format_seconds,
@@ -186,7 +179,7 @@ def growth(path, is3d, sizes, rounds):
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", default=os.environ.get("LIEAX_DATA_DIR", "../shared/data"))
+    _environment.add_data_dir(parser)
     parser.add_argument("--rounds", type=int, default=7)
     parser.add_argument("--sets", default=",".join(SETS))
     parser.add_argument(
@@ -199,7 +192,7 @@ def main(argv=None):
         import gtsam  # noqa: F401
     except ImportError:
         sys.exit("benchmarks/pgo.py needs GTSAM: pip install 'lieax[bench]'")
-    folder = os.path.join(args.data, "g2o")
+    folder = os.path.join(args.data_dir, "g2o")
     cores = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else "all"
     print(
         machine_description()

@@ -6,18 +6,22 @@ This benchmark times each workflow twice, (a) as the machine is and (b) with a b
 starts itself: one busy Python process per core (spinning, each bounded to `--load-seconds` and
 stopped by the benchmark when the phase ends, on an exception and on Ctrl-C). lieax and its peer
 run interleaved in one process, each with its default settings (no pinning, no thread variables:
-unlike `pgo.py`, `ba.py` and `imu.py`, whose builders this reuses, and which pin themselves to one
-core when run as scripts); a sample is one warm call, the medians over `--rounds` are compared,
-and lieax's first call (compilation) is reported separately.
+unlike `pgo.py`, `ba.py`, `imu.py` and `icp.py`, whose builders this reuses, and which set their
+processes up as scripts, `benchmarks/_environment.py`); lieax as installed, with its native library
+(k-d tree, Cholesky) where it is built; the header names every variable set that would change a
+library's threads or paths (`SETTINGS`). A sample is one warm call, the medians over `--rounds`
+are compared, and lieax's first call (compilation) is reported separately.
 
 Workflows (the peer in brackets):
 - pose graphs, `pgo.py`'s g2o sets, `lieax.graph.optimize` [GTSAM's LM];
 - bundle adjustment at Ladybug-49 size (`lieax.ba.SYNTHETIC_PRESETS`), 20 iterations at most,
   `ba.lieax_solver` [Ceres' SPARSE_SCHUR with COLMAP's C++ cost, `ba.run_ceres_colmap`];
-- point-to-plane ICP on the LiDAR and Kinect pairs of `neighbors.load_clouds` (Open3D's target
-  normals for both, the host tree rebuilt in every call as Open3D's) [Open3D's `registration_icp`];
-- GICP on `gicp.py`'s LiDAR and Kinect pairs, each library's total (covariances, tree, registration)
-  [small_gicp's `align`];
+- point-to-plane ICP on the LiDAR and Kinect pairs of `neighbors.load_clouds` and the pairs of
+  consecutive scans of `_scan_pairs.py` (LiDAR 0.25 m, Kinect 1 cm and 3 cm), Open3D's target
+  normals for both, `icp.py`'s distances and normals, criteria 1e-6 / 30, the tree built in every
+  call as Open3D's [Open3D's `registration_icp`];
+- GICP on `gicp.py`'s Kinect 2 cm pair and `_scan_pairs.py`'s pairs, each library's total
+  (covariances, tree, registration) [small_gicp's `align`];
 - the IMU smoother of `examples/inertial_navigation.py` (`imu.py`'s problem) [GTSAM's LM].
 
     LIEAX_DATA_DIR=../shared/data python benchmarks/under_load.py [--quick] [--only pgo,ba,icp,
@@ -26,16 +30,16 @@ Workflows (the peer in brackets):
 `--quick`: two pose-graph sets, 201 IMU keyframes, 3 rounds. Needs the `bench` extra.
 """
 
+import argparse
+import contextlib
 import os
+import statistics
+import subprocess
 import sys
+import time
 
-# The peers' thread pools read their settings when their libraries load: load them all here, with
-# the user's environment, before the reused benchmark modules (which set one-thread variables and
-# pin themselves as scripts) are imported; then restore the environment.
-_ENVIRONMENT = dict(os.environ)
-
-import numpy as np  # noqa: F401  (NumPy's and SciPy's OpenBLAS pools at their defaults)
-import scipy.linalg  # noqa: F401
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import _environment
 
 try:
     import gtsam  # noqa: F401
@@ -46,28 +50,20 @@ try:
 except ImportError as error:
     sys.exit(f"benchmarks/under_load.py needs the bench extra: {error}")
 
-import jax
-
-os.environ["LIEAX_BENCH_PIN"] = "0"
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import ba
-import gicp
-import icp as icp_bench
-import imu as imu_bench
-import neighbors
-import pgo
-
-os.environ.clear()
-os.environ.update(_ENVIRONMENT)
-
-import argparse
-import contextlib
-import statistics
-import subprocess
-import time
+# The other benchmarks' builders, imported as libraries: their own process settings (one pinned
+# core, passive OpenMP) are skipped, so every library here runs with its defaults.
+with _environment.library_defaults():
+    import ba
+    import gicp
+    import icp as icp_bench
+    import imu as imu_bench
+    import pgo
 
 import _results
+import _scan_pairs
+import jax
 import jax.numpy as jnp
+import numpy as np
 from _timing import format_seconds, machine_description, markdown_table
 
 from lieax import graph as lg
@@ -75,7 +71,14 @@ from lieax import icp
 from lieax.icp import _host_kdtree
 from lieax.lstsq import Termination
 
+# Variables that change a library's threads or code paths: the header names those set.
+SETTINGS = (
+    "LIEAX_NATIVE", "OMP_NUM_THREADS", "OMP_WAIT_POLICY", "OPENBLAS_NUM_THREADS",
+    "MKL_NUM_THREADS", "XLA_FLAGS", "TBB_NUM_THREADS",
+)  # fmt: skip
+
 WORKFLOWS = ("pgo", "ba", "icp", "gicp", "imu")
+ICP_SCANS = ("LiDAR", "Kinect", "LiDAR 0.25 m", "Kinect 1 cm", "Kinect 3 cm")
 PGO_SETS = ("smallGrid3D", "intel", "M3500", "parking-garage", "sphere2500")
 PGO_QUICK = ("smallGrid3D", "sphere2500")
 _SPIN = "import time\nend = time.monotonic() + {seconds}\nwhile time.monotonic() < end:\n    pass\n"
@@ -154,11 +157,11 @@ def bundle_adjustment(data_dir, quick):
 
 
 def point_to_plane(data_dir, quick):
-    clouds = neighbors.load_clouds(data_dir)
+    clouds = icp_bench.scan_clouds(data_dir)
     o3d = icp_bench.o3d.pipelines.registration
-    for label in ("LiDAR", "Kinect"):
-        source, target, radius, _ = clouds[label]
-        normals = icp_bench.scan_normals(label, target)
+    for label in ICP_SCANS:
+        source, target, radius, _, normals_radius = clouds[label]
+        normals = icp_bench.scan_normals(target, normals_radius)
         source_cloud = icp_bench.open3d_cloud(source)
         target_cloud = icp_bench.open3d_cloud(target, normals)
         estimation = o3d.TransformationEstimationPointToPlane()
@@ -178,11 +181,15 @@ def point_to_plane(data_dir, quick):
 
 
 def generalized_icp(data_dir, quick):
-    for label, (source, target, _) in (
-        ("LiDAR", gicp.lidar(data_dir)),
-        ("Kinect", gicp.kinect(data_dir)),
-    ):
-        distance = 1.0 if label == "LiDAR" else 0.05
+    pairs = [
+        (pair.label, pair.source, pair.target, pair.distance)
+        for pair in _scan_pairs.scan_pairs(data_dir).values()
+    ]
+    kinect_source, kinect_target, _ = gicp.kinect(data_dir)
+    for label, source, target, distance in [
+        ("Kinect 2 cm", kinect_source, kinect_target, 0.05),
+        *pairs,
+    ]:
         run = gicp.lieax_total(source, target, distance, jnp.float64)
         yield (
             f"GICP {label} {len(source)}/{len(target)}",
@@ -269,9 +276,15 @@ HEADERS = [
 ]  # fmt: skip
 
 
+def settings():
+    """The `SETTINGS` variables set in this process's environment, or that none is."""
+    found = [f"{name}={os.environ[name]!r}" for name in SETTINGS if name in os.environ]
+    return "set: " + ", ".join(found) if found else "no thread or path variable set"
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data-dir", default=os.environ.get("LIEAX_DATA_DIR", "../shared/data"))
+    _environment.add_data_dir(parser)
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--only", default=",".join(WORKFLOWS), help="comma-separated workflows")
     parser.add_argument("--rounds", type=int, default=None, help="default 5 (3 with --quick)")
@@ -287,7 +300,7 @@ def main(argv=None):
     print(f"# lieax and its peers, idle and under load\n\n{machine_description()}, "
           f"{os.cpu_count()} CPUs, load {os.getloadavg()[0]:.1f} at the start; background load: "
           f"{os.cpu_count()} spinning processes; {rounds} rounds; "
-          f"{time.strftime('%Y-%m-%d %H:%M')}\n", flush=True)  # fmt: skip
+          f"{time.strftime('%Y-%m-%d %H:%M')}; {settings()}\n", flush=True)  # fmt: skip
     records = []
     for workflow in only:
         for label, ours, peer, theirs in BUILDERS[workflow](args.data_dir, args.quick):
@@ -301,7 +314,8 @@ def main(argv=None):
         )
         notes = (
             f"Background load: {os.cpu_count()} spinning processes, started and stopped by the "
-            "benchmark; lieax and its peer interleaved in one process, default settings on both."
+            "benchmark; lieax and its peer interleaved in one process, default settings on both "
+            f"({settings()})."
         )
         tables = [{"title": title, "columns": HEADERS, "rows": [row(r) for r in records]}]
         _results.write(args.json, "under_load", tables, notes=notes, raw=records)
