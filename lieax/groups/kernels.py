@@ -1,5 +1,6 @@
 r"""The groups' array kernels that lieax's domain packages (`imu`, `graph`, `cameras`, `icp`,
-`retractions`, `conventions`) build on, and `element` and `carrier`, which wrap a kernel's output and unwrap its input.
+`retractions`, `conventions`) build on, and `element` and `carrier`, which wrap a kernel's output
+and unwrap its input.
 
 A kernel is a function of parameter arrays and tangents with a closed-form `jax.custom_jvp` rule
 (the group modules' docstrings give the formulas and their sources); composing kernels keeps every
