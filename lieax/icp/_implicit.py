@@ -148,7 +148,9 @@ def _tangents(params, rmse, data, fixed, data_dot, *, kind, static_loss):
     undefined = jnp.where(status == Status.CONVERGED, 1.0, jnp.nan).astype(params.dtype)
     data_dot = jax.tree.map(lambda x: x * undefined.astype(x.dtype), data_dot)
     zero = jnp.zeros((6,), params.dtype)
-    delta_dot = stationary_tangent(gradient, 6, params.dtype, data, data_dot) * undefined
+    hessian = jax.jacfwd(gradient)(zero, data)
+    _, mixed = jax.jvp(lambda d: gradient(zero, d), (data,), (data_dot,))
+    delta_dot = stationary_tangent(hessian, mixed) * undefined
 
     def mean_squared(delta, data):
         gap = gaps(delta, data)

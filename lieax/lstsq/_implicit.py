@@ -16,9 +16,10 @@ cost's derivative, for both doors of lieax's Levenberg-Marquardt: `least_squares
 `with_implicit_derivatives`) and `FactorGraph.solve` (`lieax.factorgraph._implicit`, whose fixed
 instances do not move); `local_to_tangents` turns the right-local $\dot\delta$ into JAX tangents
 of the solution's leaves (each group leaf's by `leaf_tangent_from_local`). The cost moves by
-$\partial f / \partial \theta\,\dot\theta$ (its derivative through $x^*$ vanishes with $g$). No iteration is unrolled: the rule costs one Hessian ($n$ forward passes over one
-reverse pass of the residual) and one $n \times n$ Cholesky solve, and it is linear in
-$\dot\theta$, so JAX transposes it for `jax.grad`.
+$\partial f / \partial \theta\,\dot\theta$ (its derivative through $x^*$ vanishes with $g$).
+No iteration is unrolled: the rule costs one Hessian ($n$ forward passes over one reverse pass
+of the residual) and one $n \times n$ Cholesky solve, and it is linear in $\dot\theta$, so JAX
+transposes it for `jax.grad`.
 """
 
 import functools
@@ -41,30 +42,33 @@ from ._problem import cost
 
 def minimizer_tangents(objective, n, dtype, theta, theta_dot, free=None):
     r"""`(delta_dot, cost_dot)`: the implicit derivative $\dot\delta$ of the minimizer of
-    `objective(delta, theta)` at $\delta = 0$ (`stationary_tangent` of its gradient), and the
-    cost's $\partial_\theta f\,\dot\theta$ (its derivative through the minimizer vanishes with
-    $g$), for `n` tangent coordinates of `dtype`."""
+    `objective(delta, theta)` at $\delta = 0$ (`stationary_tangent` of its Hessian
+    $H = \nabla^2_\delta f$, `n` forward passes over one reverse pass, and of
+    $\partial_\theta g\,\dot\theta$) and the cost's $\partial_\theta f\,\dot\theta$ (its
+    derivative through the minimizer vanishes with $g$), for `n` tangent coordinates of `dtype`;
+    one forward pass gives both $\partial_\theta$ terms."""
     zero = jnp.zeros((n,), dtype=dtype)
-    delta_dot = stationary_tangent(jax.grad(objective), n, dtype, theta, theta_dot, free)
-    _, cost_dot = jax.jvp(lambda th: objective(zero, th), (theta,), (theta_dot,))
-    return delta_dot, cost_dot
+    hessian = jax.jacfwd(jax.grad(objective))(zero, theta)
+    _, (cost_dot, mixed) = jax.jvp(
+        lambda th: jax.value_and_grad(objective)(zero, th), (theta,), (theta_dot,)
+    )
+    return stationary_tangent(hessian, mixed, free), cost_dot
 
 
-def stationary_tangent(gradient, n, dtype, theta, theta_dot, free=None):
-    r"""$\dot\delta = -H^{-1}\,\partial_\theta g\,\dot\theta$ for the zero at $\delta = 0$ of
-    `gradient(delta, theta)` ($g$, `n` tangent coordinates of `dtype`), $H = \partial_\delta g$
-    (`n` forward passes of $g$). `free` (a boolean mask of the coordinates, or `None`) holds the
-    others still: their rows and columns of $H$ become the identity's and their $\dot\delta$ is
-    zero. $H$ is symmetrized and solved by `cholesky_with_fallback` (the factorization of the
-    dense loop's `solve_spd`, whose regularized fallback gives a singular direction, such as a
-    free gauge, no motion, and an indefinite $H$ NaN; `solve_factored` is linear in the right
-    side, so JAX transposes it). Used by `least_squares`, `FactorGraph.solve` and ICP."""
-    zero = jnp.zeros((n,), dtype=dtype)
-    hessian = jax.jacfwd(gradient)(zero, theta)
+def stationary_tangent(hessian, mixed, free=None):
+    r"""$\dot\delta = -H^{-1}\,\partial_\theta g\,\dot\theta$ for the zero at $\delta = 0$ of a
+    gradient $g(\delta, \theta)$, from `hessian` $H = \partial_\delta g$ (`(n, n)`) and `mixed`
+    $\partial_\theta g\,\dot\theta$ (`(n,)`). `free` (a boolean mask of the coordinates, or
+    `None`) holds the others still: their rows and columns of $H$ become the identity's and their
+    $\dot\delta$ is zero. $H$ is symmetrized and solved by `cholesky_with_fallback` (the
+    factorization of the dense loop's `solve_spd`, whose regularized fallback gives a singular
+    direction, such as a free gauge, no motion, and an indefinite $H$ NaN; `solve_factored` is
+    linear in the right side, so JAX transposes it). Used by `least_squares`,
+    `FactorGraph.solve` (through `minimizer_tangents`) and ICP."""
     hessian = 0.5 * (hessian + hessian.T)
-    _, mixed = jax.jvp(lambda th: gradient(zero, th), (theta,), (theta_dot,))
     if free is not None:
-        hessian = jnp.where(free[:, None] & free[None, :], hessian, jnp.eye(n, dtype=dtype))
+        n = hessian.shape[-1]
+        hessian = jnp.where(free[:, None] & free[None, :], hessian, jnp.eye(n, dtype=hessian.dtype))
         mixed = jnp.where(free, mixed, 0.0)
     return -solve_factored(cholesky_with_fallback(hessian), mixed)
 
