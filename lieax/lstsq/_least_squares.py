@@ -16,6 +16,7 @@ state while the others run on (the batching rule of `while_loop`).
 """
 
 import dataclasses
+import functools
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -57,7 +58,6 @@ _DEFAULT_TOLERANCE = {np.dtype(np.float64): 1e-10, np.dtype(np.float32): 1e-6}
 _DIFFERENTIATION = ("implicit", "unrolled")
 _LEVENBERG_MARQUARDT = LevenbergMarquardt()  # the default solver (immutable, so shared)
 _TERMINATION = Termination()  # the default stopping rules (immutable, so shared)
-_RESOLVED = {}  # (termination, dtype) -> termination with the dtype's default tolerances
 
 
 def least_squares(
@@ -192,15 +192,9 @@ def _with_default_tolerances(termination, dtype) -> Termination:
     float64, $10^{-6}$ otherwise), kept by `(termination, dtype)` (building one takes tens of
     microseconds, a lookup one: a loop of small solves calls this every time)."""
     try:
-        return _RESOLVED[termination, dtype]
-    except KeyError:
-        pass
+        return _cached_resolve(termination, dtype)
     except TypeError:  # an array tolerance: not hashable, built every time
         return _resolve(termination, dtype)
-    if len(_RESOLVED) >= 64:
-        _RESOLVED.clear()
-    resolved = _RESOLVED[termination, dtype] = _resolve(termination, dtype)
-    return resolved
 
 
 def _resolve(termination, dtype) -> Termination:
@@ -208,6 +202,9 @@ def _resolve(termination, dtype) -> Termination:
     names = ("function_tolerance", "gradient_tolerance", "parameter_tolerance")
     unset = {name: default for name in names if getattr(termination, name) is None}
     return dataclasses.replace(termination, **unset) if unset else termination
+
+
+_cached_resolve = functools.lru_cache(maxsize=64)(_resolve)
 
 
 def _check_loss(loss):
