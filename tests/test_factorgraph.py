@@ -533,6 +533,8 @@ def test_auto_elimination_eliminates_points_seen_by_few_cameras():
 def test_auto_elimination_keeps_landmarks_seen_by_most_poses():
     graph, landmarks = landmark_slam()
     assert graph._eliminated("auto", "auto") is None
+    # decided by `_elimination.reduction_bound`, without building the reduced pattern
+    assert ("reduced", graph.index(landmarks)) not in graph._schur
     with pytest.warns(
         UserWarning,
         match=r"eliminating 'landmarks'.* cost more .* ms modelled .* against .* ms modelled",
@@ -572,6 +574,29 @@ def test_auto_elimination_choice_follows_the_cost_model():
     assert ("cost", None, "auto") not in bundle._schur and ("reduced", 0) not in bundle._schur
     eliminated, whole = bundle._elimination_cost(1, "auto"), bundle._elimination_cost(None, "auto")
     assert eliminated.total < whole.total
+
+
+@pytest.mark.parametrize("seen", [0.15, 0.4, 0.9])
+def test_reduction_bound_is_below_the_modelled_cost(seen):
+    """`_elimination.reduction_bound` (the largest clique's share of the model) never exceeds the
+    modelled cost of the sparse factorization of the reduced system it bounds, on landmark graphs
+    from sparse to dense sightings and on a bundle."""
+    from lieax.factorgraph._elimination import candidates, factorization_cost, reduction_bound
+    from lieax.factorgraph._structure import reduced_layout
+
+    graphs = [landmark_slam(60, 8, seen=seen, seed=1)[0], few_camera_bundle()[0]]
+    for graph in graphs:
+        for e in candidates(graph.layout):
+            reduced = reduced_layout(graph.layout, e, graph._names())
+            modelled = factorization_cost(reduced, "cholesky").factorization
+            bound = reduction_bound(graph.layout, e)
+            assert 0.0 < bound <= modelled
+    # the bound is the whole cost where the reduced system is one clique: 5 poses all seeing
+    # one landmark, the only links of the reduced system
+    graph = landmark_slam(5, 1, seen=1.0, seed=0)[0]
+    reduced = reduced_layout(graph.layout, 1, graph._names())
+    modelled = factorization_cost(reduced, "cholesky").factorization
+    np.testing.assert_allclose(reduction_bound(graph.layout, 1), modelled, rtol=1e-12)
 
 
 def test_marquardt_damping_with_nielsens_rule():

@@ -86,9 +86,8 @@ def factorization_cost(layout, method):
     blocks = int(layout.offsets[-1])
     pairs = layout.pattern.num_pairs
     if method == "dense":
-        flops = n**3 / 3
         fill = blocks * (blocks + 1) // 2
-        return SolveCost(0.0, flops * _DENSE_FLOP_SECONDS, method, flops, pairs, fill)
+        return SolveCost(0.0, dense_cost(n), method, n**3 / 3, pairs, fill)
     if layout.sparse_cost is None:
         d, pattern = layout.block_size, layout.pattern
         order = minimum_degree_order(blocks, pattern.rows, pattern.cols)
@@ -104,6 +103,11 @@ def factorization_cost(layout, method):
     return SolveCost(0.0, seconds, method, flops, pairs, fill)
 
 
+def dense_cost(n):
+    """The modelled seconds of the dense Cholesky of `n` padded unknowns: $n^3/3$ multiply-adds."""
+    return n**3 / 3 * _DENSE_FLOP_SECONDS
+
+
 def factorization_bound(layout):
     """A lower bound of the modelled seconds of `layout`'s sparse factorization, from its
     pattern alone: every off-diagonal block of $H$ is one of $L$, so the $c_j$ sum to at least
@@ -113,6 +117,28 @@ def factorization_bound(layout):
     c = layout.pattern.num_pairs / max(n, 1)
     flops = n * float(_front_work(1, c)) * d**3
     return flops * _FLOP_SECONDS + n * ((1 + c) * d) ** 2 * _ENTRY_SECONDS
+
+
+def reduction_bound(layout, e):
+    r"""A lower bound of the modelled seconds of the sparse factorization of the system reduced
+    by eliminating kind `e`, from the links alone (without the reduced pattern, which is as
+    large as its fill: every pair of poses that see a common landmark). The instances linked to
+    one eliminated instance are pairwise linked in $S$, a clique of $c$ blocks; in any
+    elimination order the $j$-th of them to go still has the $c - 1 - j$ later ones in its
+    column of $L$, so $c_j \ge c - 1 - j$ there, and $c_j \ge 0$ in the other columns. The
+    model's terms (`factorization_cost`) grow with $c_j$, so the largest clique's
+    $\sum_{m < c}$ of them, and the other columns' terms at $c_j = 0$, bound it from below."""
+    kept = [k for k in range(len(layout.dims)) if k != e]
+    d = max(layout.dims[k] for k in kept)
+    n = int(sum(layout.counts[k] for k in kept))
+    links = np.zeros(layout.counts[e], np.int64)  # distinct instances linked to each of e's
+    for (a, b), (rows, cols) in layout.pairs.items():
+        if e in (a, b) and a != b:
+            links += np.bincount(cols if b == e else rows, minlength=layout.counts[e])
+    c = np.arange(int(links.max(initial=0)), dtype=np.float64)
+    flops = (float(np.sum(_front_work(1, c))) + (n - len(c)) * _front_work(1, 0)) * d**3
+    entries = float(np.sum(((1 + c) * d) ** 2)) + (n - len(c)) * d**2
+    return flops * _FLOP_SECONDS + entries * _ENTRY_SECONDS
 
 
 def formation_flops(layout, e):

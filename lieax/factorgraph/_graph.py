@@ -33,10 +33,12 @@ from ..retractions import Retraction, exp
 from ._dense_solve import dense_threads
 from ._elimination import (
     candidates,
+    dense_cost,
     elimination_cost,
     factorization_bound,
     factorization_cost,
     formation_seconds,
+    reduction_bound,
 )
 from ._factors import Factor, linearize_one, residual_one, variables_dtype
 from ._implicit import solve_implicit
@@ -493,12 +495,25 @@ class FactorGraph:
         formation = {k: formation_seconds(self.layout, k) for k in candidates(self.layout)}
         best, least = None, np.inf
         for k in sorted(formation, key=formation.get):
-            if formation[k] >= least or (formation[k] >= bound and formation[k] >= whole()):
+            lower = formation[k] + self._reduction_bound(k, solver)
+            if lower >= least or (lower >= bound and lower >= whole()):
                 continue
             cost = self._elimination_cost(k, solver).total
             if cost < least:
                 best, least = k, cost
         return best if best is not None and (least < bound or least < whole()) else None
+
+    def _reduction_bound(self, e, solver):
+        """A lower bound of the modelled cost of factoring the system reduced by eliminating kind
+        `e` with `solver`: the sparse factor's (`_elimination.reduction_bound`), or the dense
+        one's (exact, from the size alone) where `solver` may pick it (`_auto_method`)."""
+        d = max(dim for k, dim in enumerate(self.layout.dims) if k != e)
+        n = d * sum(count for k, count in enumerate(self.layout.counts) if k != e)
+        dense = dense_cost(n)
+        if solver == "dense":
+            return dense
+        sparse = reduction_bound(self.layout, e)
+        return sparse if solver == "cholesky" or n > _DENSE_FILLED_LIMIT else min(dense, sparse)
 
     def _whole_bound(self, solver):
         """A lower bound of the modelled cost of a solve by `solver` without elimination: the
