@@ -357,9 +357,44 @@ def test_bundle_gradient_matches_finite_differences(bundle):
 # ---- marginals --------------------------------------------------------------------------------
 
 
+_COMPILED = []
+jax.monitoring.register_event_duration_secs_listener(
+    lambda event, _, **kw: (
+        _COMPILED.append(kw.get("fun_name"))
+        if event == "/jax/core/compile/backend_compile_duration"
+        else None
+    )
+)
+
+
 def test_marginals_match_dense_inverse(landmarks):
+    """Marginals are blocks of the inverse of the system `linearize` gives at the values, at a
+    solution and away from one (the start); they run the solve's own compiled loop, stopped
+    after its first evaluation: no program of their own."""
     graph, poses, marks, *_ = landmarks
     result = graph.solve()
+    compiled = len(_COMPILED)
+    marginal_covariances(graph, result.values, poses, [0])
+    assert _COMPILED[compiled:] == []
+    # the loop's system at the values it returns, not at the previous iterate
+    _, diag, off, grad = graph.linearize(result.values)
+    loop = next(iter(graph._prepared.values()))[0]
+    params = graph._parameters(lstsq.LevenbergMarquardt.gtsam(), Termination.gtsam(), 1e-8,
+                               np.float64)  # fmt: skip
+    system = loop(graph.initial_values, graph.data, params)[2]
+    for ours, theirs in zip(jax.tree.leaves(system), jax.tree.leaves((diag, off, grad))):
+        np.testing.assert_allclose(ours, theirs, rtol=1e-9, atol=1e-9)
+    start = graph.initial_values
+    _, diag, off, grad = graph.linearize(start)
+    dense = np.asarray(
+        dense_matrix(graph.layout.pattern, *to_padded(graph.layout, diag, off, grad)[:2])
+    )
+    block = slice(0, graph.layout.dims[0])
+    np.testing.assert_allclose(
+        marginal_covariances(graph, start, poses, [0])[0],
+        np.linalg.inv(dense)[block, block],
+        rtol=1e-9,
+    )
     _, diag, off, grad = graph.linearize(result.values)
     layout = graph.layout
     dense = np.asarray(dense_matrix(layout.pattern, *to_padded(layout, diag, off, grad)[:2]))

@@ -215,6 +215,24 @@ class FactorGraph:
         values = self.initial_values if values is None else tuple(values)
         return self._linearize(values, self._data(data))
 
+    def _linearized_system(self, values, data):
+        """The undamped normal equations `(diag, off, grad)` per kind of `layout` at `values`
+        (fixed instances masked), from the graph's latest compiled solve loop (the default one
+        when `solve` has not run) stopped after its first evaluation (`max_iterations` 0): the
+        program that solved the graph serves its marginals, with no compilation of their own."""
+        if self._prepared:
+            loop = next(reversed(self._prepared.values()))[0]
+        else:
+            loop = self._loop(
+                GTSAM, "auto", "auto", GTSAM_TERMINATION.max_iterations, None, False, None
+            )[0]
+        leaves = self._checked_leaves(values)
+        params = self._parameters(
+            GTSAM, GTSAM_TERMINATION, 1e-8, np.result_type(*(x.dtype for x in leaves))
+        ).copy()
+        params[PARAMETERS.index("max_iterations")] = 0
+        return loop(values, data, params)[2]
+
     def _check_x64(self):
         """`ValueError` when JAX's 64-bit mode changed since the graph was built: its arrays
         (values, data, and the structure's index arrays, whose conversions JAX keeps) have the
@@ -332,7 +350,7 @@ class FactorGraph:
         else:  # one dispatch, one transfer of the scalars: they come back as NumPy values
             threads = dense_threads(layout.pattern) if method == "dense" else None
             with lapack_limited(threads):  # waits for the program (`np.asarray`) inside
-                solution, summary = loop(values, data, params)
+                solution, summary, _ = loop(values, data, params)
                 summary = np.asarray(summary)
             result = _result(solution, summary)
         if throw:

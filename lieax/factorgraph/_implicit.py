@@ -26,17 +26,17 @@ MAX_UNKNOWNS = 2000
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1))
 def solve_implicit(graph, loop, values, data, params):
-    """`loop(values, data, params)` (the compiled solve: `(solution, summary)`), differentiated
+    """`(solution, summary)` of `loop(values, data, params)` (the compiled solve), differentiated
     implicitly with respect to `data`: the solution does not depend on the start `values`, and
     of the summary only the cost (its first entry) has a derivative. The loop runs on primal
     values only, so differentiating reuses its compiled program."""
-    return loop(values, data, params)
+    return loop(values, data, params)[:2]
 
 
 @solve_implicit.defjvp
 def _jvp(graph, loop, primals, tangents):
     start, data, params = primals
-    values, summary = loop(start, data, params)
+    values, summary, _ = loop(start, data, params)
     tangent = graph._implicit
     if tangent is None:
         tangent = graph._implicit = jax.jit(functools.partial(_tangents, graph))

@@ -13,12 +13,9 @@ from collections.abc import Sequence
 import numpy as np
 from jax.typing import ArrayLike
 
-from .. import _cpu_emitters as cpu_emitters
 from .._typing import PyTree
-from ._assembly import linearize
 from ._block_pattern import dense_matrix
 from ._graph import FactorGraph
-from ._linear import to_padded
 from ._variables import Var
 
 _DENSE_LIMIT = 2000
@@ -45,6 +42,9 @@ def marginal_covariances(
     - `method`: `"dense"`, `"cholesky"` or `"auto"` (dense up to 2000 padded unknowns).
 
     **Returns:** a numpy array `(len(indices), d, d)`; zero for fixed instances.
+
+    $H$ comes from the graph's compiled solve loop, stopped after it evaluated `values`
+    (`FactorGraph._linearized_system`): after `solve`, this compiles nothing; the rest is NumPy.
     """
     layout = graph.layout
     k = graph.index(var)
@@ -55,16 +55,18 @@ def marginal_covariances(
         raise ValueError(f"method must be 'auto', 'dense' or 'cholesky', got {method!r}.")
     if method == "auto":
         method = "dense" if layout.padded_unknowns <= _DENSE_LIMIT else "cholesky"
-    system = padded_system(graph, method == "dense")(tuple(values), graph._data(data))
+    graph._check_x64()
+    diag, off, _ = graph._linearized_system(tuple(values), graph._data(data))
+    diag, off = padded_blocks(layout, diag, off)
     D, d = layout.block_size, layout.dims[k]
     blocks = layout.offsets[k] + indices
     if method == "dense":
-        inverse = np.linalg.inv(np.asarray(system))
+        inverse = np.linalg.inv(dense_matrix(layout.pattern, diag, off))
         rows = blocks[:, None] * D + np.arange(d)[None, :]
         result = inverse[rows[:, :, None], rows[:, None, :]]
     else:
         plan = layout.plan()
-        factors = plan.factor(*(np.asarray(a) for a in system))
+        factors = plan.factor(diag, off)
         result = np.empty((len(indices), d, d))
         for m, block in enumerate(blocks):
             for c in range(d):
@@ -75,21 +77,18 @@ def marginal_covariances(
     return result
 
 
-def padded_system(graph, dense):
-    """The compiled `(values, data) ->` normal equations of `graph` on its padded pattern, the
-    dense matrix (`dense`) or `(diag, off)`: one program per graph and form (the linearization,
-    the padding and the dense matrix together; op by op they were some 40 small compilations on
-    a first call). XLA's classic CPU emitters (`lieax._cpu_emitters`) compile it in about half
-    the time; it runs once per call."""
-    graph._check_x64()
-    program = graph._programs.get(("padded_system", dense))
-    if program is None:
-        layout = graph.layout
-
-        def system(values, data):
-            _, diag, off, grad = linearize(layout, graph.factors, graph.plans, values, data)
-            diag, off, _ = to_padded(layout, diag, off, grad)
-            return dense_matrix(layout.pattern, diag, off) if dense else (diag, off)
-
-        program = graph._programs[("padded_system", dense)] = cpu_emitters.jit(system)
-    return program
+def padded_blocks(layout, diag, off):
+    """`(diag (N, D, D), off (P, D, D))` in NumPy: the blocks per kind of `layout` on its padded
+    pattern, identity on the diagonal padding and zeros elsewhere (`_linear.to_padded`, which
+    the solve loop runs inside JAX)."""
+    D = layout.block_size
+    diag = [np.asarray(block) for block in diag]
+    padded_diag = np.tile(np.eye(D, dtype=diag[0].dtype), (layout.pattern.num_blocks, 1, 1))
+    for k, block in enumerate(diag):
+        d = layout.dims[k]
+        padded_diag[layout.offsets[k] : layout.offsets[k + 1], :d, :d] = block
+    padded_off = np.zeros((layout.pattern.num_pairs, D, D), diag[0].dtype)
+    for key, block in zip(layout.pairs, off):
+        da, db = layout.dims[key[0]], layout.dims[key[1]]
+        padded_off[layout.slots[key], :da, :db] = np.asarray(block)
+    return padded_diag, padded_off

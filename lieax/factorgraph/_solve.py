@@ -214,18 +214,21 @@ def _damping_diagonal(scaling, block, params):
 
 
 def make_loop(graph, options):
-    """The jitted `run(values, data, params) -> (values, summary)` of `graph` under the static
-    `options` (a dict: method, schur plan, scaling, damping_update, gauss_newton, floor,
+    """The jitted `run(values, data, params) -> (values, summary, system)` of `graph` under the
+    static `options` (a dict: method, schur plan, scaling, damping_update, gauss_newton, floor,
     retraction, history_size, verbose, cg_max_iterations); `params` is the array of `PARAMETERS`;
-    `summary` is `[cost, damping, iterations, solves, status, *history]`."""
+    `summary` is `[cost, damping, iterations, solves, status, *history]`; `system` the undamped
+    normal equations `(diag, off, grad)` at the returned values, per kind of `graph.layout`
+    (with a `max_iterations` of 0, the linearization of the start: what
+    `lieax.factorgraph.marginal_covariances` reads, with no program of its own)."""
 
     def loop(values, data, vector):
         phases = _Phases(graph, options, data, vector)
         state = _iteration.run(phases, phases.initial_state(values))
-        values, _, cost, _, _, _, lam, _, iterations, solves, status, history, _ = state
+        values, _, cost, _, _, system, lam, _, iterations, solves, status, history, _ = state
         dtype = vector.dtype
         scalars = jnp.stack([cost, lam, *(a.astype(dtype) for a in (iterations, solves, status))])
-        return values, jnp.concatenate([scalars, history])
+        return values, jnp.concatenate([scalars, history]), system
 
     return cpu_emitters.jit(loop)
 
@@ -372,12 +375,15 @@ class _Phases:
         )
         lam = jnp.where(~started | (decision.done & ~success), state.lam, decision.lam)
         nu = jnp.where(started, decision.nu, state.nu)
+        # a taken step is assembled even when it ends the solve, so that `system` is the one at
+        # the returned values (a solve that stops on it is not made NONFINITE by it)
         system, finite = lax.cond(
-            success & (status == Status.RUNNING),
+            success,
             lambda: self.assembled(evaluation[2]),
             lambda: (state.system, jnp.ones((), bool)),
         )
-        status = jnp.where(finite, status, Status.NONFINITE).astype(jnp.int32)
+        status = jnp.where(finite | (status != Status.RUNNING), status, Status.NONFINITE)
+        status = status.astype(jnp.int32)
         # a point with an exactly zero gradient (a zero error: GTSAM's `errorTol` = 0) is
         # stationary: no step to try (at the start: converged after 0 iterations)
         stationary = sum(jnp.sum(jnp.abs(g)) for g in system[2]) == 0
