@@ -23,9 +23,9 @@ classic / default: the docs' five-pose factor graph 1.8-2.1 / 3.8 s; intel 2.8 /
 found tinyGrid3D 0.78 -> 1.01x GTSAM's time and sphere2500 0.66 -> 0.74x).
 
 The option is one of XLA's debug options, and an XLA that does not know it refuses to compile
-("No such compile option"): `known()` compiles an empty program with it once, and where that
-fails the programs compile with XLA's defaults. Other backends do not use it (not measured on
-one here). JAX takes compile
+("No such compile option"): the first program compiled with it finds that out, and from then on
+the programs compile with XLA's defaults (`known()`; an empty program compiled as a probe cost
+every process 0.1 s). Other backends do not use it (not measured on one here). JAX takes compile
 options only for a program compiled on its own, not one staged into an enclosing `jit` or loop
 (whose own options then apply) or transformed (`grad`, `vmap`, which may stage it): a call on
 traced values, or made while a program is being staged, runs a plain `jax.jit`.
@@ -40,15 +40,13 @@ from jax._src import core as jax_core
 CLASSIC_CPU_EMITTERS = {"xla_cpu_use_fusion_emitters": False}
 
 
-@functools.cache
+_REFUSED = set()  # the options of `CLASSIC_CPU_EMITTERS` this XLA refused
+
+
 def known() -> bool:
-    """Whether this XLA compiles with `CLASSIC_CPU_EMITTERS`."""
-    try:
-        empty = jax.jit(lambda x: x, compiler_options=CLASSIC_CPU_EMITTERS)
-        empty.lower(np.zeros((), np.float32)).compile()
-    except jax.errors.JaxRuntimeError:  # pragma: no cover - depends on XLA's options
-        return False
-    return True
+    """Whether this XLA compiles with `CLASSIC_CPU_EMITTERS`, as far as a compilation has told
+    (True until one refuses them)."""
+    return not _REFUSED.intersection(CLASSIC_CPU_EMITTERS)
 
 
 def jit(fun=None, **jit_options):
@@ -59,13 +57,24 @@ def jit(fun=None, **jit_options):
         return functools.partial(jit, **jit_options)
     classic = jax.jit(fun, compiler_options=CLASSIC_CPU_EMITTERS, **jit_options)
     default = jax.jit(fun, **jit_options)
+    refusals = []
 
     @functools.wraps(fun)
     def call(*args, **kwargs):
-        plain = _traced(args, kwargs) or not known()
-        return (default if plain else classic)(*args, **kwargs)
+        if _traced(args, kwargs) or not known():
+            return default(*args, **kwargs)
+        try:
+            return classic(*args, **kwargs)
+        except jax.errors.JaxRuntimeError as error:  # raised by the compilation, before any run
+            refused = {o for o in CLASSIC_CPU_EMITTERS if f"compile option: '{o}'" in str(error)}
+            if not refused:
+                raise
+            _REFUSED.update(refused)
+            refusals.append(refused)
+            return default(*args, **kwargs)
 
-    call._cache_size = lambda: classic._cache_size() + default._cache_size()
+    # (JAX keeps an entry for the refused compilation too: not a program)
+    call._cache_size = lambda: classic._cache_size() - len(refusals) + default._cache_size()
     return call
 
 

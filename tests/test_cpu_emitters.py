@@ -12,22 +12,36 @@ from lieax import _cpu_emitters, icp
 @pytest.fixture
 def unknown_option(monkeypatch):
     """An XLA that does not know the option (a name no XLA has)."""
-    _cpu_emitters.known.cache_clear()
     monkeypatch.setattr(_cpu_emitters, "CLASSIC_CPU_EMITTERS", {"xla_lieax_no_such_option": 1})
-    yield
-    _cpu_emitters.known.cache_clear()
+    monkeypatch.setattr(_cpu_emitters, "_REFUSED", set())
 
 
 def test_this_xla_knows_the_option():
     # The faster programs are the ones CI measures; if an XLA upgrade drops the option, this says so.
+    _cpu_emitters.jit(lambda x: x + 1)(jnp.arange(2.0))
     assert _cpu_emitters.known()
 
 
 def test_an_unknown_option_falls_back_to_the_defaults(unknown_option):
-    assert not _cpu_emitters.known()
     double = _cpu_emitters.jit(lambda x: 2 * x)
     np.testing.assert_array_equal(double(jnp.arange(3.0)), [0.0, 2.0, 4.0])
+    assert not _cpu_emitters.known()  # the first compilation found out
     assert double._cache_size() == 1
+    triple = _cpu_emitters.jit(lambda x: 3 * x)  # later programs go straight to the defaults
+    np.testing.assert_array_equal(triple(jnp.arange(3.0)), [0.0, 3.0, 6.0])
+    assert triple._cache_size() == 1
+
+
+def test_a_runtime_error_of_the_program_is_not_taken_for_a_refusal():
+    def fail(x):
+        raise RuntimeError("a failure inside the program")
+
+    failing = _cpu_emitters.jit(
+        lambda x: jax.pure_callback(fail, jax.ShapeDtypeStruct((), jnp.float32), x)
+    )
+    with pytest.raises(Exception, match="a failure inside the program"):
+        failing(jnp.float32(1.0))
+    assert _cpu_emitters.known()
 
 
 def test_both_variants_compile_once_and_agree(monkeypatch):

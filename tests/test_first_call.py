@@ -67,8 +67,6 @@ CHILD = textwrap.dedent(
     folder, root = sys.argv[1], sys.argv[2]
     jax.config.update("jax_enable_x64", True)
     report = {"import": take()}
-    lieax._cpu_emitters.known()  # its probe compiles one empty program, once per process
-    take()
 
     def python_blocks(path):
         with open(root + "/" + path, encoding="utf-8") as file:
