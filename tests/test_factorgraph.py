@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _compilations import compilations
 
 from lieax import SE2, SE3, lstsq
 from lieax import graph as lg
@@ -357,25 +358,15 @@ def test_bundle_gradient_matches_finite_differences(bundle):
 # ---- marginals --------------------------------------------------------------------------------
 
 
-_COMPILED = []
-jax.monitoring.register_event_duration_secs_listener(
-    lambda event, _, **kw: (
-        _COMPILED.append(kw.get("fun_name"))
-        if event == "/jax/core/compile/backend_compile_duration"
-        else None
-    )
-)
-
-
 def test_marginals_match_dense_inverse(landmarks):
     """Marginals are blocks of the inverse of the system `linearize` gives at the values, at a
     solution and away from one (the start); they run the solve's own compiled loop, stopped
     after its first evaluation: no program of their own."""
     graph, poses, marks, *_ = landmarks
     result = graph.solve()
-    compiled = len(_COMPILED)
-    marginal_covariances(graph, result.values, poses, [0])
-    assert _COMPILED[compiled:] == []
+    with compilations() as compiled:
+        marginal_covariances(graph, result.values, poses, [0])
+    assert compiled == []
     # the loop's system at the values it returns, not at the previous iterate
     _, diag, off, grad = graph.linearize(result.values)
     loop = next(iter(graph._prepared.values()))[0]

@@ -7,7 +7,6 @@ program). The documented workflows are built and solved in a fresh process (one 
 module), where nothing is compiled yet: in this one, another test may already have compiled the
 same small programs."""
 
-import contextlib
 import json
 import os
 import subprocess
@@ -18,27 +17,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _compilations import compilations
 
 from lieax import SE2, SE3, SO2, SO3, Sim3
-
-_COMPILED = []
-jax.monitoring.register_event_duration_secs_listener(
-    lambda event, seconds, **kw: (
-        _COMPILED.append(kw.get("fun_name"))
-        if event == "/jax/core/compile/backend_compile_duration"
-        else None
-    )
-)
-
-
-@contextlib.contextmanager
-def compilations():
-    """The names of the XLA programs compiled inside the block."""
-    start = len(_COMPILED)
-    found = []
-    yield found
-    found.extend(_COMPILED[start:])
-
 
 # The child: in one fresh process, each documented workflow at a small size, built (which
 # compiles nothing) and solved (the programs counted): the README's first example, the docs'
