@@ -50,13 +50,12 @@ def block_matvec(pattern, diag, off, x):
 
 
 def dense_matrix(pattern, diag, off):
-    """The dense `(n d, n d)` matrix, in NumPy (marginal covariances of small graphs, tests)."""
-    diag, off = np.asarray(diag), np.asarray(off)
+    """The dense `(n d, n d)` matrix (tests and small problems)."""
     n, d = pattern.num_blocks, pattern.block_size
-    blocks = np.zeros((n, n, d, d), diag.dtype)
-    blocks[np.arange(n), np.arange(n)] = diag
-    blocks[pattern.rows, pattern.cols] = off
-    blocks[pattern.cols, pattern.rows] = np.swapaxes(off, -1, -2)
+    blocks = jnp.zeros((n, n, d, d), diag.dtype)
+    blocks = blocks.at[jnp.arange(n), jnp.arange(n)].set(diag)
+    blocks = blocks.at[pattern.rows, pattern.cols].set(off)
+    blocks = blocks.at[pattern.cols, pattern.rows].set(jnp.swapaxes(off, -1, -2))
     return blocks.transpose(0, 2, 1, 3).reshape(n * d, n * d)
 
 
