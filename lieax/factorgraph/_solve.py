@@ -217,10 +217,13 @@ def make_loop(graph, options):
     """The jitted `run(values, data, params) -> (values, summary)` of `graph` under the static
     `options` (a dict: method, schur plan, scaling, damping_update, gauss_newton, floor,
     retraction, history_size, verbose, cg_max_iterations); `params` is the array of `PARAMETERS`;
-    `summary` is `[cost, damping, iterations, solves, status, *history]`."""
+    `summary` is `[cost, damping, iterations, solves, status, *history]`. For a bucketed graph
+    `graph` is its `_buckets.Buckets`, and `run` takes the structure as a fourth operand
+    (`Buckets.operands`), so that every graph of its buckets calls the one program."""
 
-    def loop(values, data, vector):
-        phases = _Phases(graph, options, data, vector)
+    def loop(values, data, vector, *structure):
+        view = graph.traced(*structure) if structure else graph
+        phases = _Phases(view, options, data, vector)
         state = _iteration.run(phases, phases.initial_state(values))
         values, _, cost, _, _, _, lam, _, iterations, solves, status, history, _ = state
         dtype = vector.dtype

@@ -1,0 +1,280 @@
+r"""Bucketed factor graphs (`FactorGraph(..., buckets=True)`): one compiled loop for every graph
+whose counts fall in the same buckets, for a window that grows or slides step by step.
+
+A graph's compiled loop holds its structure as constants (index arrays, the slots of the
+normal equations' blocks, the Cholesky plan's key), so a graph with one more pose traces and
+compiles the whole loop again. Here each variable kind's instance count, each factor kind's
+and each pair list's is padded on the host to `bucket_size` of it, and the structure becomes
+operands of those fixed shapes (`Buckets.operands`): the loop is compiled once per
+(kinds, bucketed counts, options) and called with each graph's operands.
+
+- A padded factor instance repeats instance 0 of its kind (its indices, slots and data, so it
+  evaluates where a real one does) and is masked (`FactorPlan.valid`): its whitened residual
+  and Jacobian blocks are zero, so it adds nothing to the cost, the gradient or $H$.
+- A padded variable instance repeats instance 0's value and is held fixed (an identity
+  diagonal block, zero gradient and couplings, as `Var(fixed=...)`): its step is zero, and the
+  solution is cut back to the real instances.
+- A padded pair (off-diagonal block) is zero and repeats pair 0 (or names instance 0 of its
+  kinds): the dense matrix and the products $H x$ add their blocks, adding nothing.
+- The multifrontal Cholesky analyses each graph's own pattern over the bucketed blocks (the
+  padded blocks are isolated: they solve to zero) and is named at run time by its key
+  (`_multifrontal.cholesky_solve_keyed`), the pair blocks permuted into the plan's order by an
+  operand.
+
+The Schur complement (`eliminate=`) keeps per-structure Gram plans that are not bucketed;
+bucketed graphs refuse an explicit elimination and `"auto"` eliminates nothing. The bucket
+rule is `lieax.imu`'s (two buckets per doubling, at most a third of the instances padded).
+"""
+
+import types
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._checks import to_device
+from ._block_pattern import BlockPattern
+from ._multifrontal import CholeskyPlan, cholesky_solve_keyed, keep_keyed
+from ._native_cholesky import key_words
+from ._structure import FactorPlan
+
+
+def bucket_size(n: int) -> int:
+    r"""The padded count of `n` instances: the smallest multiple of $2^{\max(b - 2, 0)}$ at or
+    above `n`, $b$ the bit length of $n - 1$: two buckets per doubling, at most a third of the
+    padded instances masked (`lieax.imu`'s `bucket_size`; a loop's compilation costs seconds,
+    so fewer buckets than `lieax.icp`'s four). At least 1; up to 4 their own bucket. E.g.
+    50 → 64, 65 → 96, 97 → 128, 129 → 192."""
+    n = max(int(n), 1)
+    step = 1 << max((n - 1).bit_length() - 2, 0)
+    return -(-n // step) * step
+
+
+def _padded(array, size, fill):
+    """`array` (host) with `size - len(array)` rows of `fill` appended (`"first"`: its row 0,
+    zeros when it is empty)."""
+    array = np.asarray(array)
+    extra = size - len(array)
+    if fill == "first" and len(array):
+        rows = np.repeat(array[:1], extra, axis=0)
+    else:
+        rows = np.full((extra, *array.shape[1:]), 0 if fill == "first" else fill, array.dtype)
+    return np.concatenate([array, rows])
+
+
+def _pad_rows(array, size):
+    """A value or data leaf padded to `size` rows by repeating its row 0: by NumPy and one
+    transfer when concrete (a new size compiles nothing), by JAX when traced."""
+    extra = size - jnp.shape(array)[0]
+    if isinstance(array, jax.core.Tracer):
+        return jnp.concatenate([array, jnp.repeat(array[:1], extra, axis=0)])
+    return to_device(_padded(array, size, "first"))
+
+
+def _cut_rows(array, size):
+    """A solution leaf cut to its first `size` rows (concrete: by NumPy and one transfer)."""
+    if isinstance(array, jax.core.Tracer):
+        return array[:size]
+    return to_device(np.asarray(array)[:size])
+
+
+class Buckets:
+    """One graph's bucketed shapes and the operands that carry its structure (see the module
+    docstring). `key` names everything a loop's trace reads from it besides the operands, so
+    graphs of one key share their compiled loops; `traced(structure)` is the graph as the loop
+    sees it, the structure's arrays traced."""
+
+    def __init__(self, graph):
+        layout, plans = graph.layout, graph.plans
+        empty = [v.name for v in graph.variables if v.count == 0]
+        if empty:
+            raise ValueError(
+                f"buckets=True needs at least one instance of each variable kind; {empty} have "
+                "none (padded instances repeat instance 0)."
+            )
+        self.variables, self.factors = graph.variables, graph.factors
+        self.dims, self.real_counts = layout.dims, layout.counts
+        self.counts = tuple(bucket_size(n) for n in layout.counts)
+        self.keys = tuple(layout.pairs)
+        self.pair_counts = tuple(bucket_size(len(layout.pairs[k][0])) for k in self.keys)
+        self.factor_counts = tuple(bucket_size(f.count) for f in graph.factors)
+        # a coupling's orientation across two kinds is static, within one kind an operand
+        self.couplings = tuple(
+            tuple((s, t, key, flipped if key[0] != key[1] else None)
+                  for s, t, key, _, flipped in plan.couplings)
+            for plan in plans
+        )  # fmt: skip
+        self.kinds = tuple(plan.kinds for plan in plans)
+        self.key = (
+            bool(jax.config.jax_enable_x64),
+            tuple((v.treedef, v.leaf_dims) for v in graph.variables),
+            self.counts,
+            tuple(zip(self.keys, self.pair_counts)),
+            tuple(
+                (f.residual, f.jacobian_fn, f.data is None, m)
+                for f, m in zip(graph.factors, self.factor_counts)
+            ),
+            self.kinds,
+            self.couplings,
+        )
+        self.operands = self._operands(layout, plans)
+        self.layout = layout
+        self._cholesky = None
+
+    @property
+    def padded_unknowns(self):
+        return sum(self.counts) * max(self.dims)
+
+    @property
+    def pattern(self):
+        """The bucketed pattern's size, for `dense_threads` (its pairs are operands)."""
+        return BlockPattern(sum(self.counts), max(self.dims), None, None)
+
+    def _operands(self, layout, plans):
+        """The structure's arrays at the bucketed shapes (see the module docstring)."""
+        factors = []
+        for plan, m, f in zip(plans, self.factor_counts, self.factors):
+            couplings = tuple(
+                (
+                    _padded(slots, m, "first").astype(np.int32),
+                    None if isinstance(flipped, bool) else _padded(flipped, m, False),
+                )
+                for _, _, _, slots, flipped in plan.couplings
+            )
+            factors.append(
+                {
+                    "indices": tuple(_padded(i, m, "first").astype(np.int32) for i in plan.indices),
+                    "valid": _padded(np.ones(f.count, bool), m, False),
+                    "couplings": couplings,
+                }
+            )
+        pairs = [layout.pairs[k] for k in self.keys]
+        return {
+            "free": tuple(_padded(f, n, False) for f, n in zip(layout.free, self.counts)),
+            "pairs": tuple(
+                tuple(_padded(a, p, "first").astype(np.int32) for a in rc)
+                for rc, p in zip(pairs, self.pair_counts)
+            ),
+            "pair_free": tuple(
+                _padded(layout.pair_free[k], p, False) for k, p in zip(self.keys, self.pair_counts)
+            ),
+            "factors": tuple(factors),
+        }
+
+    def cholesky_operands(self):
+        """`(key, order)` of the multifrontal solve: the plan of this graph's pattern over the
+        bucketed blocks (its real pairs only; analysed once per graph) named by its key words,
+        and for each of the plan's pairs its block in the bucketed pair blocks (the rest of
+        `order` repeats block 0, which the solve does not read)."""
+        if self._cholesky is None:
+            offsets = np.concatenate([[0], np.cumsum(self.counts)])
+            starts = np.concatenate([[0], np.cumsum(self.pair_counts)])
+            rows, cols, where = [], [], []
+            for j, (a, b) in enumerate(self.keys):
+                r, c = self.layout.pairs[(a, b)]
+                rows.append(offsets[a] + r)
+                cols.append(offsets[b] + c)
+                where.append(starts[j] + np.arange(len(r)))
+            rows, cols, where = (np.concatenate(x).astype(np.int64) for x in (rows, cols, where))
+            pattern, pair, _ = BlockPattern.from_edges(int(offsets[-1]), max(self.dims), rows, cols)
+            order = np.zeros(int(starts[-1]), np.int32)
+            order[pair] = where
+            plan = CholeskyPlan.analyze(pattern)
+            self._cholesky = plan, (key_words(keep_keyed(plan)), order)
+        return self._cholesky[1]
+
+    def runner(self, loop, method):
+        """`run(values, data, params) -> (values, summary)`: `loop` (the bucketed loop, which
+        takes the structure as its fourth operand) on the values and data padded to the
+        buckets, its values cut back to the real counts."""
+        structure = dict(self.operands)
+        if method == "cholesky":
+            structure["cholesky"] = self.cholesky_operands()
+
+        def run(values, data, params):
+            solution, summary = loop(
+                self.pad_values(values), self.pad_data(data), params, structure
+            )
+            return self.cut(solution), summary
+
+        return run
+
+    def pad_values(self, values):
+        return tuple(
+            jax.tree_util.tree_map(lambda a, n=n: _pad_rows(a, n), value)
+            for value, n in zip(values, self.counts)
+        )
+
+    def pad_data(self, data):
+        """Per factor kind `(data, sqrt_information, loss)` with the data's leaves and a
+        per-instance `sqrt_information` padded to the bucket."""
+        padded = []
+        for (d, root, loss), m in zip(data, self.factor_counts):
+            d = jax.tree_util.tree_map(lambda a, m=m: _pad_rows(a, m), d)
+            if root is not None and jnp.ndim(root) == 3:
+                root = _pad_rows(root, m)
+            padded.append((d, root, loss))
+        return tuple(padded)
+
+    def cut(self, values):
+        return tuple(
+            jax.tree_util.tree_map(lambda a, n=n: _cut_rows(a, n), value)
+            for value, n in zip(values, self.real_counts)
+        )
+
+    def traced(self, structure):
+        """The graph as the bucketed loop sees it: `layout`, `plans` (their arrays from the
+        `structure` operand), `factors`, `variables` (read for their functions and shapes)."""
+        plans = tuple(
+            FactorPlan(
+                kinds,
+                operands["indices"],
+                tuple(
+                    (s, t, key, slots, flipped if static is None else static)
+                    for (s, t, key, static), (slots, flipped) in zip(
+                        couplings, operands["couplings"]
+                    )
+                ),
+                (None,) * len(kinds),
+                operands["valid"],
+            )
+            for kinds, couplings, operands in zip(self.kinds, self.couplings, structure["factors"])
+        )
+        layout = TracedLayout(self, structure)
+        return types.SimpleNamespace(
+            layout=layout, plans=plans, factors=self.factors, variables=self.variables
+        )
+
+
+class TracedLayout:
+    """The `_structure.Layout` of a bucketed graph inside its loop: the bucketed counts, the
+    pairs (`(rows, cols)` per kind pair), masks and pattern traced, one uniform pattern of the
+    pair lists one after another (`slots` consecutive), and the keyed Cholesky solve."""
+
+    def __init__(self, buckets, structure):
+        self.dims, self.counts = buckets.dims, buckets.counts
+        self.block_size = max(self.dims)
+        self.offsets = np.concatenate([[0], np.cumsum(self.counts)]).astype(np.int64)
+        self.pairs = dict(zip(buckets.keys, structure["pairs"]))
+        self.free = structure["free"]
+        self.pair_free = dict(zip(buckets.keys, structure["pair_free"]))
+        self.slots, start = {}, 0
+        for key, p in zip(buckets.keys, buckets.pair_counts):
+            self.slots[key] = np.arange(start, start + p)
+            start += p
+        global_rows = [self.offsets[a] + r for (a, _), (r, _) in self.pairs.items()]
+        global_cols = [self.offsets[b] + c for (_, b), (_, c) in self.pairs.items()]
+        empty = jnp.zeros(0, jnp.int32)
+        self.pattern = BlockPattern(
+            int(self.offsets[-1]),
+            self.block_size,
+            jnp.concatenate(global_rows) if global_rows else empty,
+            jnp.concatenate(global_cols) if global_cols else empty,
+        )
+        self._cholesky = structure.get("cholesky")
+
+    def cholesky_solve(self, diag, off, rhs):
+        """The multifrontal solve by the plan named by the `cholesky` operand, the pair blocks
+        taken into its order (`Buckets.cholesky_operands`)."""
+        key, order = self._cholesky
+        return cholesky_solve_keyed(key, diag, off[order], rhs)
