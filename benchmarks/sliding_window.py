@@ -29,6 +29,7 @@ from _timing import machine_description, markdown_table
 
 from lieax import SE2
 from lieax.factorgraph import Factor, FactorGraph, Var
+from lieax.factorgraph._graph import GTSAM
 
 jax.config.update("jax_enable_x64", True)
 
@@ -108,6 +109,7 @@ def main():
     compiled = {name: 0 for name in variants}
     warm = {name: [] for name in variants}
     differences = []
+    by_method = {}  # (unbucketed's linear solver, bucketed's) -> warm ratios
     for n in range(args.first, args.last + 1, args.step):
         graphs = {name: window(data, n, buckets) for name, buckets in variants.items()}
         results = {}
@@ -118,6 +120,10 @@ def main():
             first[name].append(time.perf_counter() - start)
             compiled[name] += len(compiles) - before
         differences.append(abs(float(results["bucketed"].cost - results["unbucketed"].cost)))
+        methods = tuple(
+            graph._loop(GTSAM, args.solver, "auto", 100, None, False, None)[2]
+            for graph in graphs.values()
+        )
         samples = {name: [] for name in variants}
         for _ in range(args.repeats):
             for name, graph in graphs.items():
@@ -126,6 +132,7 @@ def main():
                 samples[name].append(time.perf_counter() - start)
         for name in variants:
             warm[name].append(statistics.median(samples[name]))
+        by_method.setdefault(methods, []).append(warm["bucketed"][-1] / warm["unbucketed"][-1])
     ratios = [b / u for b, u in zip(warm["bucketed"], warm["unbucketed"])]
     rows = [
         [
@@ -147,6 +154,13 @@ def main():
     headers = ["variant", "first solves, total", "XLA compilations", "warm solve, median step",
                "warm ratio bucketed / unbucketed (median, range)"]  # fmt: skip
     print(markdown_table(headers, rows))
+    print()
+    rows = [
+        [f"{u} / {b}", str(len(r)), f"{statistics.median(r):.2f} ({min(r):.2f}-{max(r):.2f})"]
+        for (u, b), r in by_method.items()
+    ]
+    print(markdown_table(["linear solver (unbucketed / bucketed)", "steps",
+                          "warm ratio bucketed / unbucketed"], rows))  # fmt: skip
 
 
 if __name__ == "__main__":

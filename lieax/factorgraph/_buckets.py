@@ -32,7 +32,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import to_device
 from ._block_pattern import BlockPattern
 from ._multifrontal import CholeskyPlan, cholesky_solve_keyed, keep_keyed
 from ._native_cholesky import key_words
@@ -62,20 +61,34 @@ def _padded(array, size, fill):
     return np.concatenate([array, rows])
 
 
-def _pad_rows(array, size):
-    """A value or data leaf padded to `size` rows by repeating its row 0: by NumPy and one
-    transfer when concrete (a new size compiles nothing), by JAX when traced."""
-    extra = size - jnp.shape(array)[0]
-    if isinstance(array, jax.core.Tracer):
-        return jnp.concatenate([array, jnp.repeat(array[:1], extra, axis=0)])
-    return to_device(_padded(array, size, "first"))
-
-
-def _cut_rows(array, size):
-    """A solution leaf cut to its first `size` rows (concrete: by NumPy and one transfer)."""
-    if isinstance(array, jax.core.Tracer):
-        return array[:size]
-    return to_device(np.asarray(array)[:size])
+def _resized(trees, sizes, pad):
+    """Each tree of `trees` with its leaves' rows padded (`pad`, repeating row 0) or cut to the
+    matching entry of `sizes`: concrete leaves by NumPy and one transfer for all of them (a new
+    size compiles nothing), traced ones by JAX."""
+    flat = [jax.tree_util.tree_flatten(tree) for tree in trees]
+    concrete = [
+        (k, i) for k, (leaves, _) in enumerate(flat)
+        for i, leaf in enumerate(leaves) if not isinstance(leaf, jax.core.Tracer)
+    ]  # fmt: skip
+    host = []
+    for k, i in concrete:
+        leaf = np.asarray(flat[k][0][i])
+        leaf = _padded(leaf, sizes[k], "first") if pad else leaf[: sizes[k]]
+        host.append(leaf.astype(jax.dtypes.canonicalize_dtype(leaf.dtype), copy=False))
+    moved = dict(zip(concrete, jax.device_put(host)))
+    out = []
+    for k, (leaves, treedef) in enumerate(flat):
+        new = []
+        for i, leaf in enumerate(leaves):
+            if (k, i) in moved:
+                new.append(moved[(k, i)])
+            elif pad:
+                extra = sizes[k] - leaf.shape[0]
+                new.append(jnp.concatenate([leaf, jnp.repeat(leaf[:1], extra, axis=0)]))
+            else:
+                new.append(leaf[: sizes[k]])
+        out.append(treedef.unflatten(new))
+    return tuple(out)
 
 
 class Buckets:
@@ -117,9 +130,10 @@ class Buckets:
             self.kinds,
             self.couplings,
         )
-        self.operands = self._operands(layout, plans)
+        self.operands = jax.device_put(self._operands(layout, plans))  # once, not per call
         self.layout = layout
         self._cholesky = None
+        self._kept = {}
 
     @property
     def padded_unknowns(self):
@@ -180,7 +194,7 @@ class Buckets:
             order = np.zeros(int(starts[-1]), np.int32)
             order[pair] = where
             plan = CholeskyPlan.analyze(pattern)
-            self._cholesky = plan, (key_words(keep_keyed(plan)), order)
+            self._cholesky = plan, jax.device_put((key_words(keep_keyed(plan)), order))
         return self._cholesky[1]
 
     def runner(self, loop, method):
@@ -200,27 +214,40 @@ class Buckets:
         return run
 
     def pad_values(self, values):
-        return tuple(
-            jax.tree_util.tree_map(lambda a, n=n: _pad_rows(a, n), value)
-            for value, n in zip(values, self.counts)
-        )
+        return self._memo("values", values, lambda: _resized(values, self.counts, True))
 
     def pad_data(self, data):
         """Per factor kind `(data, sqrt_information, loss)` with the data's leaves and a
         per-instance `sqrt_information` padded to the bucket."""
-        padded = []
-        for (d, root, loss), m in zip(data, self.factor_counts):
-            d = jax.tree_util.tree_map(lambda a, m=m: _pad_rows(a, m), d)
-            if root is not None and jnp.ndim(root) == 3:
-                root = _pad_rows(root, m)
-            padded.append((d, root, loss))
-        return tuple(padded)
+
+        def padded():
+            trees = [(d, root if root is not None and jnp.ndim(root) == 3 else None)
+                     for d, root, _ in data]  # fmt: skip
+            out = _resized(trees, self.factor_counts, True)
+            return tuple(
+                (d, root if padded_root is None else padded_root, loss)
+                for (d, padded_root), (_, root, loss) in zip(out, data)
+            )
+
+        return self._memo("data", data, padded)
+
+    def _memo(self, name, given, pad):
+        """`pad()`, kept for the last `given` of `name` while its entries are the same objects
+        and its leaves JAX arrays (a graph's own values and data, solved again, are padded
+        once)."""
+        kept = self._kept.get(name)
+        if kept is not None and len(kept[0]) == len(given):
+            if all(a is b for a, b in zip(kept[0], given)):
+                return kept[1]
+        result = pad()
+        # kept only for JAX arrays: a NumPy array could be changed in place before the next call
+        if all(isinstance(x, jax.Array) and not isinstance(x, jax.core.Tracer)
+               for x in jax.tree_util.tree_leaves(given)):  # fmt: skip
+            self._kept[name] = (tuple(given), result)
+        return result
 
     def cut(self, values):
-        return tuple(
-            jax.tree_util.tree_map(lambda a, n=n: _cut_rows(a, n), value)
-            for value, n in zip(values, self.real_counts)
-        )
+        return _resized(values, self.real_counts, False)
 
     def traced(self, structure):
         """The graph as the bucketed loop sees it: `layout`, `plans` (their arrays from the
