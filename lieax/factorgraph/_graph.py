@@ -89,7 +89,9 @@ class FactorGraph:
       `benchmarks/sliding_window.py`). `linear_solver` `"dense"`, `"cg"` and `"cholesky"` are
       bucketed (`"auto"`: dense up to 300 padded unknowns of the buckets, else cholesky);
       `eliminate` (the Schur complement) is not: an explicit `Var` is a `ValueError`, `"auto"`
-      eliminates nothing.
+      eliminates nothing. `vmap` and implicit derivatives work; the derivatives' tangent
+      program, `cost`, `linearize` and `marginal_covariances` keep the graph's own structure
+      (compiled per structure, as without buckets).
 
     Construction validates everything that can be checked without compiling: index ranges,
     residual and information shapes (`jax.eval_shape` of one instance), positive-definite
