@@ -11,7 +11,7 @@ the first solve (analysis, tracing, compilation, run; the compilations counted b
 variants interleaved). The table: total time of the first solves, compilations, median warm
 time per step, and the per-step warm ratio bucketed / unbucketed (median, lowest, highest).
 
-    python benchmarks/sliding_window.py [--step 5] [--repeats 5] [--solver auto]
+    python benchmarks/sliding_window.py [--step 5] [--repeats 5] [--solver auto] [--json PATH]
 """
 
 import argparse
@@ -25,6 +25,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _results import write
 from _timing import machine_description, markdown_table
 
 from lieax import SE2
@@ -94,6 +95,7 @@ def main():
     parser.add_argument("--solver", default="auto")
     parser.add_argument("--first", type=int, default=50)
     parser.add_argument("--last", type=int, default=150)
+    parser.add_argument("--json", help="also write the tables to this file (_results format)")
     args = parser.parse_args()
     compiles = []
     jax.monitoring.register_event_duration_secs_listener(
@@ -146,21 +148,34 @@ def main():
         for name in variants
     ]  # fmt: skip
     steps = len(range(args.first, args.last + 1, args.step))
-    print(
+    title = (
         f"Growing window N = {args.first}..{args.last} step {args.step} ({steps} steps), "
-        f"linear_solver={args.solver!r}, {machine_description()}; largest |cost difference| "
-        f"{max(differences):.1e}\n"
+        f"linear_solver={args.solver!r}"
+    )
+    notes = (
+        f"{machine_description()}; largest |cost difference| bucketed - unbucketed "
+        f"{max(differences):.1e}"
     )
     headers = ["variant", "first solves, total", "XLA compilations", "warm solve, median step",
                "warm ratio bucketed / unbucketed (median, range)"]  # fmt: skip
+    print(f"{title}, {notes}\n")
     print(markdown_table(headers, rows))
     print()
-    rows = [
+    solver_rows = [
         [f"{u} / {b}", str(len(r)), f"{statistics.median(r):.2f} ({min(r):.2f}-{max(r):.2f})"]
         for (u, b), r in by_method.items()
     ]
-    print(markdown_table(["linear solver (unbucketed / bucketed)", "steps",
-                          "warm ratio bucketed / unbucketed"], rows))  # fmt: skip
+    solver_headers = ["linear solver (unbucketed / bucketed)", "steps",
+                      "warm ratio bucketed / unbucketed"]  # fmt: skip
+    print(markdown_table(solver_headers, solver_rows))
+    if args.json:
+        tables = [
+            {"title": title, "columns": headers, "rows": rows, "notes": notes},
+            {"title": "Warm ratio by linear solver", "columns": solver_headers,
+             "rows": solver_rows},
+        ]  # fmt: skip
+        raw = {"first": first, "warm": warm, "compilations": compiled}
+        write(args.json, "sliding_window", tables, raw=raw)
 
 
 if __name__ == "__main__":
