@@ -92,6 +92,14 @@ def _resized(trees, sizes, pad):
     return tuple(out)
 
 
+def _instance_shapes(value):
+    """The shape and dtype of one instance of each leaf of a batched value (the loop reshapes
+    steps to them: part of the loop's key)."""
+    return tuple(
+        (np.shape(x)[1:], np.dtype(jnp.result_type(x))) for x in jax.tree_util.tree_leaves(value)
+    )
+
+
 class Buckets:
     """One graph's bucketed shapes and the operands that carry its structure (see the module
     docstring). `key` names everything a loop's trace reads from it besides the operands, so
@@ -121,7 +129,7 @@ class Buckets:
         self.kinds = tuple(plan.kinds for plan in plans)
         self.key = (
             bool(jax.config.jax_enable_x64),
-            tuple((v.treedef, v.leaf_dims) for v in graph.variables),
+            tuple((v.treedef, v.leaf_dims, _instance_shapes(v.value)) for v in graph.variables),
             self.counts,
             tuple(zip(self.keys, self.pair_counts)),
             tuple(
