@@ -562,21 +562,23 @@ std::shared_ptr<Plan> build_plan(int64_t n, int64_t d, int64_t p, const int64_t*
 
 // ---- the handler --------------------------------------------------------------------------------
 
+// `off` holds `stride` pair blocks per system, the plan's `p` first (a bucketed graph pads them).
 template <typename T>
 ffi::Error solve_all(Plan& plan, const ffi::AnyBuffer& diag, const ffi::AnyBuffer& off,
-                     const ffi::AnyBuffer& rhs, ffi::AnyBuffer& out, int64_t batch) {
+                     const ffi::AnyBuffer& rhs, ffi::AnyBuffer& out, int64_t batch,
+                     int64_t stride) {
   auto work = plan.acquire();
   {
     Numeric<T> numeric(plan, *work);
     BlasThreads scope(plan.single_thread ? 1 : parallel_threads.load());
-    const int64_t n = plan.n, d = plan.d, p = plan.p;
+    const int64_t n = plan.n, d = plan.d;
     const T* diag_data = static_cast<const T*>(diag.untyped_data());
     const T* off_data = static_cast<const T*>(off.untyped_data());
     const T* rhs_data = static_cast<const T*>(rhs.untyped_data());
     T* x = static_cast<T*>(out.untyped_data());
     for (int64_t b = 0; b < batch; ++b) {
       T* xb = x + b * n * d;
-      if (numeric.factor(diag_data + b * n * d * d, off_data + b * p * d * d)) {
+      if (numeric.factor(diag_data + b * n * d * d, off_data + b * stride * d * d)) {
         std::memcpy(xb, rhs_data + b * n * d, n * d * sizeof(T));
         numeric.solve(xb);
       } else {
@@ -603,25 +605,50 @@ bool has_shape(const ffi::AnyBuffer& buffer, std::initializer_list<int64_t> tail
   return true;
 }
 
-ffi::Error SolveImpl(int64_t key, ffi::AnyBuffer diag, ffi::AnyBuffer off, ffi::AnyBuffer rhs,
-                     ffi::Result<ffi::AnyBuffer> out) {
+// The solve by the plan of `key`; `padded`: `off` may hold more pair blocks than the plan has
+// (its first `plan.p` are the plan's), as a bucketed factor graph passes them.
+ffi::Error solve_checked(int64_t key, const ffi::AnyBuffer& diag, const ffi::AnyBuffer& off,
+                         const ffi::AnyBuffer& rhs, ffi::AnyBuffer& out, bool padded) {
   std::shared_ptr<Plan> found;
   if (ffi::Error error = lookup(key, &found); error.failure()) return error;
   Plan& plan = *found;
   int64_t batch = -1;
-  if (!has_shape(rhs, {plan.n, plan.d}, &batch) ||
+  auto off_dims = off.dimensions();
+  const int64_t stride =
+      padded && off_dims.size() >= 3 ? off_dims[off_dims.size() - 3] : plan.p;
+  if (stride < plan.p || !has_shape(rhs, {plan.n, plan.d}, &batch) ||
       !has_shape(diag, {plan.n, plan.d, plan.d}, &batch) ||
-      !has_shape(off, {plan.p, plan.d, plan.d}, &batch) || !has_shape(*out, {plan.n, plan.d}, &batch))
+      !has_shape(off, {stride, plan.d, plan.d}, &batch) ||
+      !has_shape(out, {plan.n, plan.d}, &batch))
     return ffi::Error::InvalidArgument(
         "lieax multifrontal Cholesky: the operands' shapes do not match the plan of key " +
         std::to_string(key) + " (" + std::to_string(plan.n) + " blocks of size " +
         std::to_string(plan.d) + ", " + std::to_string(plan.p) + " pairs).");
   const auto type = rhs.element_type();
-  if (diag.element_type() != type || off.element_type() != type || out->element_type() != type)
+  if (diag.element_type() != type || off.element_type() != type || out.element_type() != type)
     return ffi::Error::InvalidArgument("lieax multifrontal Cholesky: mixed dtypes.");
-  if (type == ffi::DataType::F64) return solve_all<double>(plan, diag, off, rhs, *out, batch);
-  if (type == ffi::DataType::F32) return solve_all<float>(plan, diag, off, rhs, *out, batch);
+  if (type == ffi::DataType::F64)
+    return solve_all<double>(plan, diag, off, rhs, out, batch, stride);
+  if (type == ffi::DataType::F32)
+    return solve_all<float>(plan, diag, off, rhs, out, batch, stride);
   return ffi::Error::InvalidArgument("lieax multifrontal Cholesky: float32 or float64 only.");
+}
+
+ffi::Error SolveImpl(int64_t key, ffi::AnyBuffer diag, ffi::AnyBuffer off, ffi::AnyBuffer rhs,
+                     ffi::Result<ffi::AnyBuffer> out) {
+  return solve_checked(key, diag, off, rhs, *out, false);
+}
+
+// The key as an operand: two uint32 words (low, high) per system, the same in each (a batch
+// under `vmap` broadcasts them), so that one compiled program serves every plan of its shapes.
+ffi::Error SolveKeyedImpl(ffi::AnyBuffer key, ffi::AnyBuffer diag, ffi::AnyBuffer off,
+                          ffi::AnyBuffer rhs, ffi::Result<ffi::AnyBuffer> out) {
+  if (key.element_type() != ffi::DataType::U32 || key.element_count() < 2)
+    return ffi::Error::InvalidArgument(
+        "lieax multifrontal Cholesky: the key operand must be two uint32 words.");
+  const uint32_t* words = static_cast<const uint32_t*>(key.untyped_data());
+  const int64_t value = static_cast<int64_t>((static_cast<uint64_t>(words[1]) << 32) | words[0]);
+  return solve_checked(value, diag, off, rhs, *out, true);
 }
 
 }  // namespace
@@ -629,6 +656,14 @@ ffi::Error SolveImpl(int64_t key, ffi::AnyBuffer diag, ffi::AnyBuffer off, ffi::
 LIEAX_FFI_HANDLER(LieaxCholeskySolve, SolveImpl,
                   ffi::Ffi::Bind()
                       .Attr<int64_t>("key")
+                      .Arg<ffi::AnyBuffer>()
+                      .Arg<ffi::AnyBuffer>()
+                      .Arg<ffi::AnyBuffer>()
+                      .Ret<ffi::AnyBuffer>());
+
+LIEAX_FFI_HANDLER(LieaxCholeskySolveKeyed, SolveKeyedImpl,
+                  ffi::Ffi::Bind()
+                      .Arg<ffi::AnyBuffer>()
                       .Arg<ffi::AnyBuffer>()
                       .Arg<ffi::AnyBuffer>()
                       .Arg<ffi::AnyBuffer>()

@@ -24,6 +24,7 @@ from . import _threads
 _TARGETS = {
     "LieaxProbe": "lieax_probe",
     "LieaxCholeskySolve": "lieax_cholesky_solve",
+    "LieaxCholeskySolveKeyed": "lieax_cholesky_solve_keyed",
     "LieaxKdtreeBuild": "lieax_kdtree_build",
     "LieaxKdtreeNearest": "lieax_kdtree_nearest",
     "LieaxKdtreeTrack": "lieax_kdtree_track",

@@ -2,6 +2,7 @@
 `csrc/cholesky.cc`): the same solutions as the NumPy plan and the dense matrix on chains, trees,
 grids, one block and random patterns of block sizes 1, 3 and 6; NaN when not positive definite;
 `vmap` and float32; the registry's keys (unknown, collected, analysed in the background, failed);
+the keyed solve (the plan named by an operand, padded pair blocks) of bucketed factor graphs;
 and a second process that loads `graph.optimize`'s and `FactorGraph.solve`'s programs from the
 persistent compilation cache without compiling any."""
 
@@ -240,3 +241,27 @@ def test_second_process_compiles_nothing(tmp_path):
     compiled, loaded = run()
     assert int(compiled) > 0 and loaded == "0"  # first process: compiled and written
     assert run() == ["0", compiled]  # second process: every program read back
+
+
+@pytest.mark.parametrize("native", [True, False])
+def test_keyed_solve_serves_every_plan_of_its_shapes(native, monkeypatch):
+    """`cholesky_solve_keyed` (a bucketed factor graph's solve): one compiled program solves
+    systems of two patterns (a chain and a tree of 30 blocks) by the plan its key operand names,
+    with the pair blocks padded to 40 (the padding not read); native custom call and host
+    callback alike, and under `vmap`."""
+    if not native:
+        monkeypatch.setattr(_native_cholesky, "available", lambda: False)
+    solve = jax.jit(lambda *system: _multifrontal.cholesky_solve_keyed(*system))  # traced here
+    for kind in ("chain", "tree"):
+        pattern, diag, off, dense, rhs = system(kind, 30, 3, seed=4)
+        plan = _multifrontal.CholeskyPlan.analyze(pattern)
+        key = _native_cholesky.key_words(_multifrontal.keep_keyed(plan))
+        padded = np.concatenate([off, np.full((40 - len(off), 3, 3), np.nan)])
+        x = np.asarray(solve(key, diag, padded, rhs))
+        expected = np.linalg.solve(dense, rhs.ravel()).reshape(rhs.shape)
+        np.testing.assert_allclose(x, expected, rtol=1e-11, atol=1e-12)
+        batch = jax.vmap(solve, in_axes=(None, None, None, 0))(
+            key, diag, padded, np.stack([rhs, 2 * rhs])
+        )
+        np.testing.assert_allclose(batch[1], 2 * expected, rtol=1e-11, atol=1e-12)
+    assert solve._cache_size() == 1

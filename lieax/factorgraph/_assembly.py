@@ -41,11 +41,20 @@ def _robust(loss, s):
     return loss(s), loss.weight(s)
 
 
+def _masked(plan, r):
+    """`r` with the rows of a bucketed kind's padded instances zero (`FactorPlan.valid`; a
+    `where`, so that whatever a padded instance evaluates to contributes nothing)."""
+    if plan.valid is None:
+        return r
+    return jnp.where(plan.valid.reshape(-1, *(1,) * (r.ndim - 1)), r, 0.0)
+
+
 def cost(factors, plans, values, data):
     r"""$\tfrac12 \sum \rho(\|R r\|^2)$ over every factor kind."""
     total = 0.0
-    for r, (_, root, loss) in zip(_per_instance(factors, plans, values, data, residual_one), data):
-        r = _whiten(root, r)
+    residuals = _per_instance(factors, plans, values, data, residual_one)
+    for plan, r, (_, root, loss) in zip(plans, residuals, data):
+        r = _masked(plan, _whiten(root, r))
         total = total + 0.5 * jnp.sum(_robust(loss, jnp.sum(r**2, axis=-1))[0])
     return total
 
@@ -58,13 +67,14 @@ def evaluate(factors, plans, values, data):
     total = 0.0
     parts = []
     linearized = _per_instance(factors, plans, values, data, linearize_one)
-    for (r, blocks), (_, root, loss) in zip(linearized, data):
+    for plan, (r, blocks), (_, root, loss) in zip(plans, linearized, data):
         if root is not None:
             r = _whiten(root, r)
             blocks = tuple(
                 (root @ b) if root.ndim == 2 else jnp.einsum("mab,mbc->mac", root, b)
                 for b in blocks
             )
+        r, blocks = _masked(plan, r), tuple(_masked(plan, b) for b in blocks)
         rho, w = _robust(loss, jnp.sum(r**2, axis=-1))
         total = total + 0.5 * jnp.sum(rho)
         parts.append((r, blocks, w))
@@ -88,7 +98,7 @@ def _per_instance(factors, plans, values, data, one):
     for members in groups.values():
         factor, kinds = factors[members[0]], plans[members[0]].kinds
         xs = [
-            instance(values[k], jnp.asarray(np.concatenate([plans[j].indices[s] for j in members])))
+            instance(values[k], jnp.asarray(_joined([plans[j].indices[s] for j in members])))
             for s, k in enumerate(kinds)
         ]
         d = data[members[0]][0]
@@ -99,10 +109,23 @@ def _per_instance(factors, plans, values, data, one):
         batch = jax.vmap(lambda *a, f=factor: one(f, a[:-1], a[-1]))(*xs, d)
         start = 0
         for j in members:
-            stop = start + factors[j].count
+            stop = start + plans[j].indices[0].shape[0]
             results[j] = batch if len(members) == 1 else _rows(batch, start, stop)
             start = stop
     return results
+
+
+def _joined(arrays):
+    """`arrays` concatenated: by NumPy when they are host arrays (a constant of the program), by
+    JAX when a bucketed graph passes them as operands (`_buckets`)."""
+    if all(isinstance(a, np.ndarray) for a in arrays):
+        return np.concatenate(arrays)
+    return jnp.concatenate(arrays)
+
+
+def _all(mask):
+    """Whether the host mask `mask` holds everywhere (an operand's, `_buckets`, may not)."""
+    return isinstance(mask, np.ndarray) and bool(mask.all())
 
 
 def _rows(tree, start, stop):
@@ -143,7 +166,7 @@ def assemble(layout, plans, parts):
             per_kind[k][1].append(index)
         for s, t, key, slots, flipped in plan.couplings:
             block = small_tmatmul(weighted[s], blocks[t])
-            if isinstance(flipped, np.ndarray):
+            if not isinstance(flipped, bool):  # per instance, within one kind
                 block = jnp.where(flipped[:, None, None], jnp.swapaxes(block, 1, 2), block)
             elif flipped:
                 block = jnp.swapaxes(block, 1, 2)
@@ -152,34 +175,36 @@ def assemble(layout, plans, parts):
             per_pair[j][1].append(slots)
     for k, (pieces, indices) in enumerate(per_kind):
         if pieces:
-            indices = np.concatenate(indices)
+            indices = _joined(indices)
+            ordered = isinstance(indices, np.ndarray) and bool(np.all(indices[1:] >= indices[:-1]))
             summed[k].append(
                 jax.ops.segment_sum(
-                    jnp.concatenate(pieces),
-                    indices,
-                    layout.counts[k],
-                    indices_are_sorted=bool(np.all(indices[1:] >= indices[:-1])),
+                    jnp.concatenate(pieces), indices, layout.counts[k], indices_are_sorted=ordered
                 )
             )
         if summed[k]:
             both = sum(summed[k][1:], summed[k][0])
             diag[k], grad[k] = both[..., :-1], both[..., -1]
     for j, (pieces, slots) in enumerate(per_pair):
-        slots = np.concatenate(slots)
+        slots = _joined(slots)
         count = off[j].shape[0]
-        if len(slots) == count and np.bincount(slots, minlength=count).max(initial=1) == 1:
+        if isinstance(slots, np.ndarray) and len(slots) == count and _one_each(slots, count):
             # one term per slot (bundle adjustment's camera-point blocks): a gather, where XLA
             # CPU's scatter is a serial loop
             off[j] = jnp.concatenate(pieces)[np.argsort(slots)]
         else:
             off[j] = jax.ops.segment_sum(jnp.concatenate(pieces), slots, count)
     for k, free in enumerate(layout.free):
-        if not free.all():
+        if not _all(free):
             eye = jnp.eye(layout.dims[k], dtype=dtype)
             diag[k] = jnp.where(free[:, None, None], diag[k], eye)
             grad[k] = jnp.where(free[:, None], grad[k], 0.0)
     for j, key in enumerate(keys):
         pair_free = layout.pair_free[key]
-        if not pair_free.all():
+        if not _all(pair_free):
             off[j] = jnp.where(pair_free[:, None, None], off[j], 0.0)
     return tuple(diag), tuple(off), tuple(grad)
+
+
+def _one_each(slots, count):
+    return np.bincount(slots, minlength=count).max(initial=1) == 1

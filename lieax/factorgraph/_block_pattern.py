@@ -50,12 +50,14 @@ def block_matvec(pattern, diag, off, x):
 
 
 def dense_matrix(pattern, diag, off):
-    """The dense `(n d, n d)` matrix (tests and small problems)."""
+    """The dense `(n d, n d)` matrix (tests, and the dense solve of a bucketed graph). The blocks
+    are added into place, so that a padded pair of zero blocks (a bucketed graph's, which may
+    repeat a pair or name a diagonal block) adds nothing."""
     n, d = pattern.num_blocks, pattern.block_size
     blocks = jnp.zeros((n, n, d, d), diag.dtype)
     blocks = blocks.at[jnp.arange(n), jnp.arange(n)].set(diag)
-    blocks = blocks.at[pattern.rows, pattern.cols].set(off)
-    blocks = blocks.at[pattern.cols, pattern.rows].set(jnp.swapaxes(off, -1, -2))
+    blocks = blocks.at[pattern.rows, pattern.cols].add(off)
+    blocks = blocks.at[pattern.cols, pattern.rows].add(jnp.swapaxes(off, -1, -2))
     return blocks.transpose(0, 2, 1, 3).reshape(n * d, n * d)
 
 

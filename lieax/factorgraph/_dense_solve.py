@@ -8,16 +8,21 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _threads
+from ._block_pattern import dense_matrix
 
 
 def dense_solve(pattern, diag, off, rhs):
     """$H^{-1}$ `rhs` through the dense matrix and its Cholesky factor, in JAX (for graphs of a
     few poses, where the host's multifrontal factorization costs more than the dense one); NaN
     when $H$ is not positive definite. The matrix is one gather from the blocks (indices built
-    in numpy at trace time)."""
+    in numpy at trace time), or, for a bucketed graph whose pattern's pairs are operands
+    (`_buckets`), sums of the blocks into place (`dense_matrix`)."""
     n, d = pattern.num_blocks, pattern.block_size
-    values = jnp.concatenate([diag.reshape(-1), off.reshape(-1), jnp.zeros(1, diag.dtype)])
-    matrix = values[_dense_index(pattern)]
+    if isinstance(pattern.rows, np.ndarray):
+        values = jnp.concatenate([diag.reshape(-1), off.reshape(-1), jnp.zeros(1, diag.dtype)])
+        matrix = values[_dense_index(pattern)]
+    else:
+        matrix = dense_matrix(pattern, diag, off)
 
     def solve(system):
         matrix, b = system

@@ -30,6 +30,7 @@ from ..lstsq import (
 )
 from ..lstsq._solution import SolveResult, is_failure, nonfinite_leaves
 from ..retractions import Retraction, exp
+from ._buckets import Buckets
 from ._dense_solve import dense_threads
 from ._elimination import (
     candidates,
@@ -62,6 +63,7 @@ GTSAM = LevenbergMarquardt.gtsam()  # `solve`'s default options (immutable, so s
 GTSAM_TERMINATION = Termination.gtsam()
 _CACHE = {}
 _CACHE_SIZE = 16
+_BUCKET_LOOPS = {}  # bucketed graphs' compiled loops, by `Buckets.key` and the options
 
 
 class FactorGraph:
@@ -76,6 +78,22 @@ class FactorGraph:
     - `check_gauge`: `ValueError` when a connected component has no fixed variable and its
       unary factors constrain fewer directions than its variables have (see
       `_structure.check_anchored`; a partial prior counts only its constrained directions).
+    - `buckets`: compile `solve`'s loop once per bucket of sizes instead of once per structure,
+      for graphs that grow or change step by step (a sliding window, incremental SLAM in a
+      Python loop). Each kind's instance count is padded to `_buckets.bucket_size` of it (two
+      buckets per doubling: 50 → 64, 65 → 96, 97 → 128, 129 → 192; padded factor instances
+      masked, padded variable instances held fixed, the solution cut back) and the structure
+      (index arrays, block slots, the Cholesky plan's key) is an operand of the loop, not a
+      constant of it: graphs whose counts fall in the same buckets, with the same kinds and
+      options, share one compiled loop (kept by the module, across `FactorGraph`s). The solution
+      equals the unbucketed one to rounding (sums in another order). Default `False`: a fixed
+      structure's loop keeps its constants, which XLA specializes (measured in
+      `benchmarks/sliding_window.py`). `linear_solver` `"dense"`, `"cg"` and `"cholesky"` are
+      bucketed (`"auto"`: dense up to 300 padded unknowns of the buckets, else cholesky);
+      `eliminate` (the Schur complement) is not: an explicit `Var` is a `ValueError`, `"auto"`
+      eliminates nothing. `vmap` and implicit derivatives work; the derivatives' tangent
+      program, `cost`, `linearize` and `marginal_covariances` keep the graph's own structure
+      (compiled per structure, as without buckets).
 
     Construction validates everything that can be checked without compiling: index ranges,
     residual and information shapes (`jax.eval_shape` of one instance), positive-definite
@@ -88,6 +106,7 @@ class FactorGraph:
         variables: Iterable[Var] | None = None,
         *,
         check_gauge: bool = True,
+        buckets: bool = False,
     ):
         factors = tuple(factors)
         if not factors or not all(isinstance(f, Factor) for f in factors):
@@ -146,6 +165,7 @@ class FactorGraph:
                 _CACHE.pop(next(iter(_CACHE)))
             _CACHE[key] = cached
         self.layout, self.plans, self._schur, self._loops = cached
+        self._buckets = Buckets(self) if buckets else None
         self._cost = self._linearize = self._implicit = self._default_data = None
         self._programs = {}  # other compiled programs of this graph, by name and form
         # what `solve` checks a call against: its options (to the loop), the values' leaves
@@ -219,7 +239,11 @@ class FactorGraph:
         """The undamped normal equations `(diag, off, grad)` per kind of `layout` at `values`
         (fixed instances masked), from the graph's latest compiled solve loop (the default one
         when `solve` has not run) stopped after its first evaluation (`max_iterations` 0): the
-        program that solved the graph serves its marginals, with no compilation of their own."""
+        program that solved the graph serves its marginals, with no compilation of their own.
+        A bucketed graph's loop holds the buckets' system: its own `linearize` (compiled per
+        structure) gives the graph's."""
+        if self._buckets is not None:
+            return self.linearize(values, data)[1:]
         if self._prepared:
             loop = next(reversed(self._prepared.values()))[0]
         else:
@@ -345,6 +369,8 @@ class FactorGraph:
         traced = any(isinstance(x, jax.core.Tracer) for x in leaves) or any(
             isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(data)
         )
+        if self._buckets is not None:  # padded to the buckets, the structure an operand
+            loop = self._buckets.runner(loop, method)
         if traced:  # under a transformation: the solve with its implicit derivatives
             result = _result(*solve_implicit(self, loop, values, data, params))
         else:  # one dispatch, one transfer of the scalars: they come back as NumPy values
@@ -424,9 +450,11 @@ class FactorGraph:
                     self.layout, e, self._names(), self._schur.get(("reduced", e))
                 )
             layout = schur.layout
+        if self._buckets is not None:
+            layout = self._buckets
         if solver == "auto":
             solver = _auto_method(layout)
-        if solver == "cholesky":
+        if solver == "cholesky" and self._buckets is None:
             layout.start_plan()  # analysed while the loop is traced and compiled
         gauss_newton, scaling, damping_update, floor, inclusive_gain, inclusive_damping = static
         options = {
@@ -463,6 +491,14 @@ class FactorGraph:
                 )
             ),
         )
+        if self._buckets is not None:  # one loop for all graphs of these buckets
+            key = (self._buckets.key, *key)
+            loop = _BUCKET_LOOPS.get(key)
+            if loop is None:
+                if len(_BUCKET_LOOPS) >= _CACHE_SIZE:
+                    _BUCKET_LOOPS.pop(next(iter(_BUCKET_LOOPS)))
+                loop = _BUCKET_LOOPS[key] = make_loop(self._buckets, options)
+            return loop, layout, solver
         loop = self._loops.get(key)
         if loop is None:
             loop = self._loops[key] = make_loop(self, options)
@@ -474,8 +510,14 @@ class FactorGraph:
     def _eliminated(self, eliminate, solver):
         """The kind `solve(eliminate=...)` eliminates, or `None` (see `solve`; the costs are
         kept with the structure, per solver)."""
-        if eliminate is None:
+        if eliminate is None or (self._buckets is not None and eliminate == "auto"):
             return None
+        if self._buckets is not None:
+            raise ValueError(
+                "FactorGraph(buckets=True) does not support eliminate= (the Schur complement's "
+                "Gram plans are per structure, not bucketed): pass eliminate=None or 'auto' "
+                "(which eliminates nothing under buckets), or build the graph without buckets."
+            )
         if isinstance(eliminate, str):
             if eliminate != "auto":
                 raise ValueError(f"eliminate must be a Var, None or 'auto', got {eliminate!r}.")
@@ -590,8 +632,11 @@ class FactorGraph:
 
 def _auto_method(layout):
     """The solver `linear_solver="auto"` picks for `layout`: `"dense"` when it is small, or small enough
-    and its factor nearly dense (see `_DENSE_FILLED_LIMIT`), else `"cholesky"`."""
+    and its factor nearly dense (see `_DENSE_FILLED_LIMIT`), else `"cholesky"`; for a bucketed
+    graph (`Buckets`) by its bucketed size alone, the same for every graph of its buckets."""
     n = layout.padded_unknowns
+    if isinstance(layout, Buckets):
+        return "dense" if n <= _DENSE_LIMIT else "cholesky"
     if n <= _DENSE_LIMIT or (
         n <= _DENSE_FILLED_LIMIT and layout.plan().stats["flops"] >= _DENSE_FILL * n**3 / 3
     ):

@@ -25,7 +25,6 @@ import numpy as np
 
 from ._dense_solve import dense_solve
 from ._gram import gram_sum, small_matmul, small_matvec
-from ._multifrontal import cholesky_solve
 from ._pcg import pcg
 
 
@@ -68,8 +67,7 @@ def solve_system(layout, method, diag, off, rhs, *, cg_tolerance=1e-8, cg_max_it
     if method == "dense":
         x = dense_solve(layout.pattern, d, o, r)
     elif method == "cholesky":
-        # `Layout.start_plan` may still be analysing
-        x = cholesky_solve(layout.plan, d, o, r, pattern=layout.pattern)
+        x = layout.cholesky_solve(d, o, r)
     else:
         x, _ = pcg(
             layout.pattern, d, o, r, tolerance=cg_tolerance, max_iterations=cg_max_iterations

@@ -18,6 +18,7 @@ product forms the front's update product. Both read the same analysis; the nativ
 """
 
 import threading
+import weakref
 
 import jax
 import numpy as np
@@ -283,6 +284,37 @@ def cholesky_solve(plan, diag, off, rhs, *, pattern=None):
     return host_call(lambda *system: _host_solve(plan_of(), *system), result, diag, off, rhs)
 
 
+# plans named by key for `cholesky_solve_keyed`'s host path (the native path's registry is the
+# library's); an entry lives as long as its plan
+_KEYED = weakref.WeakValueDictionary()
+
+
+def keep_keyed(plan):
+    """`plan.native_key()` where the native library serves `cholesky_solve_keyed`, else `plan.key`
+    with the plan kept for its host path; the key stays valid while `plan` lives."""
+    if _native_cholesky.available():
+        return plan.native_key()
+    _KEYED[plan.key] = plan
+    return plan.key
+
+
+def cholesky_solve_keyed(key, diag, off, rhs):
+    """`cholesky_solve` by a plan named at run time: `key` the operand
+    `_native_cholesky.key_words(keep_keyed(plan))`; `off` may hold more pair blocks than the
+    plan's pattern (its first `num_pairs` are the plan's). One compiled program serves every
+    plan of the shapes of `diag`, `off` and `rhs` (`_buckets`). The native custom call on the
+    CPU, else the host callback of `plan.solve`."""
+    if _native_cholesky.available() and jax.default_backend() == "cpu":
+        return _native_cholesky.solve_keyed(key, diag, off, rhs)
+
+    def solve(words, diag, off, rhs):
+        plan = _KEYED[int(words[0]) | (int(words[1]) << 32)]
+        return _host_solve(plan, diag, off[: plan.pattern.num_pairs], rhs)
+
+    _threads.prepare()
+    return host_call(solve, jax.ShapeDtypeStruct(rhs.shape, rhs.dtype), key, diag, off, rhs)
+
+
 def _host_solve(plan, diag, off, rhs):
     """`plan.solve` with the BLAS pools on one thread below `lieax._threads.PARALLEL_FLOPS`
     multiply-adds per factorization (every pose graph: sphere2500's 2.4e8 ran 10-19x faster on
@@ -293,4 +325,4 @@ def _host_solve(plan, diag, off, rhs):
         return plan.solve(diag, off, rhs)
 
 
-__all__ = ["CholeskyPlan", "cholesky_solve"]
+__all__ = ["CholeskyPlan", "cholesky_solve", "cholesky_solve_keyed", "keep_keyed"]

@@ -31,6 +31,7 @@ import numpy as np
 from .. import _native, _threads
 
 TARGET = "lieax_cholesky_solve"
+KEYED_TARGET = "lieax_cholesky_solve_keyed"
 # SciPy's BLAS and LAPACK functions handed to the library, in its order (see `csrc/cholesky.cc`)
 _FUNCTIONS = (("lapack", "potrf"), ("blas", "trsm"), ("blas", "syrk"), ("blas", "trsv"))
 
@@ -145,3 +146,20 @@ def solve(key, diag, off, rhs):
         TARGET, jax.ShapeDtypeStruct(rhs.shape, rhs.dtype), vmap_method="broadcast_all"
     )
     return call(diag, off, rhs, key=np.int64(key))
+
+
+def key_words(key):
+    """The operand of `solve_keyed` naming the plan `key`: its low and high 32-bit words, uint32
+    (an operand of any JAX mode, where an int64 one would be cut to 32 bits without x64)."""
+    return np.asarray([key & 0xFFFFFFFF, key >> 32], np.uint32)
+
+
+def solve_keyed(words, diag, off, rhs):
+    r"""$H^{-1}$ `rhs` by the registered plan named at run time by `words` (`key_words`, an
+    operand, so that one compiled program serves every plan of its shapes: a bucketed factor
+    graph's); `off` may hold more pair blocks than the plan has, its first `num_pairs` the
+    plan's (the rest are not read)."""
+    call = jax.ffi.ffi_call(
+        KEYED_TARGET, jax.ShapeDtypeStruct(rhs.shape, rhs.dtype), vmap_method="broadcast_all"
+    )
+    return call(words, diag, off, rhs)

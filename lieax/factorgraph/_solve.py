@@ -220,10 +220,13 @@ def make_loop(graph, options):
     `summary` is `[cost, damping, iterations, solves, status, *history]`; `system` the undamped
     normal equations `(diag, off, grad)` at the returned values, per kind of `graph.layout`
     (with a `max_iterations` of 0, the linearization of the start: what
-    `lieax.factorgraph.marginal_covariances` reads, with no program of its own)."""
+    `lieax.factorgraph.marginal_covariances` reads, with no program of its own). For a bucketed
+    graph `graph` is its `_buckets.Buckets`, and `run` takes the structure as a fourth operand
+    (`Buckets.operands`), so that every graph of its buckets calls the one program."""
 
-    def loop(values, data, vector):
-        phases = _Phases(graph, options, data, vector)
+    def loop(values, data, vector, *structure):
+        view = graph.traced(*structure) if structure else graph
+        phases = _Phases(view, options, data, vector)
         state = _iteration.run(phases, phases.initial_state(values))
         values, _, cost, _, _, system, lam, _, iterations, solves, status, history, _ = state
         dtype = vector.dtype

@@ -28,7 +28,7 @@ from jax.typing import ArrayLike
 
 from ._block_pattern import BlockPattern
 from ._gram import gram_plan
-from ._multifrontal import CholeskyPlan
+from ._multifrontal import CholeskyPlan, cholesky_solve
 
 
 @dataclasses.dataclass
@@ -94,6 +94,11 @@ class Layout:
             self._plan = self._analysis.result()
         return self._plan
 
+    def cholesky_solve(self, diag, off, rhs):
+        """$H^{-1}$ `rhs` on the padded pattern by its `CholeskyPlan` (`start_plan` may still be
+        analysing it: `cholesky_solve` waits when it needs it)."""
+        return cholesky_solve(self.plan, diag, off, rhs, pattern=self.pattern)
+
 
 # one host thread for the Cholesky analyses (`Layout.start_plan`), made on first use
 _ANALYSES = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="lieax-analysis")
@@ -124,12 +129,14 @@ class FactorPlan:
     block and whether $J_s^\top J_t$ is stored transposed (a bool per instance within one kind,
     a Python bool across kinds); `grams[s]` the `GramPlan` summing argument `s`'s diagonal
     blocks and gradients where its instances collect long runs of terms, else `None` (a segment
-    sum)."""
+    sum); `valid`, for a bucketed graph (`_buckets`), a bool per instance, False for the padding
+    (masked out of the cost and the normal equations), else `None`."""
 
     kinds: tuple
     indices: tuple
     couplings: tuple
     grams: tuple
+    valid: object = None
 
 
 def analyze(variables, factors, unary=None):
