@@ -32,21 +32,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._bucket_sizes import bucket_size
 from ._block_pattern import BlockPattern
 from ._multifrontal import CholeskyPlan, cholesky_solve_keyed, keep_keyed
 from ._native_cholesky import key_words
 from ._structure import FactorPlan
-
-
-def bucket_size(n: int) -> int:
-    r"""The padded count of `n` instances: the smallest multiple of $2^{\max(b - 2, 0)}$ at or
-    above `n`, $b$ the bit length of $n - 1$: two buckets per doubling, at most a third of the
-    padded instances masked (`lieax.imu`'s `bucket_size`; a loop's compilation costs seconds,
-    so fewer buckets than `lieax.icp`'s four). At least 1; up to 4 their own bucket. E.g.
-    50 → 64, 65 → 96, 97 → 128, 129 → 192."""
-    n = max(int(n), 1)
-    step = 1 << max((n - 1).bit_length() - 2, 0)
-    return -(-n // step) * step
 
 
 def _padded(array, size, fill):

@@ -11,21 +11,11 @@ import jax
 import numpy as np
 from jax.typing import ArrayLike
 
+from .._bucket_sizes import bucket_size
 from ._combined import preintegrate_combined
 from ._params import BiasRandomWalk, ImuError, ImuParams
 from ._preintegrated import Preintegrated
 from ._sequential import preintegrate
-
-
-def bucket_size(n: int) -> int:
-    r"""The padded length of `n` samples (or intervals): the smallest multiple of
-    $2^{\max(b - 2, 0)}$ at or above `n`, $b$ the bit length of $n - 1$ ($2^{b-1} < n \le 2^b$):
-    buckets 3 and 4 times $2^{b-2}$, two per doubling, at most a third of the padded rows masked
-    (the rule of `lieax.icp`'s cloud buckets with half as many buckets: IMU samples are cheap to
-    pad, compilations are not). Sizes up to 4 are their own bucket. E.g. 7, 8 → 8; 9…12 → 12;
-    13…16 → 16; 17…24 → 24; 190…200 → 192, 256."""
-    step = 1 << max((n - 1).bit_length() - 2, 0)
-    return -(-n // step) * step
 
 
 @jax.jit
