@@ -548,8 +548,12 @@ def test_factor_jacobians_batched_and_reverse():
             *rplus(one_args, unflatten_tangents(one_args, delta)), one_pim, PARAMS
         )
 
-    _, pullback = jax.vjp(f, jnp.zeros(tangent_dim(one_args)))
-    rows = jax.vmap(pullback)(jnp.eye(15))[0]
+    @jax.jit  # one program (op by op, the residual's operations compile one each)
+    def reverse_rows(at):
+        _, pullback = jax.vjp(f, at)
+        return jax.vmap(pullback)(jnp.eye(15))[0]
+
+    rows = reverse_rows(jnp.zeros(tangent_dim(one_args)))
     _, one = combined_closed_form(*one_args, one_pim, PARAMS)
     np.testing.assert_allclose(stacked(one), rows, rtol=0, atol=1e-12)
     rotating = PARAMS._replace(omega_coriolis=jnp.array([0.0, 0.0, 7.29e-5]))
