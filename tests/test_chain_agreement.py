@@ -33,7 +33,7 @@ CHAINS = 4
 
 
 @pytest.mark.parametrize("group", ["SO3", "SE3"])
-@pytest.mark.parametrize("length", [1, 4])
+@pytest.mark.parametrize("length", [1, 3])  # a first, an interior and a last element
 def test_chain_variants_agree(group, length):
     params, v = chain.chain_inputs(jax.random.PRNGKey(length), group, CHAINS, length)
     variants = chain.CHAIN_VARIANTS[group]

@@ -367,14 +367,17 @@ def test_differentiable_batched_and_not():
     def both(bias):
         return batched(PARAMS_ARM, bias, accel=accel, gyro=gyro, dt=dt).delta_p[1].sum()
 
-    expected = jax.grad(one)(jnp.asarray(BIAS))
+    # `one` and its gradient jitted (one program each, where op-by-op evaluation compiles a
+    # program per operation and per shift); `both`'s reverse mode eagerly and jitted
+    expected = jax.jit(jax.grad(one))(jnp.asarray(BIAS))
     h = 1e-6
+    one_jitted = jax.jit(one)
     differences = [
-        (one(jnp.asarray(BIAS) + h * e) - one(jnp.asarray(BIAS) - h * e)) / (2 * h)
+        (one_jitted(jnp.asarray(BIAS) + h * e) - one_jitted(jnp.asarray(BIAS) - h * e)) / (2 * h)
         for e in np.eye(6)
     ]
     np.testing.assert_allclose(expected, differences, rtol=1e-6, atol=1e-9)
-    for derivative in (jax.grad(both), jax.jacfwd(both), jax.jit(jax.grad(both))):
+    for derivative in (jax.grad(both), jax.jit(jax.jacfwd(both)), jax.jit(jax.grad(both))):
         np.testing.assert_allclose(derivative(jnp.asarray(BIAS)), expected, rtol=1e-12)
 
 
@@ -545,8 +548,12 @@ def test_factor_jacobians_batched_and_reverse():
             *rplus(one_args, unflatten_tangents(one_args, delta)), one_pim, PARAMS
         )
 
-    _, pullback = jax.vjp(f, jnp.zeros(tangent_dim(one_args)))
-    rows = jax.vmap(pullback)(jnp.eye(15))[0]
+    @jax.jit  # one program (op by op, the residual's operations compile one each)
+    def reverse_rows(at):
+        _, pullback = jax.vjp(f, at)
+        return jax.vmap(pullback)(jnp.eye(15))[0]
+
+    rows = reverse_rows(jnp.zeros(tangent_dim(one_args)))
     _, one = combined_closed_form(*one_args, one_pim, PARAMS)
     np.testing.assert_allclose(stacked(one), rows, rtol=0, atol=1e-12)
     rotating = PARAMS._replace(omega_coriolis=jnp.array([0.0, 0.0, 7.29e-5]))
