@@ -27,7 +27,8 @@ namespace {
 constexpr int64_t kParallelNeighbours = 32768;
 // Queries handed to a thread at a time (dynamic scheduling: query costs differ across a cloud).
 constexpr int64_t kChunk = 512;
-// A batch of builds of at least this many points in all spreads its trees over threads.
+// A batch of builds of at least this many points in all spreads its trees over threads, and a
+// tree's node of at least this many points its two subtrees.
 constexpr int64_t kParallelBuild = 65536;
 
 std::atomic<int> g_threads{0};  // lieax's thread setting (0: one per core)
@@ -128,9 +129,12 @@ class Builder {
         nodes_(nodes),
         bounds_(bounds) {}
 
-  // The tree of index[start, end) (inside the box lo, hi) from node `next_` on, in preorder.
-  // Returns the number of nodes used.
-  int64_t Build(int32_t start, int32_t end, const T* box_lo, const T* box_hi) {
+  // The tree of index[start, end) (inside the box lo, hi) from node `next_` on, in preorder, on
+  // up to `threads` threads: a node of at least kParallelBuild points builds its right subtree
+  // on another thread, into nodes of its own moved in after the left subtree's (the subtrees'
+  // index ranges are disjoint; a node's start and end are positions in `index`, not in the
+  // nodes). Returns the number of nodes used.
+  int64_t Build(int32_t start, int32_t end, const T* box_lo, const T* box_hi, int threads = 1) {
     const int64_t node = next_++;
     if (end - start <= leaf_) return Leaf(node, start, end);
     T lo[3], hi[3];
@@ -154,12 +158,37 @@ class Builder {
     T left_hi[3], right_lo[3];
     std::copy_n(hi, 3, left_hi), std::copy_n(lo, 3, right_lo);
     left_hi[dim] = low, right_lo[dim] = high;
-    Build(start, mid, lo, left_hi);
-    const int64_t right = next_;
-    Build(mid, end, right_lo, hi);
+    int64_t right;
+    if (threads > 1 && end - start >= kParallelBuild) {
+      const int64_t capacity = NodeCapacity(end - mid);
+      std::vector<int32_t> nodes(4 * capacity);
+      std::vector<T> bounds(2 * capacity);
+      Builder other(c_, index_, leaf_, nodes.data(), bounds.data());
+      std::thread worker([&] { other.Build(mid, end, right_lo, hi, threads / 2); });
+      Build(start, mid, lo, left_hi, threads - threads / 2);
+      worker.join();
+      right = next_;
+      next_ = other.MoveTo(nodes_, bounds_, right);
+    } else {
+      Build(start, mid, lo, left_hi);
+      right = next_;
+      Build(mid, end, right_lo, hi);
+    }
     int32_t* out = nodes_ + 4 * node;
     out[0] = start, out[1] = end, out[2] = dim, out[3] = static_cast<int32_t>(right);
     return next_;
+  }
+
+  // This builder's nodes moved to `nodes` and `bounds` from node `at` on (right children
+  // renumbered); returns the node after them.
+  int64_t MoveTo(int32_t* nodes, T* bounds, int64_t at) const {
+    for (int64_t i = 0; i < next_; ++i) {
+      std::copy_n(nodes_ + 4 * i, 3, nodes + 4 * (at + i));
+      const int32_t child = nodes_[4 * i + 3];
+      nodes[4 * (at + i) + 3] = child < 0 ? child : static_cast<int32_t>(child + at);
+    }
+    std::copy_n(bounds_, 2 * next_, bounds + 2 * at);
+    return at + next_;
   }
 
   // The bounding box of the points index[start, end).
@@ -223,7 +252,7 @@ class Builder {
 // nodes); unused nodes are zero, the rows past the valid ones hold inf.
 template <typename T>
 void BuildTree(const T* points, const bool* valid, int64_t n, int64_t leaf, int64_t capacity,
-               int32_t* order, T* tree_points, int32_t* nodes, T* bounds, T* box) {
+               int32_t* order, T* tree_points, int32_t* nodes, T* bounds, T* box, int threads) {
   std::vector<T> coordinates(3 * n);
   T* const split[3] = {coordinates.data(), coordinates.data() + n, coordinates.data() + 2 * n};
   std::vector<int32_t> rows, index;
@@ -244,7 +273,7 @@ void BuildTree(const T* points, const bool* valid, int64_t n, int64_t leaf, int6
   std::iota(index.begin(), index.end(), 0);
   Builder<T> builder(split, index.data(), leaf, nodes, bounds);
   builder.Bounds(0, count, box, box + 3);
-  const int64_t used = builder.Build(0, count, box, box + 3);
+  const int64_t used = builder.Build(0, count, box, box + 3, threads);
   std::fill(nodes + 4 * used, nodes + 4 * capacity, 0);
   std::fill(bounds + 2 * used, bounds + 2 * capacity, T(0));
   for (int32_t i = 0; i < count; ++i) {
@@ -373,6 +402,8 @@ ffi::Error BuildTyped(ffi::AnyBuffer points, ffi::Buffer<ffi::PRED> valid, int64
     return ffi::Error::InvalidArgument("the node arrays are too small for the points");
   const Batch batch(order->dimensions(), 1);
   const int threads = ThreadsFor(batch.size() * n, kParallelBuild);
+  const int count = static_cast<int>(std::min<int64_t>(threads, batch.size()));
+  const int per_tree = std::max(1, threads / count);  // one tree: its subtrees over the threads
   auto build = [&](int64_t b) {
     BuildTree<T>(static_cast<const T*>(points.untyped_data()) + batch.Offset(pd, 2, b) * 3 * n,
                  valid.typed_data() + batch.Offset(valid.dimensions(), 1, b) * n, n, leaf,
@@ -380,13 +411,12 @@ ffi::Error BuildTyped(ffi::AnyBuffer points, ffi::Buffer<ffi::PRED> valid, int64
                  static_cast<T*>(tree_points->untyped_data()) + b * 3 * n,
                  nodes->typed_data() + b * 4 * capacity,
                  static_cast<T*>(bounds->untyped_data()) + b * 2 * capacity,
-                 static_cast<T*>(box->untyped_data()) + b * 6);
+                 static_cast<T*>(box->untyped_data()) + b * 6, per_tree);
   };
   std::atomic<int64_t> next{0};
   auto work = [&] {
     for (int64_t b; (b = next.fetch_add(1)) < batch.size();) build(b);
   };
-  const int count = static_cast<int>(std::min<int64_t>(threads, batch.size()));
   std::vector<std::thread> pool;
   for (int t = 1; t < count; ++t) pool.emplace_back(work);
   work();
@@ -571,7 +601,7 @@ struct ScratchTrees {
                    valid.typed_data() + batch.Offset(valid.dimensions(), 1, b) * n, n, leaf,
                    capacity, order.data() + b * n, points.data() + b * 3 * n,
                    nodes.data() + b * 4 * capacity, bounds.data() + b * 2 * capacity,
-                   box.data() + b * 6);
+                   box.data() + b * 6, ThreadsFor(n, kParallelBuild));
     }
     for (int64_t b = 0; b < size; ++b)
       trees.push_back(Tree<T>{order.data() + b * n, points.data() + b * 3 * n,

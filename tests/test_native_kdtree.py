@@ -239,6 +239,29 @@ def test_the_thread_setting_reaches_the_library():
     assert library.LieaxThreads() == before == (lieax.get_threads() or 0)
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_a_tree_built_on_several_threads_is_the_tree_built_on_one(dtype):
+    """A large tree builds its subtrees on several threads (nodes of 65,536 points or more) into
+    exactly the arrays one thread builds (the same preorder numbering), its repeated points
+    and masked rows included; so do the neighbourhoods (k-NN) that build their own trees."""
+    import lieax
+
+    rng = np.random.default_rng(7)
+    points = _cloud(rng, 150_000, dtype, repeats=3000)
+    valid = rng.random(len(points)) > 0.05
+    build = jax.jit(_native_kdtree.build)
+    neighbours = jax.jit(_native_kdtree.neighbours, static_argnums=2)
+    with lieax.threads(1):
+        one = build(points, valid)
+        one_knn = neighbours(points, valid, 8)
+    with lieax.threads(4):  # more threads than cores: the split does not depend on them
+        several = build(points, valid)
+        several_knn = neighbours(points, valid, 8)
+    for a, b in zip(jax.tree.leaves(one), jax.tree.leaves(several)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    np.testing.assert_array_equal(np.asarray(one_knn), np.asarray(several_knn))
+
+
 CHILD = textwrap.dedent(
     """
     import sys, jax
