@@ -237,19 +237,14 @@ class FactorGraph:
 
     def _linearized_system(self, values, data):
         """The undamped normal equations `(diag, off, grad)` per kind of `layout` at `values`
-        (fixed instances masked), from the graph's latest compiled solve loop (the default one
-        when `solve` has not run) stopped after its first evaluation (`max_iterations` 0): the
-        program that solved the graph serves its marginals, with no compilation of their own.
-        A bucketed graph's loop holds the buckets' system: its own `linearize` (compiled per
-        structure) gives the graph's."""
-        if self._buckets is not None:
+        (fixed instances masked), from the graph's latest compiled solve loop stopped after its
+        first evaluation (`max_iterations` 0): the program that solved the graph serves its
+        marginals, with no compilation of their own. Before any `solve`, and for a bucketed
+        graph (whose loop holds the buckets' system), `linearize` gives them (one program of
+        the structure, smaller than a loop)."""
+        if self._buckets is not None or not self._prepared:
             return self.linearize(values, data)[1:]
-        if self._prepared:
-            loop = next(reversed(self._prepared.values()))[0]
-        else:
-            loop = self._loop(
-                GTSAM, "auto", "auto", GTSAM_TERMINATION.max_iterations, None, False, None
-            )[0]
+        loop = next(reversed(self._prepared.values()))[0]
         leaves = self._checked_leaves(values)
         params = self._parameters(
             GTSAM, GTSAM_TERMINATION, 1e-8, np.result_type(*(x.dtype for x in leaves))
