@@ -31,18 +31,11 @@ from _timing import machine_description, markdown_table
 from lieax import SE2
 from lieax.factorgraph import Factor, FactorGraph, Var
 from lieax.factorgraph._graph import GTSAM
+from lieax.graph import between_error, prior_error
 
 jax.config.update("jax_enable_x64", True)
 
 LANDMARKS = 40
-
-
-def between(a, b, z):
-    return z.between(a.between(b)).log()
-
-
-def prior(x, z):
-    return z.between(x).log()
 
 
 def sighting(x, landmark, z):
@@ -81,8 +74,8 @@ def window(data, n, buckets):
     start = points[used] + 0.3 * rng.normal(size=(len(used), 2))
     landmarks = Var(jnp.asarray(start), name="landmarks")
     factors = [
-        Factor(between, (poses[i], poses[j]), odometry, sigmas=[0.1, 0.1, 0.05], name="odo"),
-        Factor(prior, (poses[np.array([0])],), truth[:1], sigmas=[0.01] * 3, name="prior"),
+        Factor(between_error, (poses[i], poses[j]), odometry, sigmas=[0.1, 0.1, 0.05], name="odo"),
+        Factor(prior_error, (poses[np.array([0])],), truth[:1], sigmas=[0.01] * 3, name="prior"),
         Factor(sighting, (poses[pose_of], landmarks[seen_index]), observed, sigmas=[0.2, 0.2]),
     ]
     return FactorGraph(factors, [poses, landmarks], buckets=buckets)

@@ -14,6 +14,7 @@ from _compilations import _COMPILED
 from lieax import SE2
 from lieax.factorgraph import Factor, FactorGraph, Var, _graph, marginal_covariances
 from lieax.factorgraph._buckets import bucket_size
+from lieax.graph import between_error, prior_error
 from lieax.lstsq import Cauchy, Huber
 
 jax.config.update("jax_enable_x64", True)
@@ -22,14 +23,6 @@ jax.config.update("jax_enable_x64", True)
 # odometry 12, landmarks 4, the prior 1); 13 poses cross into the poses' next bucket (16)
 SIZES = (10, 11, 12, 13)
 LANDMARKS = 4
-
-
-def between(a, b, z):
-    return z.between(a.between(b)).log()
-
-
-def prior(x, z):
-    return z.between(x).log()
 
 
 def sighting(x, landmark, z):
@@ -54,9 +47,9 @@ def window(n, buckets, seed=0):
     poses = Var(start, fixed=[n // 2], name="poses")
     landmarks = Var(jnp.asarray(points + 0.2), name="landmarks")
     factors = [
-        Factor(between, (poses[i], poses[i + 1]), odometry, sqrt_information=roots,
+        Factor(between_error, (poses[i], poses[i + 1]), odometry, sqrt_information=roots,
                loss=Huber(0.5), name="odo"),
-        Factor(prior, (poses[np.array([0])],), truth[:1], sigmas=[0.01] * 3, name="prior"),
+        Factor(prior_error, (poses[np.array([0])],), truth[:1], sigmas=[0.01] * 3, name="prior"),
         Factor(sighting, (poses[np.arange(n)], landmarks[seen]), observed, sigmas=[0.2, 0.2],
                loss=Cauchy(1.0)),
     ]  # fmt: skip

@@ -19,8 +19,7 @@ def dense_solve(pattern, diag, off, rhs):
     (`_buckets`), sums of the blocks into place (`dense_matrix`)."""
     n, d = pattern.num_blocks, pattern.block_size
     if isinstance(pattern.rows, np.ndarray):
-        values = jnp.concatenate([diag.reshape(-1), off.reshape(-1), jnp.zeros(1, diag.dtype)])
-        matrix = values[_dense_index(pattern)]
+        matrix = gathered_matrix(pattern, diag, off)
     else:
         matrix = dense_matrix(pattern, diag, off)
 
@@ -30,6 +29,14 @@ def dense_solve(pattern, diag, off, rhs):
         return jax.scipy.linalg.cho_solve((factor, True), b)
 
     return solve((matrix, rhs.reshape(n * d))).reshape(n, d)
+
+
+def gathered_matrix(pattern, diag, off, xp=jnp):
+    """The dense `(n d, n d)` matrix of a host `pattern`'s blocks, one gather from
+    `[diag, off, 0]` (`_dense_index`), in the array namespace `xp` (`jax.numpy` inside the solve,
+    `numpy` for `marginal_covariances`, which compile nothing)."""
+    values = xp.concatenate([diag.reshape(-1), off.reshape(-1), xp.zeros(1, diag.dtype)])
+    return values[_dense_index(pattern)]
 
 
 def dense_threads(pattern):
@@ -60,4 +67,4 @@ def _dense_index(pattern):
     return index
 
 
-__all__ = ["dense_solve", "dense_threads"]
+__all__ = ["dense_solve", "dense_threads", "gathered_matrix"]

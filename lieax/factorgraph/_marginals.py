@@ -14,6 +14,7 @@ import numpy as np
 from jax.typing import ArrayLike
 
 from .._typing import PyTree
+from ._dense_solve import gathered_matrix
 from ._graph import FactorGraph
 from ._variables import Var
 
@@ -60,7 +61,7 @@ def marginal_covariances(
     D, d = layout.block_size, layout.dims[k]
     blocks = layout.offsets[k] + indices
     if method == "dense":
-        inverse = np.linalg.inv(_dense(layout.pattern, diag, off))
+        inverse = np.linalg.inv(gathered_matrix(layout.pattern, diag, off, np))
         rows = blocks[:, None] * D + np.arange(d)[None, :]
         result = inverse[rows[:, :, None], rows[:, None, :]]
     else:
@@ -91,14 +92,3 @@ def padded_blocks(layout, diag, off):
         da, db = layout.dims[key[0]], layout.dims[key[1]]
         padded_off[layout.slots[key], :da, :db] = np.asarray(block)
     return padded_diag, padded_off
-
-
-def _dense(pattern, diag, off):
-    """The dense `(n D, n D)` matrix of padded blocks, in NumPy (`_block_pattern.dense_matrix` is
-    its JAX twin, for compiled programs: here, nothing is compiled)."""
-    n, d = pattern.num_blocks, pattern.block_size
-    blocks = np.zeros((n, n, d, d), diag.dtype)
-    blocks[np.arange(n), np.arange(n)] = diag
-    blocks[pattern.rows, pattern.cols] = off
-    blocks[pattern.cols, pattern.rows] = np.swapaxes(off, -1, -2)
-    return blocks.transpose(0, 2, 1, 3).reshape(n * d, n * d)
