@@ -5,6 +5,8 @@ import pathlib
 
 import jax
 
+from . import _executable_store as executable_store
+
 
 def default_cache_dir() -> pathlib.Path:
     """`$XDG_CACHE_HOME/lieax/jax`, or `~/.cache/lieax/jax` where `XDG_CACHE_HOME` is unset."""
@@ -61,4 +63,5 @@ def enable_compilation_cache(path: str | os.PathLike[str] | None = None) -> path
     from jax.experimental.compilation_cache import compilation_cache
 
     compilation_cache.reset_cache()  # a cache already opened (or found off) takes the new path
+    executable_store.enable(path / "lieax-programs")
     return path

@@ -34,8 +34,8 @@ traced values, or made while a program is being staged, runs a plain `jax.jit`.
 import functools
 
 import jax
-import numpy as np
-from jax._src import core as jax_core
+
+from . import _executable_store as executable_store
 
 CLASSIC_CPU_EMITTERS = {"xla_cpu_use_fusion_emitters": False}
 
@@ -49,21 +49,29 @@ def known() -> bool:
     return not _REFUSED.intersection(CLASSIC_CPU_EMITTERS)
 
 
-def jit(fun=None, **jit_options):
+def jit(fun=None, *, fingerprint=None, **jit_options):
     """`jax.jit(fun, **jit_options)` with `CLASSIC_CPU_EMITTERS` where this XLA knows them (as a
-    decorator too, with or without arguments). The result's `_cache_size()` counts the
-    compilations of both variants (the tests count recompilation)."""
+    decorator too, with or without arguments), its programs kept by `lieax._executable_store`
+    while that is on (`fingerprint()` names what `fun` closes over, see
+    `_executable_store.Programs`). The result's `_cache_size()` counts the compilations of both
+    variants and the store's (the tests count recompilation)."""
     if fun is None:
-        return functools.partial(jit, **jit_options)
+        return functools.partial(jit, fingerprint=fingerprint, **jit_options)
     classic = jax.jit(fun, compiler_options=CLASSIC_CPU_EMITTERS, **jit_options)
     default = jax.jit(fun, **jit_options)
+    stored = executable_store.Programs(
+        classic, fun, dict(jit_options, compiler_options=CLASSIC_CPU_EMITTERS), fingerprint
+    )
     refusals = []
 
     @functools.wraps(fun)
     def call(*args, **kwargs):
-        if _traced(args, kwargs) or not known():
+        if executable_store.traced(args, kwargs) or not known():
             return default(*args, **kwargs)
         try:
+            program = stored.get(args, kwargs)
+            if program is not None:
+                return program(*args, **stored.dynamic(kwargs))
             return classic(*args, **kwargs)
         except jax.errors.JaxRuntimeError as error:  # raised by the compilation, before any run
             refused = {o for o in CLASSIC_CPU_EMITTERS if f"compile option: '{o}'" in str(error)}
@@ -74,19 +82,7 @@ def jit(fun=None, **jit_options):
             return default(*args, **kwargs)
 
     # (JAX keeps an entry for the refused compilation too: not a program)
-    call._cache_size = lambda: classic._cache_size() - len(refusals) + default._cache_size()
+    call._cache_size = lambda: (
+        classic._cache_size() - len(refusals) + default._cache_size() + stored.compiled
+    )
     return call
-
-
-def _traced(args, kwargs) -> bool:
-    """Whether a call on `args` and `kwargs` is transformed or staged: an argument is traced, or a
-    program is being staged (JAX's trace state is not clean: `jax._src.core.trace_state_clean`;
-    where this JAX lacks it, JAX stages every operation then, one on a constant too, which
-    outside staging runs, compiling one small program)."""
-    tracer = jax.core.Tracer
-    if any(isinstance(leaf, tracer) for leaf in jax.tree.leaves((args, kwargs))):
-        return True
-    clean = getattr(jax_core, "trace_state_clean", None)
-    if clean is not None:
-        return not clean()
-    return isinstance(jax.lax.neg(np.float32(0)), tracer)  # pragma: no cover - older JAX

@@ -18,6 +18,7 @@ import os
 
 import jax
 
+from . import _executable_store as executable_store
 from . import _threads
 
 # handler symbol in the library -> name of the custom-call target registered with JAX
@@ -48,6 +49,9 @@ def library():
     lib.LieaxSetThreads.argtypes = [ctypes.c_int]
     _threads.on_change(lambda threads: lib.LieaxSetThreads(threads or 0))  # the k-d tree's cap
     return lib
+
+
+executable_store.before_loading("lieax_", library)  # a stored program's targets, registered
 
 
 def available() -> bool:

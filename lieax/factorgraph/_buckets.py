@@ -105,6 +105,7 @@ class Buckets:
                 "none (padded instances repeat instance 0)."
             )
         self.variables, self.factors = graph.variables, graph.factors
+        self.factor_traces = graph.factor_traces  # for `_fingerprint`
         self.dims, self.real_counts = layout.dims, layout.counts
         self.counts = tuple(bucket_size(n) for n in layout.counts)
         self.keys = tuple(layout.pairs)

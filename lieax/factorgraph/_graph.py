@@ -132,7 +132,9 @@ class FactorGraph:
         self.factors = factors
         self.variables = variables
         shapes = {}  # kinds with one residual and the same argument shapes are traced once
-        self.residual_dims = tuple(_check_factor(f, shapes) for f in factors)
+        checked = [_check_factor(f, shapes) for f in factors]
+        self.residual_dims = tuple(k for k, _ in checked)
+        self.factor_traces = tuple(trace for _, trace in checked)  # for `_fingerprint`
         # the directions each unary factor constrains (the gauge check counts them)
         unary = (
             {k: constrained_directions(f) for k, f in enumerate(factors) if len(f.vars) == 1}
@@ -165,6 +167,7 @@ class FactorGraph:
                 _CACHE.pop(next(iter(_CACHE)))
             _CACHE[key] = cached
         self.layout, self.plans, self._schur, self._loops = cached
+        self._structure_key = key
         self._buckets = Buckets(self) if buckets else None
         self._cost = self._linearize = self._implicit = self._default_data = None
         self._programs = {}  # other compiled programs of this graph, by name and form
@@ -730,12 +733,13 @@ def _argument_types(f, xs, data):
 
 
 def _check_factor(f, shapes):
-    """The residual dimension `k` of factor kind `f` (also kept as `f.residual_size`), its
-    shapes checked by `jax.eval_shape` (nothing is compiled) of the residual, or of the
-    `jacobian_fn` when it has one (autodiff blocks are `(k, tangent_dim)` by construction; the
-    linearization's trace cost 0.3-0.7 s a kind); `shapes` keeps the shapes by residual,
-    `jacobian_fn` and argument shapes, for the kinds that share them. `ValueError`s name the
-    factor kind."""
+    """`(k, trace)`: the residual dimension `k` of factor kind `f` (also kept as
+    `f.residual_size`), its shapes checked by `jax.make_jaxpr` (nothing is compiled) of the
+    residual, or of the `jacobian_fn` when it has one (autodiff blocks are `(k, tangent_dim)` by
+    construction; the linearization's trace cost 0.3-0.7 s a kind), and `trace`, `(xs, data,
+    jaxpr)`: the shapes of one instance's arguments and that jaxpr (`_fingerprint` reads it);
+    `shapes` keeps them by residual, `jacobian_fn` and argument shapes, for the kinds that share
+    them. `ValueError`s name the factor kind."""
     m = f.count
     dtype = variables_dtype(f.vars)
     for path, leaf in jax.tree_util.tree_leaves_with_path(f.data):
@@ -780,12 +784,16 @@ def _check_factor(f, shapes):
         key, found = None, None
     try:
         if found is not None:
-            out, blocks = found
+            out, blocks, jaxpr = found
         elif f.jacobian_fn is None:
-            out = jax.eval_shape(lambda xs, d: residual_one(f, xs, d), xs, one)
+            jaxpr, out = jax.make_jaxpr(
+                lambda xs, d: residual_one(f, xs, d), return_shape=True
+            )(xs, one)
             blocks = None
         else:
-            out, blocks = jax.eval_shape(lambda xs, d: linearize_one(f, xs, d), xs, one)
+            jaxpr, (out, blocks) = jax.make_jaxpr(
+                lambda xs, d: linearize_one(f, xs, d), return_shape=True
+            )(xs, one)
     except (TypeError, ValueError) as error:
         raise ValueError(
             f"factor kind {f.name!r}: its residual cannot be evaluated on one instance of its "
@@ -807,7 +815,7 @@ def _check_factor(f, shapes):
             f"factor kind {f.name!r}: the residual must be a vector (k,), got shape {out.shape}."
         )
     if key is not None:
-        shapes[key] = out, blocks
+        shapes[key] = out, blocks, jaxpr
     k = out.shape[0]
     f.residual_size = k
     for s, (block, var) in enumerate(zip(blocks or (), f.vars)):
@@ -833,7 +841,7 @@ def _check_factor(f, shapes):
                     "finite or is all zero (a rank-deficient R constrains only some directions; "
                     "a zero R constrains none: drop the instance)."
                 )
-    return k
+    return k, (xs, one, jaxpr)
 
 
 def constrained_directions(f):

@@ -28,6 +28,7 @@ import weakref
 import jax
 import numpy as np
 
+from .. import _executable_store as executable_store
 from .. import _native, _threads
 
 TARGET = "lieax_cholesky_solve"
@@ -49,6 +50,10 @@ def _initialized():
     `cython_blas` / `cython_lapack` export, as jaxlib takes its own), or None; once."""
     with _INIT_LOCK:
         return _initialize()
+
+
+# a stored program that calls the library (`lieax._executable_store`) needs its BLAS pointers
+executable_store.before_loading("lieax_cholesky", _initialized)
 
 
 @functools.cache

@@ -78,6 +78,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from .. import _cpu_emitters as cpu_emitters
+from ._fingerprint import loop_fingerprint
 from ..autodiff._tangents import manifold_leaves, rplus
 from ..groups import AbstractGroup
 from ..lstsq import GaussNewton, LevenbergMarquardt, Status, _iteration
@@ -233,7 +234,7 @@ def make_loop(graph, options):
         scalars = jnp.stack([cost, lam, *(a.astype(dtype) for a in (iterations, solves, status))])
         return values, jnp.concatenate([scalars, history]), system
 
-    return cpu_emitters.jit(loop)
+    return cpu_emitters.jit(loop, fingerprint=lambda: loop_fingerprint(graph, options))
 
 
 class _Phases:

@@ -11,6 +11,7 @@ import jax
 import numpy as np
 from jax.typing import ArrayLike
 
+from .. import _executable_store as executable_store
 from .._bucket_sizes import bucket_size
 from ._combined import preintegrate_combined
 from ._params import BiasRandomWalk, ImuError, ImuParams
@@ -18,7 +19,7 @@ from ._preintegrated import Preintegrated
 from ._sequential import preintegrate
 
 
-@jax.jit
+@executable_store.jit
 def _batched(params, bias, accel, gyro, dt, mask):
     def one(b, a, g, d, m):
         return preintegrate(params, b, accel=a, gyro=g, dt=d, mask=m)
@@ -26,7 +27,7 @@ def _batched(params, bias, accel, gyro, dt, mask):
     return jax.vmap(one)(bias, accel, gyro, dt, mask)
 
 
-@jax.jit
+@executable_store.jit
 def _batched_combined(params, walk, bias, accel, gyro, dt, mask):
     def one(b, a, g, d, m):
         return preintegrate_combined(params, walk, b, accel=a, gyro=g, dt=d, mask=m)

@@ -1,0 +1,391 @@
+"""lieax's store of compiled programs: a second process runs a solver's compiled loop with no
+trace, lowering or compilation (issue 30).
+
+JAX's persistent compilation cache keys a program by its lowered module, so a process that finds
+a program there has traced and lowered it first: 0.3-1.3 s for a factor graph's loop, more than
+its warm solve. This store keys a compiled program by what determines it, known without a trace:
+
+- the environment: lieax's sources and native library (a digest of their bytes), the versions of
+  JAX and jaxlib, the device, the CPU's features, `XLA_FLAGS` and every JAX option (64-bit mode
+  included);
+- the program: its function's module and name, its compile options, a `fingerprint` of what it
+  closes over (`describe` of the static arguments by default: plain values and lieax's own
+  functions and classes, whose code the source digest covers), and the arguments' tree and
+  shapes, dtypes and weak types.
+
+A factor graph's loop closes over the user's residual functions: their fingerprint is the jaxpr
+of one instance (`jaxpr_fingerprint`: the printed program and its constants' bytes), which fixes
+everything the loop traces from them, since the loop differentiates and batches that same
+computation. A jaxpr that holds a Python callback or a custom derivative rule written outside
+lieax (whose body the printed jaxpr does not show) is not described: that program is not stored,
+only compiled as usual (JAX's own cache still applies). A call on other than concrete
+single-device arrays is not stored either.
+
+The store is on only after `enable` (`lieax.enable_compilation_cache` turns it on in
+`<cache dir>/lieax-programs`). It is trusted like JAX's cache: loading a file runs its code.
+A file that fails to load is compiled again and replaced. A loaded program needs the runtime
+that the lowering would have prepared: jaxlib's LAPACK kernels and lieax's native library
+(`before_loading`, by the custom-call targets the program calls), else it crashes.
+
+Formats: one file per key, `<sha256>.bin`, the pickle of `(prefixes, serialized)`: the
+`before_loading` target prefixes it needs and `jax.experimental.serialize_executable.serialize`
+of the program; files are written whole (a temporary file,
+then a rename), so that processes sharing the directory never read half a file.
+"""
+
+import enum
+import functools
+import hashlib
+import os
+import pathlib
+import pickle
+import platform
+import re
+import tempfile
+import types
+
+import jax
+import numpy as np
+from jax.experimental import serialize_executable
+from jax._src import core as jax_internals
+from jax.extend import core as jax_core
+
+_PACKAGE = pathlib.Path(__file__).resolve().parent
+_CALLBACKS = {"pure_callback", "io_callback", "debug_callback", "debug_print"}
+_FUNCTIONS = (types.FunctionType, types.MethodType, types.BuiltinFunctionType, functools.partial)
+_directory = None  # the store's directory while it is on
+_preparations = {}  # custom-call target prefix -> what a loaded program needs first
+
+
+class Undescribable(Exception):
+    """Something a program depends on that `describe` cannot name across processes."""
+
+
+def enable(path: str | os.PathLike[str]) -> pathlib.Path:
+    """Turns the store on in directory `path` (created if missing); returns it."""
+    global _directory
+    path = pathlib.Path(path).expanduser()
+    path.mkdir(parents=True, exist_ok=True)
+    _directory = path
+    return path
+
+
+def disable() -> None:
+    """Turns the store off (programs already loaded stay in use)."""
+    global _directory
+    _directory = None
+
+
+def directory() -> pathlib.Path | None:
+    """The store's directory, or None while it is off."""
+    return _directory
+
+
+def before_loading(target_prefix: str, prepare) -> None:
+    """Registers `prepare()`, called before a program that calls a custom-call target whose name
+    starts with `target_prefix` is loaded from the store: the runtime that the program's lowering
+    would have prepared (a native library's registration, its BLAS pointers)."""
+    _preparations[target_prefix] = prepare
+
+
+def jit(fun=None, *, fingerprint=None, **jit_options):
+    """`jax.jit(fun, **jit_options)` whose compiled programs the store keeps while it is on (as
+    a decorator too); a call on traced values, or while a program is staged, runs the plain
+    `jax.jit`. `fingerprint` as `Programs` takes it."""
+    if fun is None:
+        return functools.partial(jit, fingerprint=fingerprint, **jit_options)
+    jitted = jax.jit(fun, **jit_options)
+    stored = Programs(jitted, fun, jit_options, fingerprint)
+
+    @functools.wraps(fun)
+    def call(*args, **kwargs):
+        program = None if traced(args, kwargs) else stored.get(args, kwargs)
+        if program is None:
+            return jitted(*args, **kwargs)
+        return program(*args, **stored.dynamic(kwargs))
+
+    call._cache_size = lambda: jitted._cache_size() + stored.compiled
+    return call
+
+
+def traced(args, kwargs) -> bool:
+    """Whether a call on `args` and `kwargs` is transformed or staged: an argument is traced, or a
+    program is being staged (JAX's trace state is not clean: `jax._src.core.trace_state_clean`;
+    where this JAX lacks it, JAX stages every operation then, one on a constant too, which
+    outside staging runs, compiling one small program)."""
+    tracer = jax.core.Tracer
+    if any(isinstance(leaf, tracer) for leaf in jax.tree.leaves((args, kwargs))):
+        return True
+    clean = getattr(jax_internals, "trace_state_clean", None)
+    if clean is not None:
+        return not clean()
+    return isinstance(jax.lax.neg(np.float32(0)), tracer)  # pragma: no cover - older JAX
+
+
+# ---- descriptions: stable across processes, or `Undescribable` ---------------------------------
+
+
+def lieax_code(obj) -> bool:
+    """Whether function or class `obj` is defined in lieax (its code is in the source digest)."""
+    module = getattr(obj, "__module__", None) or ""
+    return module == "lieax" or module.startswith("lieax.")
+
+
+def describe(obj) -> str:
+    """A text that names `obj` the same way in every process: plain values, containers of them,
+    NumPy arrays (by a digest of their bytes), enums, and lieax's functions (with what their
+    closures hold), classes and objects. `Undescribable` for anything else."""
+    if obj is None or isinstance(obj, (bool, int, float, complex, str, bytes)):
+        return f"{type(obj).__name__}:{obj!r}"
+    if isinstance(obj, enum.Enum):
+        return f"{describe(type(obj))}.{obj.name}"
+    if isinstance(obj, jax.Array) and not isinstance(obj, jax.core.Tracer):
+        obj = np.asarray(obj)
+    if isinstance(obj, (np.ndarray, np.generic)):
+        array = np.ascontiguousarray(obj)
+        return f"array:{array.dtype.str}{array.shape}:{hashlib.sha256(array.data).hexdigest()}"
+    if isinstance(obj, type):
+        if lieax_code(obj) or obj.__module__ == "builtins":
+            return f"class:{obj.__module__}.{obj.__qualname__}"
+        raise Undescribable(f"class {obj.__module__}.{obj.__qualname__}")
+    if isinstance(obj, functools.partial):
+        return f"partial({describe(obj.func)},{describe(obj.args)},{describe(obj.keywords)})"
+    if isinstance(obj, types.FunctionType):
+        if not lieax_code(obj):
+            raise Undescribable(f"function {obj.__module__}.{obj.__qualname__}")
+        cells = tuple(c.cell_contents for c in obj.__closure__ or ())
+        parts = (obj.__defaults__, obj.__kwdefaults__, cells)
+        return f"function:{obj.__module__}.{obj.__qualname__}{describe(parts)}"
+    if isinstance(obj, dict):
+        items = sorted((describe(k), describe(v)) for k, v in obj.items())
+        return "{" + ",".join(f"{k}:{v}" for k, v in items) + "}"
+    if isinstance(obj, (set, frozenset)):
+        return f"{describe(type(obj))}(" + ",".join(sorted(map(describe, obj))) + ")"
+    if isinstance(obj, (tuple, list)):
+        return f"{describe(type(obj))}(" + ",".join(map(describe, obj)) + ")"
+    if lieax_code(type(obj)):
+        slots = [s for c in type(obj).__mro__ for s in getattr(c, "__slots__", ())]
+        fields = dict(getattr(obj, "__dict__", {}), **{s: getattr(obj, s) for s in slots})
+        return f"{describe(type(obj))}{describe(fields)}"
+    raise Undescribable(f"{type(obj).__module__}.{type(obj).__qualname__} object")
+
+
+def stable_repr(obj) -> str:
+    """`repr(obj)`, `Undescribable` where it shows an address (an object named by where it lives,
+    not by what it is)."""
+    text = repr(obj)
+    found = re.search(r"<[^<>]* at 0x[0-9a-fA-F]+>", text)
+    if found:
+        raise Undescribable(found.group())
+    return text
+
+
+def jaxpr_fingerprint(closed_jaxpr) -> str:
+    """What `closed_jaxpr` computes, named across processes: its printed program and a digest of
+    its constants. `Undescribable` where the print leaves something out: a Python callback, or a
+    parameter that is a function defined outside lieax (a custom derivative rule's body)."""
+    _check_parameters(closed_jaxpr.jaxpr)
+    digest = hashlib.sha256(str(closed_jaxpr.jaxpr).encode())
+    for const in closed_jaxpr.consts:
+        digest.update(describe(np.asarray(const)).encode())
+    return "jaxpr:" + digest.hexdigest()
+
+
+def _check_parameters(jaxpr):
+    for eqn in jaxpr.eqns:
+        if eqn.primitive.name in _CALLBACKS:
+            raise Undescribable(f"a {eqn.primitive.name}")
+        for value in eqn.params.values():
+            _check_parameter(value)
+
+
+def _check_parameter(value):
+    if isinstance(value, jax_core.ClosedJaxpr):
+        _check_parameters(value.jaxpr)
+    elif isinstance(value, jax_core.Jaxpr):
+        _check_parameters(value)
+    elif isinstance(value, (tuple, list)):
+        for item in value:
+            _check_parameter(item)
+    elif isinstance(value, _FUNCTIONS) or hasattr(value, "debug_info"):
+        source = getattr(getattr(value, "debug_info", None), "func_src_info", None) or ""
+        path = source.rpartition(" at ")[2].rpartition(":")[0]
+        inside = path and pathlib.Path(path).resolve().is_relative_to(_PACKAGE)
+        if not (inside or lieax_code(value)):
+            raise Undescribable(f"a parameter {source or value!r}")
+    elif callable(value) and not isinstance(value, type):
+        stable_repr(value)  # an object that computes (a mesh, a callback): named by its repr
+
+
+# ---- the environment: what every key shares ---------------------------------------------------
+
+
+@functools.cache
+def _environment() -> str:
+    digest = hashlib.sha256()
+    for path in sorted(_PACKAGE.rglob("*")):
+        if path.suffix in (".py", ".so", ".pyd") and "__pycache__" not in path.parts:
+            digest.update(str(path.relative_to(_PACKAGE)).encode())
+            digest.update(path.read_bytes())
+    device = jax.devices()[0]
+    flags = ""
+    if os.path.exists("/proc/cpuinfo"):
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as file:
+            flags = next((line for line in file if line.startswith("flags")), "")
+    parts = (
+        digest.hexdigest(),
+        jax.__version__,
+        jax.lib.__version__,
+        device.platform,
+        device.device_kind,
+        device.client.platform_version,
+        platform.machine(),
+        flags,
+        os.environ.get("XLA_FLAGS", ""),
+    )
+    return repr(parts)
+
+
+def _options() -> str:
+    """JAX's options (what lowering reads), but the cache's own."""
+    values = jax.config.values
+    skip = ("compilation_cache", "persistent_cache", "log", "explain")
+    return repr(sorted((k, repr(v)) for k, v in values.items() if not any(s in k for s in skip)))
+
+
+# ---- the programs of one jitted function -------------------------------------------------------
+
+
+class Programs:
+    """The compiled programs of `jitted` (a `jax.jit` of `fun`) that the store serves, by call
+    signature. `fingerprint()` names what `fun` closes over (default: `describe` of the static
+    arguments, and `fun` is then named by its module and name, which needs it to close over
+    nothing)."""
+
+    def __init__(self, jitted, fun, jit_options, fingerprint=None):
+        self.jitted = jitted
+        self.fun = fun
+        self.static = tuple(jit_options.get("static_argnames", ()))
+        self.options = describe({k: v for k, v in jit_options.items() if k != "static_argnames"})
+        self.fingerprint = fingerprint
+        self.found = {}  # signature -> compiled program, or None where not stored
+        self.compiled = 0  # programs this process compiled (not loaded)
+
+    def dynamic(self, kwargs):
+        """`kwargs` less the static arguments (what the compiled program takes)."""
+        return {k: v for k, v in kwargs.items() if k not in self.static}
+
+    def get(self, args, kwargs):
+        """The compiled program for a call on `args` and `kwargs` (concrete), from memory, the
+        store, or compiled and stored; None while the store is off or the call is not stored."""
+        if _directory is None:
+            return None
+        static = tuple(sorted((k, v) for k, v in kwargs.items() if k in self.static))
+        leaves, treedef = jax.tree_util.tree_flatten((args, self.dynamic(kwargs)))
+        avals = _avals(leaves)
+        if avals is None:
+            return None
+        signature = (static, treedef, avals)
+        try:
+            return self.found[signature]
+        except KeyError:
+            pass
+        except TypeError:  # an unhashable static argument: JAX's jit refuses it itself
+            return None
+        try:
+            key = self._key(static, treedef, avals)
+        except (Undescribable, RecursionError):
+            key = None
+        program = None if key is None else self._load_or_compile(key, args, kwargs)
+        self.found[signature] = program
+        return program
+
+    def _key(self, static, treedef, avals):
+        _check_nodes(treedef)
+        closure = self.fun.__closure__ if isinstance(self.fun, types.FunctionType) else None
+        if self.fingerprint is not None:
+            program = self.fingerprint()
+        elif closure:
+            raise Undescribable(f"{self.fun.__qualname__} closes over values")
+        else:
+            program = describe(static)
+        parts = (
+            _environment(),
+            _options(),
+            f"{self.fun.__module__}.{self.fun.__qualname__}",
+            self.options,
+            program,
+            str(treedef),
+            repr(avals),
+        )
+        return hashlib.sha256(repr(parts).encode()).hexdigest()
+
+    def _load_or_compile(self, key, args, kwargs):
+        path = _directory / f"{key}.bin"
+        if path.exists():
+            try:
+                with open(path, "rb") as file:
+                    needs, serialized = pickle.load(file)
+                for prefix in needs:
+                    _preparations[prefix]()
+                return serialize_executable.deserialize_and_load(*serialized)
+            except Exception:  # noqa: BLE001 - a damaged or foreign file: compiled again below
+                pass
+        compiled = self.jitted.lower(*args, **kwargs).compile()
+        self.compiled += 1
+        unloaded = getattr(compiled._executable, "_unloaded_executable", None)
+        if unloaded is None or unloaded.host_callbacks:
+            return compiled  # kept in memory; a Python callback cannot be stored
+        try:
+            serialized = serialize_executable.serialize(compiled)
+            # the targets' names are in the executable's bytes
+            needs = [prefix for prefix in _preparations if prefix.encode() in serialized[0]]
+            payload = pickle.dumps((needs, serialized))
+            with tempfile.NamedTemporaryFile(dir=_directory, delete=False) as file:
+                file.write(payload)
+            os.replace(file.name, path)
+        except (OSError, ValueError, NotImplementedError, pickle.PicklingError):
+            pass  # an unwritable directory or an unserializable program: not stored
+        return compiled
+
+
+def _avals(leaves):
+    """`(shape, dtype, weak_type)` of each leaf, or None when one is not a concrete array on the
+    default device (a traced, sharded or committed-elsewhere value: not stored)."""
+    device = jax.devices()[0]
+    avals = []
+    for leaf in leaves:
+        if isinstance(leaf, jax.Array):
+            if isinstance(leaf, jax.core.Tracer) or leaf.devices() != {device}:
+                return None
+            avals.append((leaf.shape, leaf.dtype.str, leaf.weak_type))
+        elif isinstance(leaf, (np.ndarray, np.generic)):
+            avals.append((leaf.shape, leaf.dtype.str, False))
+        elif isinstance(leaf, (bool, int, float, complex)):
+            avals.append(((), type(leaf).__name__, True))
+        else:
+            return None
+    return tuple(avals)
+
+
+def _check_nodes(treedef):
+    """`Undescribable` unless every node type of `treedef` is a builtin or lieax's (a node type's
+    flattening is code the key must cover)."""
+    data = treedef.node_data()
+    if data is not None:
+        kind = data[0]
+        if not (kind.__module__ == "builtins" or lieax_code(kind)):
+            raise Undescribable(f"pytree node {kind.__module__}.{kind.__qualname__}")
+    for child in treedef.children():
+        _check_nodes(child)
+
+
+def _initialize_lapack():
+    """jaxlib's LAPACK kernels (their function pointers), set when a program using them is
+    lowered: a program loaded without lowering needs them set first."""
+    from jax._src.lax import linalg
+
+    linalg.initialize_lapack()
+
+
+before_loading("lapack_", _initialize_lapack)

@@ -1,0 +1,156 @@
+"""`lieax._executable_store`: what names a program across processes, and a second process that
+loads a factor graph's loop and ICP's instead of tracing and compiling them (issue 30)."""
+
+import textwrap
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from _child import child_output
+
+from lieax import SE2, _executable_store
+from lieax._executable_store import Undescribable, describe, jaxpr_fingerprint
+from lieax.factorgraph import Factor, FactorGraph, Var
+from lieax.factorgraph._fingerprint import loop_fingerprint
+from lieax.lstsq import Huber
+
+
+def _jaxpr(fun, *args):
+    return jaxpr_fingerprint(jax.make_jaxpr(fun)(*args))
+
+
+def test_describe_names_plain_values_arrays_and_lieax_code():
+    assert describe((1, 2.5, "a", None)) == describe((1, 2.5, "a", None))
+    assert describe((1, 2)) != describe([1, 2]) != describe((1.0, 2))
+    assert describe({"b": 1, "a": 2}) == describe({"a": 2, "b": 1})
+    a = np.arange(6.0).reshape(2, 3)
+    assert describe(a) == describe(a.copy()) == describe(jnp.asarray(a))
+    assert describe(a) != describe(a.T) != describe(a.astype(np.float32))
+    b = a.copy()
+    b[1, 2] += 1e-12
+    assert describe(a) != describe(b)  # by the bytes, not a rounded print
+    assert describe(Huber(1.0)) != describe(Huber(2.0))
+    assert describe(SE2.between).startswith("function:lieax.")
+
+
+@pytest.mark.parametrize(
+    "value",
+    [lambda x: x, object(), type("Local", (), {}), np.frompyfunc(abs, 1, 1)],
+    ids=["user function", "object", "user class", "ufunc"],
+)
+def test_describe_refuses_what_it_cannot_name(value):
+    with pytest.raises(Undescribable):
+        describe(value)
+
+
+def test_stable_repr_refuses_addresses():
+    assert _executable_store.stable_repr((1, "x")) == "(1, 'x')"
+    with pytest.raises(Undescribable):
+        _executable_store.stable_repr((1, object()))
+
+
+def test_jaxpr_fingerprint_follows_the_computation_and_its_constants():
+    x = jnp.ones(3)
+    assert _jaxpr(lambda x: x * 2.0, x) == _jaxpr(lambda y: y * 2.0, x)
+    assert _jaxpr(lambda x: x * 2.0, x) != _jaxpr(lambda x: x * 2.5, x)
+    assert _jaxpr(lambda x: x * 2.0, x) != _jaxpr(lambda x: x * 2.0, jnp.ones(4))
+    c, d = np.arange(3.0), np.arange(3.0) + 1e-15
+    assert _jaxpr(lambda x: x + c, x) != _jaxpr(lambda x: x + d, x)  # a captured array
+    # the groups' derivative rules are lieax's: named by the source digest
+    _jaxpr(lambda x: SE2.exp(x).log(), x)
+
+
+def test_jaxpr_fingerprint_refuses_callbacks_and_foreign_derivative_rules():
+    x = jnp.ones(3)
+    callback = lambda x: jax.pure_callback(np.sin, jax.ShapeDtypeStruct(x.shape, x.dtype), x)
+    with pytest.raises(Undescribable):
+        _jaxpr(callback, x)
+
+    @jax.custom_jvp
+    def f(x):
+        return jnp.sin(x)
+
+    f.defjvp(lambda primals, tangents: (f(*primals), 2.0 * tangents[0]))  # its body is unseen
+    with pytest.raises(Undescribable):
+        _jaxpr(f, x)
+
+
+def _graph(offset, loss=None):
+    rng = np.random.default_rng(0)
+    poses = Var(SE2.exp(0.1 * rng.normal(size=(6, 3))), name="poses")
+    anchor = lambda x: x.rminus(SE2.from_xy_theta(offset, 0.0, 0.0))
+    between = lambda a, b, z: a.between(b).rminus(z)
+    z = SE2.exp(0.1 * rng.normal(size=(5, 3)))
+    return FactorGraph(
+        [
+            Factor(anchor, (poses[[0]],), name="anchor"),
+            Factor(between, (poses[np.arange(5)], poses[np.arange(1, 6)]), z, loss=loss),
+        ]
+    )
+
+
+def test_a_loop_fingerprint_names_the_residuals_structure_and_options():
+    options = {"method": "dense", "schur": None, "verbose": False}
+    fingerprint = lambda graph, **change: loop_fingerprint(graph, {**options, **change})
+    assert fingerprint(_graph(1.0)) == fingerprint(_graph(1.0))  # rebuilt: the same loop
+    assert fingerprint(_graph(1.0)) != fingerprint(_graph(1.5))  # a constant of a residual
+    assert fingerprint(_graph(1.0)) != fingerprint(_graph(1.0), method="cholesky")
+    # a user's retraction is not lieax's code: not named, so not stored
+    with pytest.raises(Undescribable):
+        fingerprint(_graph(1.0), retraction=lambda x, d: x)
+
+
+CHILD = textwrap.dedent(
+    """
+    import sys, jax
+    jax.config.update("jax_enable_x64", True)
+    import numpy as np, lieax
+    from lieax import SE2, icp
+    from lieax.factorgraph import Factor, FactorGraph, Var
+    lieax.enable_compilation_cache(sys.argv[1])
+    offset = float(sys.argv[2])
+    events = []  # a program read from JAX's cache also reports a backend compilation
+    jax.monitoring.register_event_listener(lambda event, **kw: events.append(event))
+    jax.monitoring.register_event_duration_secs_listener(
+        lambda event, seconds, **kw: events.append((event, kw.get("fun_name")))
+    )
+    rng = np.random.default_rng(0)
+    n = 10
+    truth = SE2.exp(rng.normal(size=(n, 3)))
+    i, j = np.arange(n - 1), np.arange(1, n)
+    poses = Var(truth.rplus(0.1 * rng.normal(size=(n, 3))), name="poses")
+    anchor = lambda x: x.rminus(SE2.from_xy_theta(offset, 0.0, 0.0))  # a constant of the trace
+    between = lambda a, b, z: a.between(b).rminus(z)
+    graph = FactorGraph([Factor(anchor, (poses[[0]],)),
+                         Factor(between, (poses[i], poses[j]), truth[i].between(truth[j]))])
+    solved = graph.solve(linear_solver="cholesky")
+    assert solved.converged
+    assert np.allclose(solved.values[0].parameters()[0, 2:], [offset, 0.0], atol=1e-9)
+    source, target, normals, _ = icp.synthetic_pair(
+        300, rotation_deg=10.0, translation=0.1, noise=0.002, same_samples=False, seed=0)
+    plane = icp.point_to_plane(jax.numpy.asarray(source), jax.numpy.asarray(target),
+                               target_normals=normals, max_correspondence_distance=0.1)
+    assert plane.status_name == "CONVERGED"
+    values = [np.asarray(solved.values[0].parameters()), np.asarray(plane.transform.parameters())]
+    compiled = sum(e[0] == "/jax/core/compile/backend_compile_duration" for e in events)
+    compiled -= events.count("/jax/compilation_cache/cache_hits")
+    loops = [e for e in events if e in (("/jax/core/compile/jaxpr_trace_duration", "loop"),
+                                        ("/jax/core/compile/jaxpr_trace_duration", "solve"))]
+    print(len(loops), compiled, "_".join(v.tobytes().hex() for v in values))
+    """
+)
+
+
+def test_a_second_process_loads_the_loops_and_a_changed_residual_compiles_its_own(tmp_path):
+    """The first process compiles and stores; a second, with the same graph (rebuilt) and ICP,
+    traces neither loop, compiles nothing and returns the same bits (its programs loaded: the native Cholesky's
+    and k-d tree's custom calls and jaxlib's LAPACK kernels prepared before loading); a third,
+    whose residual differs only in a constant, compiles its own loop and solves its own
+    problem (its child asserts the solution)."""
+    run = lambda offset: child_output(CHILD, tmp_path, offset).split()[-3:]
+    traced, compiled, values = run(0.5)
+    assert traced == "2" and int(compiled) > 0  # the graph's loop and ICP's
+    assert run(0.5) == ["0", "0", values]  # neither traced: loaded from the store
+    traced, compiled, other = run(0.75)
+    assert traced == "1" and int(compiled) > 0 and other != values  # ICP's loaded
