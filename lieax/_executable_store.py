@@ -46,8 +46,8 @@ import types
 
 import jax
 import numpy as np
-from jax.experimental import serialize_executable
 from jax._src import core as jax_internals
+from jax.experimental import serialize_executable
 from jax.extend import core as jax_core
 
 _PACKAGE = pathlib.Path(__file__).resolve().parent

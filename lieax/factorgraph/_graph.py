@@ -786,9 +786,9 @@ def _check_factor(f, shapes):
         if found is not None:
             out, blocks, jaxpr = found
         elif f.jacobian_fn is None:
-            jaxpr, out = jax.make_jaxpr(
-                lambda xs, d: residual_one(f, xs, d), return_shape=True
-            )(xs, one)
+            jaxpr, out = jax.make_jaxpr(lambda xs, d: residual_one(f, xs, d), return_shape=True)(
+                xs, one
+            )
             blocks = None
         else:
             jaxpr, (out, blocks) = jax.make_jaxpr(

@@ -78,13 +78,13 @@ import jax.numpy as jnp
 from jax import lax
 
 from .. import _cpu_emitters as cpu_emitters
-from ._fingerprint import loop_fingerprint
 from ..autodiff._tangents import manifold_leaves, rplus
 from ..groups import AbstractGroup
 from ..lstsq import GaussNewton, LevenbergMarquardt, Status, _iteration
 from ..lstsq import _trust_region as trust_region
 from ..retractions import exp
 from ._assembly import assemble, evaluate
+from ._fingerprint import loop_fingerprint
 from ._linear import schur_solve, solve_system
 from ._variables import flat_tangent_to_tree
 
