@@ -14,7 +14,9 @@ workflow, three processes:
    temporary directory, which it fills;
 3. **cache, second process**: the same again on that directory: its build + first call, and how
    many programs it still compiled (those JAX does not cache: programs with a Python host
-   callback, see `lieax.enable_compilation_cache`).
+   callback, see `lieax.enable_compilation_cache`). The solve loops come from lieax's store of
+   compiled programs (`lieax._executable_store`, which the same call turns on): loaded with no
+   trace and no compilation event, they count in neither column.
 
 Workflows (`--only NAME[,NAME]`; `--quick` shrinks the large ones about tenfold):
 

@@ -15,9 +15,9 @@ def default_cache_dir() -> pathlib.Path:
 
 
 def enable_compilation_cache(path: str | os.PathLike[str] | None = None) -> pathlib.Path:
-    """Turns on JAX's persistent compilation cache, so that a second process loads the programs
-    a first one compiled instead of compiling them again (XLA's compilation is most of a first
-    call: seconds on a CPU).
+    """Turns on JAX's persistent compilation cache and lieax's store of compiled solver loops,
+    so that a second process loads the programs a first one compiled instead of compiling them
+    again (XLA's compilation is most of a first call: seconds on a CPU).
 
     **Arguments:**
 
@@ -54,6 +54,21 @@ def enable_compilation_cache(path: str | os.PathLike[str] | None = None) -> path
 
     Every other program (groups, `lieax.jacobian`, `lstsq.least_squares`, IMU preintegration,
     `factorgraph` with the dense or CG solvers) is cached.
+
+    JAX finds a program in its cache by the program itself, so a second process still traces
+    and lowers it first: 0.3-1.3 s for a factor graph's solve loop, more than the warm solve.
+    lieax's store (`lieax._executable_store`, in `path / "lieax-programs"`) keeps the compiled
+    loops of `FactorGraph.solve` (and so `lieax.graph.optimize`, bundle adjustment and the IMU
+    smoother), of ICP and GICP and their normals and covariances, and IMU preintegration, each
+    under a key of what determines it, known without tracing: lieax's source and native
+    library, the versions of JAX and jaxlib, the device and CPU, `XLA_FLAGS` and JAX's options,
+    the static options, the arguments' shapes and dtypes, the graph's structure, and your
+    residual functions by the jaxpr of one instance (the traced program and its constants).
+    A second process loads the loop and runs it with no trace at all (the docs' factor graph
+    0.8 -> 0.3 s; the ICP demo 0.65 -> 0.3 s). A loop whose factors hold a Python callback or
+    a custom derivative rule written outside lieax (whose body a jaxpr's print does not show),
+    or takes a retraction or loss written outside lieax, is not stored: JAX's cache serves it
+    as before.
     """
     path = pathlib.Path(default_cache_dir() if path is None else path).expanduser()
     path.mkdir(parents=True, exist_ok=True)

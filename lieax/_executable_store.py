@@ -46,6 +46,7 @@ import types
 
 import jax
 import numpy as np
+from jax._src import config as jax_config
 from jax._src import core as jax_internals
 from jax.experimental import serialize_executable
 from jax.extend import core as jax_core
@@ -258,9 +259,9 @@ def _options() -> str:
 
 class Programs:
     """The compiled programs of `jitted` (a `jax.jit` of `fun`) that the store serves, by call
-    signature. `fingerprint()` names what `fun` closes over (default: `describe` of the static
-    arguments, and `fun` is then named by its module and name, which needs it to close over
-    nothing)."""
+    signature. `fingerprint()` names what `fun` computes beyond its arguments (default: `describe`
+    of the static arguments, and `fun` is named by its module and name, which needs it to be
+    lieax's and to close over nothing)."""
 
     def __init__(self, jitted, fun, jit_options, fingerprint=None):
         self.jitted = jitted
@@ -278,14 +279,15 @@ class Programs:
     def get(self, args, kwargs):
         """The compiled program for a call on `args` and `kwargs` (concrete), from memory, the
         store, or compiled and stored; None while the store is off or the call is not stored."""
-        if _directory is None:
+        if _directory is None or _checking():
             return None
         static = tuple(sorted((k, v) for k, v in kwargs.items() if k in self.static))
         leaves, treedef = jax.tree_util.tree_flatten((args, self.dynamic(kwargs)))
         avals = _avals(leaves)
         if avals is None:
             return None
-        signature = (static, treedef, avals)
+        # JAX's options that its own jit cache keys on (64-bit mode, promotion, ...)
+        signature = (jax_config.trace_context(), static, treedef, avals)
         try:
             return self.found[signature]
         except KeyError:
@@ -305,8 +307,8 @@ class Programs:
         closure = self.fun.__closure__ if isinstance(self.fun, types.FunctionType) else None
         if self.fingerprint is not None:
             program = self.fingerprint()
-        elif closure:
-            raise Undescribable(f"{self.fun.__qualname__} closes over values")
+        elif closure or not lieax_code(self.fun):  # named by its module and name: lieax's only
+            raise Undescribable(f"{self.fun.__qualname__}: give a fingerprint")
         else:
             program = describe(static)
         parts = (
@@ -347,6 +349,13 @@ class Programs:
         except (OSError, ValueError, NotImplementedError, pickle.PicklingError):
             pass  # an unwritable directory or an unserializable program: not stored
         return compiled
+
+
+def _checking() -> bool:
+    """Whether JAX runs op by op or checks for NaN or inf after each call (which a loaded
+    program would skip): the store then stays out of the way."""
+    config = jax.config
+    return config.jax_disable_jit or config.jax_debug_nans or config.jax_debug_infs
 
 
 def _avals(leaves):
