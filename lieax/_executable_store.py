@@ -23,7 +23,8 @@ single-device arrays is not stored either.
 
 The store is on only after `enable` (`lieax.enable_compilation_cache` turns it on in
 `<cache dir>/lieax-programs`). It is trusted like JAX's cache: loading a file runs its code.
-A file that fails to load is compiled again and replaced. A loaded program needs the runtime
+A file that fails to load is compiled again and replaced. Nothing is evicted (as JAX's cache
+by default): delete the directory to empty it. A loaded program needs the runtime
 that the lowering would have prepared: jaxlib's LAPACK kernels and lieax's native library
 (`before_loading`, by the custom-call targets the program calls), else it crashes.
 

@@ -298,7 +298,9 @@ CHILD = textwrap.dedent(
 def test_icp_and_gicp_programs_are_served_from_the_persistent_cache(tmp_path):
     """The ICP demo's registration (point-to-plane, defaults: the k-d tree search) and a GICP
     (covariances and matches by the k-d tree) compile nothing in a second process: their
-    programs hold custom calls, not Python callbacks, and JAX's persistent cache keeps them."""
+    programs hold custom calls, not Python callbacks, and lieax's store (the loops, the normals,
+    the covariances: loaded with the k-d tree's targets registered first) and JAX's persistent
+    cache (the rest) keep them."""
     run = lambda: child_output(CHILD, tmp_path).split()[-1]
     assert int(run()) > 0  # first process: compiled and written
     assert run() == "0"  # second process: every program read back
