@@ -69,10 +69,8 @@ def jit(fun=None, *, fingerprint=None, **jit_options):
         if executable_store.traced(args, kwargs) or not known():
             return default(*args, **kwargs)
         try:
-            program = stored.get(args, kwargs)
-            if program is not None:
-                return program(*args, **stored.dynamic(kwargs))
-            return classic(*args, **kwargs)
+            result = stored.run(args, kwargs)
+            return classic(*args, **kwargs) if result is executable_store.NOT_SERVED else result
         except jax.errors.JaxRuntimeError as error:  # raised by the compilation, before any run
             refused = {o for o in CLASSIC_CPU_EMITTERS if f"compile option: '{o}'" in str(error)}
             if not refused:

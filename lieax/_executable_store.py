@@ -34,6 +34,7 @@ of the program; files are written whole (a temporary file,
 then a rename), so that processes sharing the directory never read half a file.
 """
 
+import contextlib
 import enum
 import functools
 import hashlib
@@ -43,10 +44,12 @@ import pickle
 import platform
 import re
 import tempfile
+import threading
 import types
 
 import jax
 import numpy as np
+from jax._src import compiler as jax_compiler
 from jax._src import config as jax_config
 from jax._src import core as jax_internals
 from jax.experimental import serialize_executable
@@ -55,6 +58,8 @@ from jax.extend import core as jax_core
 _PACKAGE = pathlib.Path(__file__).resolve().parent
 _CALLBACKS = {"pure_callback", "io_callback", "debug_callback", "debug_print"}
 _FUNCTIONS = (types.FunctionType, types.MethodType, types.BuiltinFunctionType, functools.partial)
+_FRESH_LOCK = threading.Lock()
+NOT_SERVED = object()  # `Programs.run`'s answer for a call the store does not serve
 _directory = None  # the store's directory while it is on
 _preparations = {}  # custom-call target prefix -> what a loaded program needs first
 
@@ -101,10 +106,8 @@ def jit(fun=None, *, fingerprint=None, **jit_options):
 
     @functools.wraps(fun)
     def call(*args, **kwargs):
-        program = None if traced(args, kwargs) else stored.get(args, kwargs)
-        if program is None:
-            return jitted(*args, **kwargs)
-        return program(*args, **stored.dynamic(kwargs))
+        result = NOT_SERVED if traced(args, kwargs) else stored.run(args, kwargs)
+        return jitted(*args, **kwargs) if result is NOT_SERVED else result
 
     call._cache_size = lambda: jitted._cache_size() + stored.compiled
     return call
@@ -271,37 +274,69 @@ class Programs:
         self.options = describe({k: v for k, v in jit_options.items() if k != "static_argnames"})
         self.fingerprint = fingerprint
         self.found = {}  # signature -> compiled program, or None where not stored
+        self.unproven = {}  # signature -> file, of the programs loaded and not yet run
         self.compiled = 0  # programs this process compiled (not loaded)
 
     def dynamic(self, kwargs):
         """`kwargs` less the static arguments (what the compiled program takes)."""
         return {k: v for k, v in kwargs.items() if k not in self.static}
 
-    def get(self, args, kwargs):
-        """The compiled program for a call on `args` and `kwargs` (concrete), from memory, the
-        store, or compiled and stored; None while the store is off or the call is not stored."""
+    def run(self, args, kwargs):
+        """The result of the call on `args` and `kwargs` (concrete) by the program from memory,
+        the store, or compiled and stored; `NOT_SERVED` while the store is off or the call is
+        not stored (the caller's `jax.jit` runs it then)."""
         if _directory is None or _checking():
-            return None
+            return NOT_SERVED
         static = tuple(sorted((k, v) for k, v in kwargs.items() if k in self.static))
-        leaves, treedef = jax.tree_util.tree_flatten((args, self.dynamic(kwargs)))
+        dynamic = self.dynamic(kwargs)
+        leaves, treedef = jax.tree_util.tree_flatten((args, dynamic))
         avals = _avals(leaves)
         if avals is None:
-            return None
+            return NOT_SERVED
         # JAX's options that its own jit cache keys on (64-bit mode, promotion, ...)
         signature = (jax_config.trace_context(), static, treedef, avals)
         try:
-            return self.found[signature]
+            program = self.found[signature]
         except KeyError:
-            pass
+            program = self.found[signature] = self._program(static, treedef, avals, args, kwargs)
         except TypeError:  # an unhashable static argument: JAX's jit refuses it itself
-            return None
+            return NOT_SERVED
+        if program is None:
+            return NOT_SERVED
+        if signature not in self.unproven:
+            return program(*args, **dynamic)
+        try:  # a loaded program's first run, awaited (its errors come with its results)
+            result = jax.block_until_ready(program(*args, **dynamic))
+        except jax.errors.JaxRuntimeError as error:
+            if "NOT_FOUND" not in str(error):
+                raise
+            # a file whose program lacks kernels (written by a lieax before this check): its
+            # run stopped before any work; compiled afresh and stored again
+            program = self.found[signature] = self._compile(self.unproven[signature], args, kwargs)
+            result = program(*args, **dynamic)
+        del self.unproven[signature]
+        return result
+
+    def _program(self, static, treedef, avals, args, kwargs):
+        """The program of this signature from the store, or compiled and stored; None where it
+        is not stored (`Undescribable`)."""
         try:
             key = self._key(static, treedef, avals)
         except (Undescribable, RecursionError):
-            key = None
-        program = None if key is None else self._load_or_compile(key, args, kwargs)
-        self.found[signature] = program
-        return program
+            return None
+        path = _directory / f"{key}.bin"
+        if path.exists():
+            try:
+                with open(path, "rb") as file:
+                    needs, serialized = pickle.load(file)
+                for prefix in needs:
+                    _preparations[prefix]()
+                program = serialize_executable.deserialize_and_load(*serialized)
+                self.unproven[(jax_config.trace_context(), static, treedef, avals)] = path
+                return program
+            except Exception:  # noqa: BLE001 - a damaged or foreign file: compiled again below
+                pass
+        return self._compile(path, args, kwargs)
 
     def _key(self, static, treedef, avals):
         _check_nodes(treedef)
@@ -323,21 +358,14 @@ class Programs:
         )
         return hashlib.sha256(repr(parts).encode()).hexdigest()
 
-    def _load_or_compile(self, key, args, kwargs):
-        path = _directory / f"{key}.bin"
-        if path.exists():
-            try:
-                with open(path, "rb") as file:
-                    needs, serialized = pickle.load(file)
-                for prefix in needs:
-                    _preparations[prefix]()
-                return serialize_executable.deserialize_and_load(*serialized)
-            except Exception:  # noqa: BLE001 - a damaged or foreign file: compiled again below
-                pass
-        compiled = self.jitted.lower(*args, **kwargs).compile()
+    def _compile(self, path, args, kwargs):
+        """The program compiled afresh (not read from JAX's cache, see `_fresh`), written to
+        `path` where it can be."""
+        with _fresh() as fresh:
+            compiled = self.jitted.lower(*args, **kwargs).compile()
         self.compiled += 1
         unloaded = getattr(compiled._executable, "_unloaded_executable", None)
-        if unloaded is None or unloaded.host_callbacks:
+        if not fresh or unloaded is None or unloaded.host_callbacks:
             return compiled  # kept in memory; a Python callback cannot be stored
         try:
             serialized = serialize_executable.serialize(compiled)
@@ -350,6 +378,26 @@ class Programs:
         except (OSError, ValueError, NotImplementedError, pickle.PicklingError):
             pass  # an unwritable directory or an unserializable program: not stored
         return compiled
+
+
+@contextlib.contextmanager
+def _fresh():
+    """Compilations inside skip JAX's persistent cache (neither read nor written); yields whether
+    it could: jaxlib 0.10's CPU executable read from that cache serializes without its kernels,
+    and a process that loaded such a file failed with "Function ... not found" at its first
+    run. JAX has no option for one compilation: its cache key function is replaced while inside
+    (a lock keeps the replacements of threads apart; another thread's compilation meanwhile
+    skips the cache too, which only costs it time). A JAX without that function: False, and
+    the program is not stored."""
+    with _FRESH_LOCK:
+        original = getattr(jax_compiler, "_get_cache_key", None)
+        if original is not None:
+            jax_compiler._get_cache_key = lambda *args, **kwargs: None
+        try:
+            yield original is not None
+        finally:
+            if original is not None:
+                jax_compiler._get_cache_key = original
 
 
 def _checking() -> bool:

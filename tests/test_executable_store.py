@@ -133,7 +133,16 @@ CHILD = textwrap.dedent(
     import numpy as np, lieax
     from lieax import SE2
     from lieax.factorgraph import Factor, FactorGraph, Var
-    lieax.enable_compilation_cache(sys.argv[1])
+    if sys.argv[3] == "jax":  # JAX's cache alone, as a user may have set it
+        jax.config.update("jax_compilation_cache_dir", sys.argv[1])
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+        jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
+    else:
+        lieax.enable_compilation_cache(sys.argv[1])
+    if sys.argv[3] == "stale":  # the store as it was before `_fresh`: JAX's copy serialized
+        import contextlib
+        from lieax import _executable_store
+        _executable_store._fresh = lambda: contextlib.nullcontext(True)
     offset = float(sys.argv[2])
     events = []  # a program read from JAX's cache also reports a backend compilation
     jax.monitoring.register_event_listener(lambda event, **kw: events.append(event))
@@ -162,14 +171,21 @@ CHILD = textwrap.dedent(
 
 
 def test_a_second_process_loads_the_loop_and_a_changed_residual_compiles_its_own(tmp_path):
-    """The first process compiles and stores the solve loop; a second, with the same graph
-    (rebuilt), does not trace it, compiles nothing and returns the same bits (the native
-    Cholesky's custom call and jaxlib's LAPACK kernels prepared before loading); a third, whose
-    residual differs only in a constant, traces and compiles its own loop and solves its own
+    """1. A process with JAX's persistent cache alone fills it. 2. One with lieax's store whose
+    compilation reads JAX's copy (as the store did before `_fresh`) writes a program without
+    its kernels. 3. The next loads it, its first run fails with NOT_FOUND, and the store
+    compiles afresh (not from JAX's cache) and writes the file again, with the same bits. 4.
+    The next does not trace the loop, compiles nothing and returns the same bits (the native
+    Cholesky's custom call and jaxlib's LAPACK kernels prepared before loading). 5. One whose
+    residual differs only in a constant traces and compiles its own loop and solves its own
     problem (its child asserts the solution). ICP's and GICP's loops: test_native_kdtree."""
-    run = lambda offset: child_output(CHILD, tmp_path, offset).split()[-3:]
-    traced, compiled, values = run(0.5)
+    run = lambda offset, cache="both": child_output(CHILD, tmp_path, offset, cache).split()[-3:]
+    traced, compiled, values = run(0.5, "jax")
     assert traced == "1" and int(compiled) > 0
+    assert run(0.5, "stale")[::2] == ["1", values]
+    assert len(list((tmp_path / "lieax-programs").glob("*.bin"))) == 1
+    traced, _, again = run(0.5)
+    assert traced == "1" and again == values
     assert run(0.5) == ["0", "0", values]  # not traced: loaded from the store
     traced, compiled, other = run(0.75)
     assert traced == "1" and int(compiled) > 0 and other != values
