@@ -139,6 +139,11 @@ CHILD = textwrap.dedent(
         jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
     else:
         lieax.enable_compilation_cache(sys.argv[1])
+    if sys.argv[3] == "slow":  # a Cholesky analysis still running when a loaded loop is called
+        import time
+        from lieax.factorgraph._multifrontal import CholeskyPlan
+        analyze = CholeskyPlan.analyze.__func__
+        CholeskyPlan.analyze = classmethod(lambda *a, **k: time.sleep(1) or analyze(*a, **k))
     if sys.argv[3] == "stale":  # the store as it was before `_fresh`: JAX's copy serialized
         import contextlib
         from lieax import _executable_store
@@ -176,7 +181,8 @@ def test_a_second_process_loads_the_loop_and_a_changed_residual_compiles_its_own
     its kernels. 3. The next loads it, its first run fails with NOT_FOUND, and the store
     compiles afresh (not from JAX's cache) and writes the file again, with the same bits. 4.
     The next does not trace the loop, compiles nothing and returns the same bits (the native
-    Cholesky's custom call and jaxlib's LAPACK kernels prepared before loading). 5. One whose
+    Cholesky's custom call and jaxlib's LAPACK kernels prepared before loading, its plan
+    waited for though its analysis is slowed down). 5. One whose
     residual differs only in a constant traces and compiles its own loop and solves its own
     problem (its child asserts the solution). ICP's and GICP's loops: test_native_kdtree."""
     run = lambda offset, cache="both": child_output(CHILD, tmp_path, offset, cache).split()[-3:]
@@ -186,6 +192,6 @@ def test_a_second_process_loads_the_loop_and_a_changed_residual_compiles_its_own
     assert len(list((tmp_path / "lieax-programs").glob("*.bin"))) == 1
     traced, _, again = run(0.5)
     assert traced == "1" and again == values
-    assert run(0.5) == ["0", "0", values]  # not traced: loaded from the store
+    assert run(0.5, "slow") == ["0", "0", values]  # not traced: loaded; waited for its plan
     traced, compiled, other = run(0.75)
     assert traced == "1" and int(compiled) > 0 and other != values

@@ -372,6 +372,10 @@ class FactorGraph:
         if traced:  # under a transformation: the solve with its implicit derivatives
             result = _result(*solve_implicit(self, loop, values, data, params))
         else:  # one dispatch, one transfer of the scalars: they come back as NumPy values
+            if method == "cholesky" and self._buckets is None:
+                # its plan registered (`_native_cholesky`): a traced loop waited for it, one
+                # that `lieax._executable_store` loaded did not
+                layout.plan()
             threads = dense_threads(layout.pattern) if method == "dense" else None
             with lapack_limited(threads):  # waits for the program (`np.asarray`) inside
                 solution, summary, _ = loop(values, data, params)
