@@ -9,40 +9,48 @@ its warm solve. This store keys a compiled program by what determines it, known 
   JAX and jaxlib, the device, the CPU's features, `XLA_FLAGS` and every JAX option (64-bit mode
   included);
 - the program: its function's module and name, its compile options, a `fingerprint` of what it
-  closes over (`describe` of the static arguments by default: plain values and lieax's own
-  functions and classes, whose code the source digest covers), and the arguments' tree and
-  shapes, dtypes and weak types.
+  closes over (`lieax._describe.describe` of the static arguments by default: plain values and
+  lieax's own functions and classes, whose code the source digest covers), and the arguments'
+  tree and shapes, dtypes and weak types.
 
 A factor graph's loop closes over the user's residual functions: their fingerprint is the jaxpr
-of one instance (`jaxpr_fingerprint`: the printed program and its constants' bytes), which fixes
-everything the loop traces from them, since the loop differentiates and batches that same
-computation. A jaxpr that holds a Python callback or a custom derivative rule written outside
-lieax (whose body the printed jaxpr does not show) is not described: that program is not stored,
-only compiled as usual (JAX's own cache still applies). A call on other than concrete
-single-device arrays is not stored either.
+of one instance (`lieax._describe.jaxpr_fingerprint`: the traced program and its constants'
+bytes), which fixes everything the loop traces from them, since the loop differentiates and
+batches that same computation (`lieax.factorgraph._fingerprint`). A jaxpr that holds a Python
+callback or a custom derivative rule written outside lieax (whose body the jaxpr does not show)
+is not described: that program is not stored, only compiled as usual (JAX's own cache still
+applies). A call on other than concrete single-device arrays, or while JAX runs op by op or
+checks for NaN, is not served either.
 
 The store is on only after `enable` (`lieax.enable_compilation_cache` turns it on in
 `<cache dir>/lieax-programs`). It is trusted like JAX's cache: loading a file runs its code.
-A file that fails to load is compiled again and replaced. Nothing is evicted (as JAX's cache
-by default): delete the directory to empty it. A loaded program needs the runtime
-that the lowering would have prepared: jaxlib's LAPACK kernels and lieax's native library
-(`before_loading`, by the custom-call targets the program calls), else it crashes.
+Nothing is evicted (as JAX's cache by default): delete the directory to empty it.
+
+What a loaded program needs, that tracing and lowering would have done:
+
+- the runtime its custom calls use: jaxlib's LAPACK kernels and lieax's native library, whose
+  handlers and BLAS pointers are set when a call to them is lowered (`before_loading`, by the
+  target names in the program); else it crashes;
+- host state its custom calls read: the native Cholesky's plan, registered when its analysis
+  ends (`FactorGraph.solve` waits for it before calling the loop);
+- a program compiled afresh when stored (`_fresh`): jaxlib 0.10's CPU executable that JAX read
+  from its own cache serializes without its kernels. A loaded program's first run is awaited,
+  and one that fails with NOT_FOUND is compiled again and its file rewritten; a file that fails
+  to load is too.
 
 Formats: one file per key, `<sha256>.bin`, the pickle of `(prefixes, serialized)`: the
 `before_loading` target prefixes it needs and `jax.experimental.serialize_executable.serialize`
-of the program; files are written whole (a temporary file,
-then a rename), so that processes sharing the directory never read half a file.
+of the program; files are written whole (a temporary file, then a rename), so that processes
+sharing the directory never read half a file.
 """
 
 import contextlib
-import enum
 import functools
 import hashlib
 import os
 import pathlib
 import pickle
 import platform
-import re
 import tempfile
 import threading
 import types
@@ -53,19 +61,14 @@ from jax._src import compiler as jax_compiler
 from jax._src import config as jax_config
 from jax._src import core as jax_internals
 from jax.experimental import serialize_executable
-from jax.extend import core as jax_core
+
+from ._describe import Undescribable, describe, lieax_code
 
 _PACKAGE = pathlib.Path(__file__).resolve().parent
-_CALLBACKS = {"pure_callback", "io_callback", "debug_callback", "debug_print"}
-_FUNCTIONS = (types.FunctionType, types.MethodType, types.BuiltinFunctionType, functools.partial)
 _FRESH_LOCK = threading.Lock()
 NOT_SERVED = object()  # `Programs.run`'s answer for a call the store does not serve
 _directory = None  # the store's directory while it is on
 _preparations = {}  # custom-call target prefix -> what a loaded program needs first
-
-
-class Undescribable(Exception):
-    """Something a program depends on that `describe` cannot name across processes."""
 
 
 def enable(path: str | os.PathLike[str]) -> pathlib.Path:
@@ -125,101 +128,6 @@ def traced(args, kwargs) -> bool:
     if clean is not None:
         return not clean()
     return isinstance(jax.lax.neg(np.float32(0)), tracer)  # pragma: no cover - older JAX
-
-
-# ---- descriptions: stable across processes, or `Undescribable` ---------------------------------
-
-
-def lieax_code(obj) -> bool:
-    """Whether function or class `obj` is defined in lieax (its code is in the source digest)."""
-    module = getattr(obj, "__module__", None) or ""
-    return module == "lieax" or module.startswith("lieax.")
-
-
-def describe(obj) -> str:
-    """A text that names `obj` the same way in every process: plain values, containers of them,
-    NumPy arrays (by a digest of their bytes), enums, and lieax's functions (with what their
-    closures hold), classes and objects. `Undescribable` for anything else."""
-    if obj is None or isinstance(obj, (bool, int, float, complex, str, bytes)):
-        return f"{type(obj).__name__}:{obj!r}"
-    if isinstance(obj, enum.Enum):
-        return f"{describe(type(obj))}.{obj.name}"
-    if isinstance(obj, jax.Array) and not isinstance(obj, jax.core.Tracer):
-        obj = np.asarray(obj)
-    if isinstance(obj, (np.ndarray, np.generic)):
-        array = np.ascontiguousarray(obj)
-        return f"array:{array.dtype.str}{array.shape}:{hashlib.sha256(array.data).hexdigest()}"
-    if isinstance(obj, type):
-        if lieax_code(obj) or obj.__module__ == "builtins":
-            return f"class:{obj.__module__}.{obj.__qualname__}"
-        raise Undescribable(f"class {obj.__module__}.{obj.__qualname__}")
-    if isinstance(obj, functools.partial):
-        return f"partial({describe(obj.func)},{describe(obj.args)},{describe(obj.keywords)})"
-    if isinstance(obj, types.FunctionType):
-        if not lieax_code(obj):
-            raise Undescribable(f"function {obj.__module__}.{obj.__qualname__}")
-        cells = tuple(c.cell_contents for c in obj.__closure__ or ())
-        parts = (obj.__defaults__, obj.__kwdefaults__, cells)
-        return f"function:{obj.__module__}.{obj.__qualname__}{describe(parts)}"
-    if isinstance(obj, dict):
-        items = sorted((describe(k), describe(v)) for k, v in obj.items())
-        return "{" + ",".join(f"{k}:{v}" for k, v in items) + "}"
-    if isinstance(obj, (set, frozenset)):
-        return f"{describe(type(obj))}(" + ",".join(sorted(map(describe, obj))) + ")"
-    if isinstance(obj, (tuple, list)):
-        return f"{describe(type(obj))}(" + ",".join(map(describe, obj)) + ")"
-    if lieax_code(type(obj)):
-        slots = [s for c in type(obj).__mro__ for s in getattr(c, "__slots__", ())]
-        fields = dict(getattr(obj, "__dict__", {}), **{s: getattr(obj, s) for s in slots})
-        return f"{describe(type(obj))}{describe(fields)}"
-    raise Undescribable(f"{type(obj).__module__}.{type(obj).__qualname__} object")
-
-
-def stable_repr(obj) -> str:
-    """`repr(obj)`, `Undescribable` where it shows an address (an object named by where it lives,
-    not by what it is)."""
-    text = repr(obj)
-    found = re.search(r"<[^<>]* at 0x[0-9a-fA-F]+>", text)
-    if found:
-        raise Undescribable(found.group())
-    return text
-
-
-def jaxpr_fingerprint(closed_jaxpr) -> str:
-    """What `closed_jaxpr` computes, named across processes: its printed program and a digest of
-    its constants. `Undescribable` where the print leaves something out: a Python callback, or a
-    parameter that is a function defined outside lieax (a custom derivative rule's body)."""
-    _check_parameters(closed_jaxpr.jaxpr)
-    digest = hashlib.sha256(str(closed_jaxpr.jaxpr).encode())
-    for const in closed_jaxpr.consts:
-        digest.update(describe(np.asarray(const)).encode())
-    return "jaxpr:" + digest.hexdigest()
-
-
-def _check_parameters(jaxpr):
-    for eqn in jaxpr.eqns:
-        if eqn.primitive.name in _CALLBACKS:
-            raise Undescribable(f"a {eqn.primitive.name}")
-        for value in eqn.params.values():
-            _check_parameter(value)
-
-
-def _check_parameter(value):
-    if isinstance(value, jax_core.ClosedJaxpr):
-        _check_parameters(value.jaxpr)
-    elif isinstance(value, jax_core.Jaxpr):
-        _check_parameters(value)
-    elif isinstance(value, (tuple, list)):
-        for item in value:
-            _check_parameter(item)
-    elif isinstance(value, _FUNCTIONS) or hasattr(value, "debug_info"):
-        source = getattr(getattr(value, "debug_info", None), "func_src_info", None) or ""
-        path = source.rpartition(" at ")[2].rpartition(":")[0]
-        inside = path and pathlib.Path(path).resolve().is_relative_to(_PACKAGE)
-        if not (inside or lieax_code(value)):
-            raise Undescribable(f"a parameter {source or value!r}")
-    elif callable(value) and not isinstance(value, type):
-        stable_repr(value)  # an object that computes (a mesh, a callback): named by its repr
 
 
 # ---- the environment: what every key shares ---------------------------------------------------

@@ -10,7 +10,7 @@ import pytest
 from _child import child_output
 
 from lieax import SE2, _executable_store
-from lieax._executable_store import Undescribable, describe, jaxpr_fingerprint
+from lieax._describe import Undescribable, describe, jaxpr_fingerprint, stable_repr
 from lieax.factorgraph import Factor, FactorGraph, Var
 from lieax.factorgraph._fingerprint import loop_fingerprint
 from lieax.lstsq import Huber
@@ -45,9 +45,9 @@ def test_describe_refuses_what_it_cannot_name(value):
 
 
 def test_stable_repr_refuses_addresses():
-    assert _executable_store.stable_repr((1, "x")) == "(1, 'x')"
+    assert stable_repr((1, "x")) == "(1, 'x')"
     with pytest.raises(Undescribable):
-        _executable_store.stable_repr((1, object()))
+        stable_repr((1, object()))
 
 
 def test_jaxpr_fingerprint_follows_the_computation_and_its_constants():

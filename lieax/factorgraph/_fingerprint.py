@@ -6,19 +6,19 @@ The loop is a function of lieax's code (the store's key holds a digest of it), o
 structure (the key `FactorGraph` keeps its analysis by: variable kinds, counts, index arrays,
 fixed instances; for a bucketed graph the buckets' key), of the solve's static options, and of
 the factor kinds: their residual functions, and `jacobian_fn`s where given, named by the
-jaxpr of one instance (`_executable_store.jaxpr_fingerprint`) that `FactorGraph` traced when it
-checked the kind, or, for lieax's own, by `_executable_store.describe`. The loop linearizes, batches and sums exactly that computation, so two kinds
+jaxpr of one instance (`lieax._describe.jaxpr_fingerprint`) that `FactorGraph` traced when it
+checked the kind, or, for lieax's own, by `lieax._describe.describe`. The loop linearizes, batches and sums exactly that computation, so two kinds
 with one jaxpr make one loop."""
 
 import jax
 
-from .. import _executable_store as executable_store
+from .._describe import Undescribable, describe, jaxpr_fingerprint, stable_repr
 from ._factors import residual_one
 
 
 def loop_fingerprint(graph, options) -> str:
     """The fingerprint of `_solve.make_loop(graph, options)` (`graph` a `FactorGraph` or its
-    `_buckets.Buckets`); `_executable_store.Undescribable` where a part has no name that holds
+    `_buckets.Buckets`); `lieax._describe.Undescribable` where a part has no name that holds
     across processes (a retraction or loss written outside lieax, a custom derivative rule)."""
     structure = getattr(graph, "_structure_key", None)
     if structure is None:  # the buckets' key, less the factor kinds' functions (named below)
@@ -28,10 +28,10 @@ def loop_fingerprint(graph, options) -> str:
         structure,
         tuple(v.name for v in graph.variables),
         tuple(_factor(f, trace) for f, trace in zip(graph.factors, graph.factor_traces)),
-        executable_store.describe({k: v for k, v in options.items() if k != "schur"}),
+        describe({k: v for k, v in options.items() if k != "schur"}),
         None if schur is None else schur.eliminated,
     )
-    return executable_store.stable_repr(parts)
+    return stable_repr(parts)
 
 
 def _factor(factor, trace):
@@ -41,11 +41,11 @@ def _factor(factor, trace):
     residual, or of the `jacobian_fn` when there is one (the residual's is traced here: the cost
     evaluates it)."""
     try:
-        functions = executable_store.describe((factor.residual, factor.jacobian_fn))
-    except executable_store.Undescribable:
+        functions = describe((factor.residual, factor.jacobian_fn))
+    except Undescribable:
         xs, data, jaxpr = trace
-        functions = [executable_store.jaxpr_fingerprint(jaxpr)]
+        functions = [jaxpr_fingerprint(jaxpr)]
         if factor.jacobian_fn is not None:
             residual = jax.make_jaxpr(lambda xs, d: residual_one(factor, xs, d))(xs, data)
-            functions.append(executable_store.jaxpr_fingerprint(residual))
+            functions.append(jaxpr_fingerprint(residual))
     return factor.name, factor.data is None, functions
