@@ -5,10 +5,10 @@ instead of tracing it again.
 The loop is a function of lieax's code (the store's key holds a digest of it), of the graph's
 structure (the key `FactorGraph` keeps its analysis by: variable kinds, counts, index arrays,
 fixed instances; for a bucketed graph the buckets' key), of the solve's static options, and of
-the factor kinds: their residual functions, and `jacobian_fn`s where given, named by the
-jaxpr of one instance (`lieax._describe.jaxpr_fingerprint`) that `FactorGraph` traced when it
-checked the kind, or, for lieax's own, by `lieax._describe.describe`. The loop linearizes, batches and sums exactly that computation, so two kinds
-with one jaxpr make one loop."""
+the factor kinds: their residual functions, and `jacobian_fn`s where given, named by the jaxpr
+of one instance (`lieax._describe.jaxpr_fingerprint`) that `FactorGraph` traced when it checked
+the kind, or, for lieax's own, by `lieax._describe.describe`. The loop linearizes, batches and
+sums exactly that computation, so two kinds with one jaxpr make one loop."""
 
 import jax
 
