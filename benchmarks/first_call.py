@@ -16,7 +16,8 @@ workflow, three processes:
    many programs it still compiled (those JAX does not cache: programs with a Python host
    callback, see `lieax.enable_compilation_cache`). The solve loops come from lieax's store of
    compiled programs (`lieax._executable_store`, which the same call turns on): loaded with no
-   trace and no compilation event, they count in neither column.
+   trace and no compilation event, they count in neither column but in "loaded from lieax's
+   store", beside the traces the second process still made (JAX's cache needs a trace).
 
 Workflows (`--only NAME[,NAME]`; `--quick` shrinks the large ones about tenfold):
 
@@ -478,6 +479,7 @@ def child(name, quick, data_dir, cache_dir):
     result, row["first_s"] = _timed(lambda: call(problem))
     row["status"] = getattr(result, "status_name", None)
     row["first"] = counts.take()
+    row["store_loads"] = lieax._executable_store.loads()
     row["warm_s"] = min(_timed(lambda: call(problem))[1] for _ in range(2))
     print(MARK + json.dumps(row), flush=True)
 
@@ -518,7 +520,7 @@ def _measure_workflow(name, quick, data_dir):
 HEADERS = [
         "workflow", "import lieax", "build", "compiles (build)", "compiles (1st call)",
         "XLA s (1st call)", "cold 1st call", "2nd process, cache: build + 1st call",
-    "not cached (compiled in 2nd)", "warm call",
+    "not cached (compiled in 2nd)", "2nd: traces / loaded from lieax's store", "warm call",
 ]  # fmt: skip
 
 
@@ -541,6 +543,7 @@ def table_rows(results):
             f"{second['build_s'] + second['first_s']:.2f} s",
             f"{second['build']['compilations'] + second['first']['compilations']} of "
             f"{sum(second[p]['compilations'] + second[p]['cache_hits'] for p in ('build', 'first'))}",
+            f"{second['build']['traces'] + second['first']['traces']} / {second['store_loads']}",
             f"{cold['warm_s']:.3f} s",
         ]
         rows.append(cells)

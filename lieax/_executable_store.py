@@ -69,6 +69,7 @@ _FRESH_LOCK = threading.Lock()
 NOT_SERVED = object()  # `Programs.run`'s answer for a call the store does not serve
 _directory = None  # the store's directory while it is on
 _preparations = {}  # custom-call target prefix -> what a loaded program needs first
+_loads = 0  # programs loaded from the store in this process
 
 
 def enable(path: str | os.PathLike[str]) -> pathlib.Path:
@@ -89,6 +90,11 @@ def disable() -> None:
 def directory() -> pathlib.Path | None:
     """The store's directory, or None while it is off."""
     return _directory
+
+
+def loads() -> int:
+    """How many programs this process loaded from the store (the benchmarks report it)."""
+    return _loads
 
 
 def before_loading(target_prefix: str, prepare) -> None:
@@ -244,6 +250,8 @@ class Programs:
                     _preparations[prefix]()
                 program = serialize_executable.deserialize_and_load(*serialized)
                 self.unproven[(jax_config.trace_context(), static, treedef, avals)] = path
+                global _loads
+                _loads += 1
                 return program
             except Exception:  # noqa: BLE001 - a damaged or foreign file: compiled again below
                 pass

@@ -6,7 +6,9 @@ folder, so a `python3` kernel installed elsewhere on the machine is never picked
 `LIEAX_NOTEBOOK_SMALL=1`, which the notebooks read to shrink their sizes, and with
 `LIEAX_DATA_DIR` empty, so that they run on the data they generate (as on a machine without the
 shared data; their committed outputs show the shared data, and the tests of `lieax.io`, `graph`
-and `icp` read it), and with this process's environment otherwise. A notebook must finish within
+and `icp` read it), with `XDG_CACHE_HOME` in a temporary folder (the notebooks turn on the
+compilation cache, which the notebooks of one test session share), and with this process's
+environment otherwise. A notebook must finish within
 `LIEAX_NOTEBOOK_TIME_LIMIT` seconds (default 120: the aim is under a minute on a 2-core CI
 machine; the limit leaves room for a loaded one). Errors raised while figures are drawn (after a
 cell has run) do not stop the execution, so the outputs are searched for errors as well.
@@ -44,12 +46,14 @@ KERNEL = "lieax-test"
 def kernel_specs(tmp_path_factory):
     """A folder with one kernelspec: this interpreter, small settings."""
     folder = tmp_path_factory.mktemp("kernels")
+    cache = tmp_path_factory.mktemp("cache")
     (folder / KERNEL).mkdir()
     spec = {
         "argv": [sys.executable, "-m", "ipykernel_launcher", "-f", "{connection_file}"],
         "display_name": "lieax tests (this interpreter)",
         "language": "python",
-        "env": {"LIEAX_NOTEBOOK_SMALL": "1", "LIEAX_DATA_DIR": ""},
+        # the notebooks' `enable_compilation_cache()` writes here, not in the user's home
+        "env": {"LIEAX_NOTEBOOK_SMALL": "1", "LIEAX_DATA_DIR": "", "XDG_CACHE_HOME": str(cache)},
     }
     (folder / KERNEL / "kernel.json").write_text(json.dumps(spec))
     return folder
