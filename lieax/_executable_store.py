@@ -57,10 +57,15 @@ import types
 
 import jax
 import numpy as np
-from jax._src import compiler as jax_compiler
-from jax._src import config as jax_config
 from jax._src import core as jax_internals
 from jax.experimental import serialize_executable
+
+try:  # JAX internals the store needs; a JAX that moved them runs without the store
+    from jax._src import compiler as jax_compiler
+    from jax._src.config import trace_context as _trace_context
+    from jax._src.lax.linalg import initialize_lapack as _initialize_lapack
+except ImportError:  # pragma: no cover
+    jax_compiler = _trace_context = _initialize_lapack = None
 
 from ._describe import Undescribable, describe, lieax_code
 
@@ -202,7 +207,7 @@ class Programs:
         """The result of the call on `args` and `kwargs` (concrete) by the program from memory,
         the store, or compiled and stored; `NOT_SERVED` while the store is off or the call is
         not stored (the caller's `jax.jit` runs it then)."""
-        if _directory is None or _checking():
+        if _directory is None or _trace_context is None or _checking():
             return NOT_SERVED
         static = tuple(sorted((k, v) for k, v in kwargs.items() if k in self.static))
         dynamic = self.dynamic(kwargs)
@@ -211,7 +216,7 @@ class Programs:
         if avals is None:
             return NOT_SERVED
         # JAX's options that its own jit cache keys on (64-bit mode, promotion, ...)
-        signature = (jax_config.trace_context(), static, treedef, avals)
+        signature = (_trace_context(), static, treedef, avals)
         try:
             program = self.found[signature]
         except KeyError:
@@ -249,7 +254,7 @@ class Programs:
                 for prefix in needs:
                     _preparations[prefix]()
                 program = serialize_executable.deserialize_and_load(*serialized)
-                self.unproven[(jax_config.trace_context(), static, treedef, avals)] = path
+                self.unproven[(_trace_context(), static, treedef, avals)] = path
                 global _loads
                 _loads += 1
                 return program
@@ -357,12 +362,6 @@ def _check_nodes(treedef):
         _check_nodes(child)
 
 
-def _initialize_lapack():
-    """jaxlib's LAPACK kernels (their function pointers), set when a program using them is
-    lowered: a program loaded without lowering needs them set first."""
-    from jax._src.lax import linalg
-
-    linalg.initialize_lapack()
-
-
+# jaxlib's LAPACK kernels (their function pointers), set when a program using them is lowered:
+# a program loaded without lowering needs them set first
 before_loading("lapack_", _initialize_lapack)
