@@ -119,24 +119,26 @@ def results(name, G):
         x0 = xs[0]
         zero = jnp.zeros(dim)
         single = jax.vmap(rplus)  # the unbatched function, vmapped
+        # calls of the same function share one call on stacked cases where their inputs allow
+        # it (one copy of the kernel in the program; the same values)
+        stack = lambda *elements: jax.tree_util.tree_map(lambda *u: jnp.stack(u), *elements)
+        retracted = rplus(xs, deltas)
+        differences = rminus(ys, xs)
+        round_trip_tangent, rminus_self = rminus(stack(retracted, xs), stack(xs, xs))
+        steps = jnp.asarray(STEPS)[:, None] * direction
         out = {
             "x": xs.as_matrix(),
             "y": ys.as_matrix(),
-            "retracted": rplus(xs, deltas).as_matrix(),
+            "retracted": retracted.as_matrix(),
             "retracted_vmapped": single(xs, deltas).as_matrix(),
             "retracted_broadcast": rplus(x0, deltas).as_matrix(),  # one X, a batch of δ
-            "round_trip_tangent": rminus(rplus(xs, deltas), xs),
-            "round_trip_point": rplus(xs, rminus(ys, xs)).as_matrix(),
+            "round_trip_tangent": round_trip_tangent,
+            "round_trip_point": rplus(xs, differences).as_matrix(),
             "rminus_vmapped": jax.vmap(rminus)(ys, xs),
-            "rminus": rminus(ys, xs),
-            "rminus_self": rminus(xs, xs),
+            "rminus": differences,
+            "rminus_self": rminus_self,
             # |R_X(tδ) ⊖ X Exp(tδ)| for the steps t
-            "agreement": jnp.stack(
-                [
-                    jnp.linalg.norm(rplus(x0, t * direction).rminus(x0.rplus(t * direction)))
-                    for t in STEPS
-                ]
-            ),
+            "agreement": jnp.linalg.norm(rplus(x0, steps).rminus(x0.rplus(steps)), axis=-1),
             # derivatives at δ = 0: the identity
             "jacobian_zero_fwd": lieax.jacobian(rplus, 1, mode="fwd")(x0, zero),
             "jacobian_zero_rev": lieax.jacobian(rplus, 1, mode="rev")(x0, zero),
