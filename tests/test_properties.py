@@ -281,12 +281,17 @@ def _scalar(spec, a, xi, params):
     """A sum over the main operations' outputs at `X = Exp(ξ)` (groups), `Y ⊕ ξ` and the raw
     parameters `params` of a point (exp, log, rplus, rminus, act, the right Jacobian)."""
     cls = spec.cls
-    y = spec.base(a["eta"])
+    if spec.is_group:  # Exp of ξ and η in one call (one copy of the kernel)
+        exps = cls.exp(jnp.stack([xi, a["eta"]]))
+        x, y = exps[0], exps[1]
+    else:
+        y = spec.base(a["eta"])
     raw = cls(params)
     moved = y.rplus(xi)
-    terms = [moved.parameters(), moved.rminus(y), raw.rminus(y)]
+    # (Y ⊕ ξ) ⊖ Y and raw ⊖ Y in one call
+    differences = cls(jnp.stack([moved.parameters(), params])).rminus(y)
+    terms = [moved.parameters(), differences[0], differences[1]]
     if spec.is_group:
-        x = cls.exp(xi)
         terms += [
             x.parameters(),
             x.log(),
