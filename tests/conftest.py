@@ -17,7 +17,12 @@ if os.environ.get("LIEAX_TEST_XLA_OPTIMIZE") != "1":
     _flags = ["--xla_backend_optimization_level=0", "--xla_llvm_disable_expensive_passes=true"]
     _jaxlib = tuple(int(part) for part in importlib.metadata.version("jaxlib").split(".")[:2])
     if (0, 10) <= _jaxlib < (0, 11):  # an unknown flag aborts the process: only where tested
-        _flags.append("--xla_cpu_use_fusion_emitters=false")
+        # one LLVM module per program instead of parallel codegen splits: the workers already
+        # keep both cores busy, and the splits cost ~10% more compile CPU time
+        _flags += [
+            "--xla_cpu_use_fusion_emitters=false",
+            "--xla_cpu_parallel_codegen_split_count=1",
+        ]
     os.environ["XLA_FLAGS"] = " ".join([os.environ.get("XLA_FLAGS", ""), *_flags]).strip()
 
 import jax
@@ -30,30 +35,50 @@ from registry import GROUP_IDS, GROUPS
 # The longest files first, so that `-n auto --dist loadfile` (whole files to a worker, which keeps
 # their compiled functions shared) ends with short files on both workers instead of one long file
 # on one of them (longest-first scheduling; the per-file sums of `--durations=0` with -n 2 on the
-# 2-core machine, December 2026: test_jacobians.py ~140 s, the notebooks ~110 s, then 30-65 s).
+# 2-core machine, December 2026). xdist's own order (files with the most tests first) is turned
+# off in `pytest_configure`, or it would replace this one.
 LONGEST_FIRST = (
     "test_jacobians.py",
     "test_notebooks.py",
+    "test_properties.py",
     "test_groups.py",
+    "test_factorgraph.py",
+    "test_imu.py",
     "test_retractions.py",
     "test_icp_buckets.py",
-    "test_properties.py",
-    "test_imu.py",
+    "test_native_kdtree.py",
+    "test_icp.py",
+    "test_cameras.py",
+    "test_icp_derivatives.py",
+    "test_autodiff.py",
+    "test_graph.py",
+    "test_icp_search.py",
+    "test_gicp.py",
+    "test_bearing_range.py",
+    "test_icp_invariance.py",
+    "test_factorgraph_buckets.py",
+    "test_lstsq_scaling.py",
+    "test_examples.py",
     "test_lstsq.py",
     "test_chain_agreement.py",
-    "test_cameras.py",
-    "test_factorgraph.py",
-    "test_second_order.py",
+    "test_native_cholesky.py",
     "test_align.py",
-    "test_icp_derivatives.py",
     "test_conventions.py",
-    "test_native_kdtree.py",
     "test_group_edges.py",
-    "test_bearing_range.py",
-    "test_icp_search.py",
     "test_sharding.py",
+    "test_second_order.py",
+    "test_first_call.py",
+    "test_se23.py",
+    "test_lstsq_faults.py",
     "test_docs.py",
 )
+
+
+def pytest_configure(config):
+    """Keep `LONGEST_FIRST` under `--dist loadfile`: pytest-xdist (3.7+) otherwise reorders the
+    files by their number of tests."""
+    if hasattr(config.option, "loadscopereorder"):
+        config.option.loadscopereorder = False
 
 
 def pytest_collection_modifyitems(items):

@@ -194,11 +194,14 @@ def hessians(spec, x, target):
     def one(x_, target_):
         gradient = jax.grad(local_cost)
         shifts = HESSIAN_STEP * jnp.eye(size)
-        plus = jax.vmap(lambda s: gradient(s, x_, target_))(shifts)
-        minus = jax.vmap(lambda s: gradient(-s, x_, target_))(shifts)
         zero = jnp.zeros(size)
+        # the gradient at 0 and at ±h e_k in one vmap: one copy of the gradient's program
+        gradients = jax.vmap(lambda s: gradient(s, x_, target_))(
+            jnp.concatenate([zero[None], shifts, -shifts])
+        )
+        plus, minus = jnp.split(gradients[1:], 2)
         return {
-            "gradient": gradient(zero, x_, target_),
+            "gradient": gradients[0],
             "hessian": jax.hessian(local_cost)(zero, x_, target_),
             "hessian_fd": (plus - minus).T / (2 * HESSIAN_STEP),
         }

@@ -122,29 +122,35 @@ def checks(name):
             return value(pose.rplus(delta[:6]), point + delta[6:9], extra_)
 
         n = sum(sizes)
-        columns = jax.vmap(lambda d: (moved(d) - moved(-d)) / (2 * STEP))(STEP * jnp.eye(n))
+        zero = jnp.zeros(n)
+        # the value at 0 and at ±εe_k in one vmap (one copy of the value's program; likewise the
+        # gradient at 0 and at ±h v below)
+        shifts = STEP * jnp.eye(n)
+        values = jax.vmap(moved)(jnp.concatenate([zero[None], shifts, -shifts]))
+        plus_values, minus_values = jnp.split(values[1:], 2)
+        columns = (plus_values - minus_values) / (2 * STEP)
 
         def cost(delta):
             r = moved(delta)
             return 0.5 * jnp.sum(r * r)
 
-        zero = jnp.zeros(n)
         gradient = jax.grad(cost)
         directions = DIRECTIONS[:, :n] / jnp.linalg.norm(DIRECTIONS[:, :n], axis=1, keepdims=True)
         hessian = jax.vmap(lambda v: jax.jvp(gradient, (zero,), (v,))[1])(directions)
-        plus = jax.vmap(gradient)(HESSIAN_STEP * directions)
-        minus = jax.vmap(gradient)(-HESSIAN_STEP * directions)
+        steps = HESSIAN_STEP * directions
+        gradients = jax.vmap(gradient)(jnp.concatenate([zero[None], steps, -steps]))
+        plus, minus = jnp.split(gradients[1:], 2)
         hessian_fd = (plus - minus) / (2 * HESSIAN_STEP)
         return dict(
             value=val,
-            value_path=value(pose, point, extra),
+            value_path=values[0],
             closed=closed_J,
             fwd=autodiff[0],
             rev=autodiff[1],
             fd=columns.T,
             hessian=hessian,
             hessian_fd=hessian_fd,
-            gradient=gradient(zero),
+            gradient=gradients[0],
         )
 
     out = jax.jit(jax.vmap(one))(ROTVECS, TRANSLATIONS, POINTS, _extra(name))

@@ -286,18 +286,19 @@ def tangent_map_results(group_name):
 
     def evaluate(xis, offsets):
         out = {
-            "right_jacobian": G.right_jacobian(xis),
-            "right_jacobian_inverse": G.right_jacobian_inverse(xis),
             "left_jacobian": G.left_jacobian(xis),
             "left_jacobian_inverse": G.left_jacobian_inverse(xis),
-            "exp_adjoint": G.exp(xis).adjoint(),
         }
+        shifted = (xis[:, None, None, :] + offsets).reshape(-1, spec.dim)
         for name in TANGENT_MAPS:
             single = getattr(G, name)
+            # the values at ξ and at ξ ± εe_k in one call (one copy of the kernel)
+            values = single(jnp.concatenate([xis, shifted]))
+            out[name] = values[: len(xis)]
+            out[f"{name}_shifted"] = values[len(xis) :].reshape(*offsets.shape, spec.dim)
             out[f"{name}_jacfwd"] = jax.vmap(jax.jacfwd(single))(xis)
             out[f"{name}_jacrev"] = jax.vmap(jax.jacrev(single))(xis)
             out[f"{name}_hessian"] = jax.vmap(jax.jacfwd(jax.jacrev(single)))(xis)
-            out[f"{name}_shifted"] = single(xis[:, None, None, :] + offsets)
         return out
 
     out = jax.tree_util.tree_map(np.asarray, jax.jit(evaluate)(xis, offsets))

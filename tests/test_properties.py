@@ -134,35 +134,38 @@ def value_checks(name, dtype):
     spec = MANIFOLDS[MANIFOLD_IDS.index(name)]
 
     def evaluate(a):
-        y = spec.base(a["eta"])
-        moved = y.rplus(a["xi"])
+        # Calls of the same operation share one call on stacked cases (the same values, a
+        # program about half the size of one with a copy of the kernel per call).
+        stack = lambda *elements: jax.tree_util.tree_map(lambda *u: jnp.stack(u), *elements)
+        split = lambda stacked, n: [stacked[i] for i in range(n)]
+        if spec.is_group:
+            G = spec.cls
+            x, y, z = split(G.exp(jnp.stack([a["xi"], a["eta"], a["zeta"]])), 3)
+        else:
+            y = spec.base(a["eta"])
+        moved, y_plus_zero = split(y.rplus(jnp.stack([a["xi"], jnp.zeros_like(a["xi"])])), 2)
+        back, moved_minus_moved = split(stack(moved, moved).rminus(stack(y, moved)), 2)
         pairs = {
-            "(Y ⊕ ξ) ⊖ Y = ξ": (moved.rminus(y), a["xi"]),
-            "Y ⊕ ((Y ⊕ ξ) ⊖ Y) = Y ⊕ ξ": (
-                y.rplus(moved.rminus(y)).parameters(),
-                moved.parameters(),
-            ),
-            "Y ⊕ 0 = Y": (y.rplus(jnp.zeros_like(a["xi"])).parameters(), y.parameters()),
-            "X ⊖ X = 0": (moved.rminus(moved), jnp.zeros_like(a["xi"])),
+            "(Y ⊕ ξ) ⊖ Y = ξ": (back, a["xi"]),
+            "Y ⊕ ((Y ⊕ ξ) ⊖ Y) = Y ⊕ ξ": (y.rplus(back).parameters(), moved.parameters()),
+            "Y ⊕ 0 = Y": (y_plus_zero.parameters(), y.parameters()),
+            "X ⊖ X = 0": (moved_minus_moved, jnp.zeros_like(a["xi"])),
         }
         if not spec.is_group:
             norm = jnp.linalg.norm(moved.parameters(), axis=-1)
             pairs["|Y ⊕ ξ| = 1"] = (norm, jnp.ones_like(norm))
             return pairs
-        G = spec.cls
-        x, z = G.exp(a["xi"]), G.exp(a["zeta"])
         m = x.as_matrix()
         eye = jnp.eye(spec.n, dtype=dtype)
+        log_x = x.log()
+        exp_log_x, exp_ad = split(G.exp(jnp.stack([log_x, x.adjoint() @ a["eta"]])), 2)
         pairs |= {
             "X X⁻¹ = e": ((x @ x.inverse()).as_matrix(), eye),
             "X⁻¹ X = e": ((x.inverse() @ x).as_matrix(), eye),
             "(X Y) Z = X (Y Z)": (((x @ y) @ z).as_matrix(), (x @ (y @ z)).as_matrix()),
-            "Exp(Log X) = X": (G.exp(x.log()).as_matrix(), m),
-            "Log(Exp ξ) = ξ": (x.log(), a["xi"]),
-            "X Exp(η) = Exp(Ad_X η) X": (
-                (x @ G.exp(a["eta"])).as_matrix(),
-                (G.exp(x.adjoint() @ a["eta"]) @ x).as_matrix(),
-            ),
+            "Exp(Log X) = X": (exp_log_x.as_matrix(), m),
+            "Log(Exp ξ) = ξ": (log_x, a["xi"]),
+            "X Exp(η) = Exp(Ad_X η) X": ((x @ y).as_matrix(), (exp_ad @ x).as_matrix()),
             "(X Y) p = X (Y p)": ((x @ y) @ a["p"], x @ (y @ a["p"])),
             "as_matrix(X Y) = M_X M_Y": ((x @ y).as_matrix(), m @ y.as_matrix()),
         }
@@ -278,12 +281,17 @@ def _scalar(spec, a, xi, params):
     """A sum over the main operations' outputs at `X = Exp(ξ)` (groups), `Y ⊕ ξ` and the raw
     parameters `params` of a point (exp, log, rplus, rminus, act, the right Jacobian)."""
     cls = spec.cls
-    y = spec.base(a["eta"])
+    if spec.is_group:  # Exp of ξ and η in one call (one copy of the kernel)
+        exps = cls.exp(jnp.stack([xi, a["eta"]]))
+        x, y = exps[0], exps[1]
+    else:
+        y = spec.base(a["eta"])
     raw = cls(params)
     moved = y.rplus(xi)
-    terms = [moved.parameters(), moved.rminus(y), raw.rminus(y)]
+    # (Y ⊕ ξ) ⊖ Y and raw ⊖ Y in one call
+    differences = cls(jnp.stack([moved.parameters(), params])).rminus(y)
+    terms = [moved.parameters(), differences[0], differences[1]]
     if spec.is_group:
-        x = cls.exp(xi)
         terms += [
             x.parameters(),
             x.log(),

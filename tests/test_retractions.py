@@ -85,24 +85,21 @@ def results(name, G):
     def rminus(y, x):
         return retraction.rminus(y, x)
 
+    shifts = FD_EPS * jnp.concatenate([eye, -eye])  # ± in one vmap: one copy of each program
+
+    def central(moved):
+        """`(moved(εe_k) - moved(-εe_k)) / 2ε` as column k."""
+        plus, minus = jnp.split(jax.vmap(moved)(shifts), 2)
+        return ((plus - minus) / (2 * FD_EPS)).T
+
     def fd(f, at):
         """Central differences of `f` at `at` (a tangent), read out by `⊖ f(at)` (Exp's)."""
         base = f(at)
-
-        def column(e):
-            return (f(at + FD_EPS * e).rminus(base) - f(at - FD_EPS * e).rminus(base)) / (
-                2 * FD_EPS
-            )
-
-        return jax.vmap(column, out_axes=1)(eye)
+        return central(lambda d: f(at + d).rminus(base))
 
     def fd_rminus(y, x):
         """Central differences of `rminus(y, x)` with respect to `y` (moved by Exp)."""
-
-        def column(e):
-            return (rminus(y.rplus(FD_EPS * e), x) - rminus(y.rplus(-FD_EPS * e), x)) / (2 * FD_EPS)
-
-        return jax.vmap(column, out_axes=1)(eye)
+        return central(lambda d: rminus(y.rplus(d), x))
 
     def f(x):
         """A smooth scalar function of a point."""
@@ -119,24 +116,26 @@ def results(name, G):
         x0 = xs[0]
         zero = jnp.zeros(dim)
         single = jax.vmap(rplus)  # the unbatched function, vmapped
+        # calls of the same function share one call on stacked cases where their inputs allow
+        # it (one copy of the kernel in the program; the same values)
+        stack = lambda *elements: jax.tree_util.tree_map(lambda *u: jnp.stack(u), *elements)
+        retracted = rplus(xs, deltas)
+        differences = rminus(ys, xs)
+        round_trip_tangent, rminus_self = rminus(stack(retracted, xs), stack(xs, xs))
+        steps = jnp.asarray(STEPS)[:, None] * direction
         out = {
             "x": xs.as_matrix(),
             "y": ys.as_matrix(),
-            "retracted": rplus(xs, deltas).as_matrix(),
+            "retracted": retracted.as_matrix(),
             "retracted_vmapped": single(xs, deltas).as_matrix(),
             "retracted_broadcast": rplus(x0, deltas).as_matrix(),  # one X, a batch of δ
-            "round_trip_tangent": rminus(rplus(xs, deltas), xs),
-            "round_trip_point": rplus(xs, rminus(ys, xs)).as_matrix(),
+            "round_trip_tangent": round_trip_tangent,
+            "round_trip_point": rplus(xs, differences).as_matrix(),
             "rminus_vmapped": jax.vmap(rminus)(ys, xs),
-            "rminus": rminus(ys, xs),
-            "rminus_self": rminus(xs, xs),
+            "rminus": differences,
+            "rminus_self": rminus_self,
             # |R_X(tδ) ⊖ X Exp(tδ)| for the steps t
-            "agreement": jnp.stack(
-                [
-                    jnp.linalg.norm(rplus(x0, t * direction).rminus(x0.rplus(t * direction)))
-                    for t in STEPS
-                ]
-            ),
+            "agreement": jnp.linalg.norm(rplus(x0, steps).rminus(x0.rplus(steps)), axis=-1),
             # derivatives at δ = 0: the identity
             "jacobian_zero_fwd": lieax.jacobian(rplus, 1, mode="fwd")(x0, zero),
             "jacobian_zero_rev": lieax.jacobian(rplus, 1, mode="rev")(x0, zero),
@@ -148,15 +147,7 @@ def results(name, G):
             "fd_x": jax.vmap(lambda x, d: fd(lambda e: rplus(x.rplus(e), d), zero))(xs, deltas),
             "rminus_jacobian": jax.vmap(lieax.jacobian(rminus, (0, 1), mode="rev"))(ys, xs),
             "fd_rminus_y": jax.vmap(fd_rminus)(ys, xs),
-            "fd_rminus_x": jax.vmap(
-                lambda y, x: jax.vmap(
-                    lambda e: (
-                        (rminus(y, x.rplus(FD_EPS * e)) - rminus(y, x.rplus(-FD_EPS * e)))
-                        / (2 * FD_EPS)
-                    ),
-                    out_axes=1,
-                )(eye)
-            )(ys, xs),
+            "fd_rminus_x": jax.vmap(lambda y, x: central(lambda d: rminus(y, x.rplus(d))))(ys, xs),
             # raw-parameter derivatives: forward and reverse mode agree (the rules transpose)
             "jacfwd_raw": jax.jacfwd(lambda p, d: rplus(G(p), d).parameters(), (0, 1))(
                 x0.parameters(), deltas[0]

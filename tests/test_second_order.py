@@ -51,8 +51,9 @@ def results(name):
         c = functools.partial(cost, spec, xi=xi, y=G.exp(eta), p=p)
         gradient = jax.grad(c)
         zero = jnp.zeros(spec.dim)
-        shifts = STEP * jnp.eye(spec.dim)  # ± in one vmap: one copy of the gradient's program
-        plus, minus = jnp.split(jax.vmap(gradient)(jnp.concatenate([shifts, -shifts])), 2)
+        shifts = STEP * jnp.eye(spec.dim)  # 0 and ± in one vmap: one copy of the gradient's program
+        gradients = jax.vmap(gradient)(jnp.concatenate([zero[None], shifts, -shifts]))
+        plus, minus = jnp.split(gradients[1:], 2)
 
         def on_raw(params):
             return G(params).normalize() @ p
@@ -63,7 +64,7 @@ def results(name):
             jax.vmap(lambda d: on_raw(params + d))(jnp.concatenate([raw_shifts, -raw_shifts])), 2
         )
         return {
-            "gradient": gradient(zero),
+            "gradient": gradients[0],
             "hessian": jax.hessian(c)(zero),
             "hessian_fd": (plus - minus).T / (2.0 * STEP),
             "raw_jacfwd": jax.jacfwd(on_raw)(params),
