@@ -47,6 +47,7 @@ LONGEST_FIRST = (
     "test_retractions.py",
     "test_icp_buckets.py",
     "test_native_kdtree.py",
+    "test_executable_store.py",
     "test_icp.py",
     "test_cameras.py",
     "test_icp_derivatives.py",
