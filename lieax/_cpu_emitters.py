@@ -49,19 +49,18 @@ def known() -> bool:
     return not _REFUSED.intersection(CLASSIC_CPU_EMITTERS)
 
 
-def jit(fun=None, *, fingerprint=None, **jit_options):
+def jit(fun=None, *, fingerprint=None, before_run=None, **jit_options):
     """`jax.jit(fun, **jit_options)` with `CLASSIC_CPU_EMITTERS` where this XLA knows them (as a
     decorator too, with or without arguments), its programs kept by `lieax._executable_store`
-    while that is on (`fingerprint()` names what `fun` closes over, see
-    `_executable_store.Programs`). The result's `_cache_size()` counts the compilations of both
+    while that is on (`fingerprint()` names what `fun` closes over, `before_run()` prepares
+    what a loaded program reads: see `_executable_store.Programs`). The result's `_cache_size()` counts the compilations of both
     variants and the store's (the tests count recompilation)."""
     if fun is None:
-        return functools.partial(jit, fingerprint=fingerprint, **jit_options)
+        return functools.partial(jit, fingerprint=fingerprint, before_run=before_run, **jit_options)
     classic = jax.jit(fun, compiler_options=CLASSIC_CPU_EMITTERS, **jit_options)
     default = jax.jit(fun, **jit_options)
-    stored = executable_store.Programs(
-        classic, fun, dict(jit_options, compiler_options=CLASSIC_CPU_EMITTERS), fingerprint
-    )
+    options = dict(jit_options, compiler_options=CLASSIC_CPU_EMITTERS)
+    stored = executable_store.Programs(classic, fun, options, fingerprint, before_run)
     refusals = []
 
     @functools.wraps(fun)

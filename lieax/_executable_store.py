@@ -32,7 +32,7 @@ What a loaded program needs, that tracing and lowering would have done:
   handlers and BLAS pointers are set when a call to them is lowered (`before_loading`, by the
   target names in the program); else it crashes;
 - host state its custom calls read: the native Cholesky's plan, registered when its analysis
-  ends (`FactorGraph.solve` waits for it before calling the loop);
+  ends (`Programs`' `before_run` waits for it, after the load);
 - a program compiled afresh when stored (`_fresh`): jaxlib 0.10's CPU executable that JAX read
   from its own cache serializes without its kernels. A loaded program's first run is awaited,
   and one that fails with NOT_FOUND is compiled again and its file rewritten; a file that fails
@@ -187,14 +187,17 @@ class Programs:
     """The compiled programs of `jitted` (a `jax.jit` of `fun`) that the store serves, by call
     signature. `fingerprint()` names what `fun` computes beyond its arguments (default: `describe`
     of the static arguments, and `fun` is named by its module and name, which needs it to be
-    lieax's and to close over nothing)."""
+    lieax's and to close over nothing). `before_run()`, where given, is called before a loaded
+    program first runs: host state its custom calls read, which its trace would have waited
+    for (called after the load, so that the two overlap)."""
 
-    def __init__(self, jitted, fun, jit_options, fingerprint=None):
+    def __init__(self, jitted, fun, jit_options, fingerprint=None, before_run=None):
         self.jitted = jitted
         self.fun = fun
         self.static = tuple(jit_options.get("static_argnames", ()))
         self.options = describe({k: v for k, v in jit_options.items() if k != "static_argnames"})
         self.fingerprint = fingerprint
+        self.before_run = before_run
         self.found = {}  # signature -> compiled program, or None where not stored
         self.unproven = {}  # signature -> file, of the programs loaded and not yet run
         self.compiled = 0  # programs this process compiled (not loaded)
@@ -227,6 +230,8 @@ class Programs:
             return NOT_SERVED
         if signature not in self.unproven:
             return program(*args, **dynamic)
+        if self.before_run is not None:
+            self.before_run()
         try:  # a loaded program's first run, awaited (its errors come with its results)
             result = jax.block_until_ready(program(*args, **dynamic))
         except jax.errors.JaxRuntimeError as error:

@@ -372,10 +372,6 @@ class FactorGraph:
         if traced:  # under a transformation: the solve with its implicit derivatives
             result = _result(*solve_implicit(self, loop, values, data, params))
         else:  # one dispatch, one transfer of the scalars: they come back as NumPy values
-            if method == "cholesky" and self._buckets is None:
-                # its plan registered (`_native_cholesky`): a traced loop waited for it, one
-                # that `lieax._executable_store` loaded did not
-                layout.plan()
             threads = dense_threads(layout.pattern) if method == "dense" else None
             with lapack_limited(threads):  # waits for the program (`np.asarray`) inside
                 solution, summary, _ = loop(values, data, params)
@@ -503,7 +499,10 @@ class FactorGraph:
             return loop, layout, solver
         loop = self._loops.get(key)
         if loop is None:
-            loop = self._loops[key] = make_loop(self, options)
+            # the Cholesky plan registered before the loop runs (`_native_cholesky`): tracing
+            # the loop waits for it; a loop `lieax._executable_store` loaded waits after loading
+            ready = layout.plan if solver == "cholesky" else None
+            loop = self._loops[key] = make_loop(self, options, ready)
         return loop, layout, solver
 
     def _names(self):

@@ -10,8 +10,8 @@ to the library's registry under that key when `CholeskyPlan.analyze` ends; the r
 holds as long as the plan object lives (a `weakref.finalize` releases it; plans of one pattern
 share the key, counted). A program loaded from the cache in a second process finds its plan
 because that process analyses the same pattern (`FactorGraph.solve` starts the analysis before
-it calls the loop, and waits for it: a loop that `lieax._executable_store` loaded is not traced,
-and nothing else would wait).
+it calls the loop, and a loop that `lieax._executable_store` loaded, not traced, waits for it
+before it first runs: `_solve.make_loop`'s `ready`).
 
 A solve traced with a plan given as a function (`Layout.plan`, whose analysis
 `Layout.start_plan` began in the background) waits for the analysis at trace time and names its

@@ -214,7 +214,7 @@ def _damping_diagonal(scaling, block, params):
     return squared * jnp.clip(h / squared, params["min_diagonal"], params["max_diagonal"])
 
 
-def make_loop(graph, options):
+def make_loop(graph, options, ready=None):
     """The jitted `run(values, data, params) -> (values, summary, system)` of `graph` under the
     static `options` (a dict: method, schur plan, scaling, damping_update, gauss_newton, floor,
     retraction, history_size, verbose, cg_max_iterations); `params` is the array of `PARAMETERS`;
@@ -223,7 +223,9 @@ def make_loop(graph, options):
     (with a `max_iterations` of 0, the linearization of the start: what
     `lieax.factorgraph.marginal_covariances` reads, with no program of its own). For a bucketed
     graph `graph` is its `_buckets.Buckets`, and `run` takes the structure as a fourth operand
-    (`Buckets.operands`), so that every graph of its buckets calls the one program."""
+    (`Buckets.operands`), so that every graph of its buckets calls the one program. `ready()`,
+    where given, is called before a loop loaded from `lieax._executable_store` first runs (what
+    its trace would have waited for: the Cholesky plan's registration)."""
 
     def loop(values, data, vector, *structure):
         view = graph.traced(*structure) if structure else graph
@@ -234,7 +236,8 @@ def make_loop(graph, options):
         scalars = jnp.stack([cost, lam, *(a.astype(dtype) for a in (iterations, solves, status))])
         return values, jnp.concatenate([scalars, history]), system
 
-    return cpu_emitters.jit(loop, fingerprint=lambda: loop_fingerprint(graph, options))
+    fingerprint = lambda: loop_fingerprint(graph, options)  # noqa: E731
+    return cpu_emitters.jit(loop, fingerprint=fingerprint, before_run=ready)
 
 
 class _Phases:
