@@ -223,7 +223,7 @@ class Programs:
         try:
             program = self.found[signature]
         except KeyError:
-            program = self.found[signature] = self._program(static, treedef, avals, args, kwargs)
+            program = self.found[signature] = self._program(signature, args, kwargs)
         except TypeError:  # an unhashable static argument: JAX's jit refuses it itself
             return NOT_SERVED
         if program is None:
@@ -244,13 +244,14 @@ class Programs:
         del self.unproven[signature]
         return result
 
-    def _program(self, static, treedef, avals, args, kwargs):
-        """The program of this signature from the store, or compiled and stored; None where it
-        is not stored (`Undescribable`)."""
+    def _program(self, signature, args, kwargs):
+        """The program of `signature` from the store, or compiled and stored; None where it is
+        not stored (`Undescribable`)."""
+        global _loads
         try:
-            key = self._key(static, treedef, avals)
-        except (Undescribable, RecursionError):
-            return None
+            key = self._key(*signature[1:])
+        except Exception:  # noqa: BLE001 - `Undescribable`, or a description that failed: the
+            return None  # call runs as without the store (which never stops a call that works)
         path = _directory / f"{key}.bin"
         if path.exists():
             try:
@@ -259,8 +260,7 @@ class Programs:
                 for prefix in needs:
                     _preparations[prefix]()
                 program = serialize_executable.deserialize_and_load(*serialized)
-                self.unproven[(_trace_context(), static, treedef, avals)] = path
-                global _loads
+                self.unproven[signature] = path
                 _loads += 1
                 return program
             except Exception:  # noqa: BLE001 - a damaged or foreign file: compiled again below
@@ -295,7 +295,7 @@ class Programs:
         self.compiled += 1
         unloaded = getattr(compiled._executable, "_unloaded_executable", None)
         if not fresh or unloaded is None or unloaded.host_callbacks:
-            return compiled  # kept in memory; a Python callback cannot be stored
+            return compiled  # kept in memory only (a Python callback cannot be stored)
         try:
             serialized = serialize_executable.serialize(compiled)
             # the targets' names are in the executable's bytes
