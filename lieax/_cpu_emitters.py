@@ -53,8 +53,9 @@ def jit(fun=None, *, fingerprint=None, before_run=None, **jit_options):
     """`jax.jit(fun, **jit_options)` with `CLASSIC_CPU_EMITTERS` where this XLA knows them (as a
     decorator too, with or without arguments), its programs kept by `lieax._executable_store`
     while that is on (`fingerprint()` names what `fun` closes over, `before_run()` prepares
-    what a loaded program reads: see `_executable_store.Programs`). The result's `_cache_size()` counts the compilations of both
-    variants and the store's (the tests count recompilation)."""
+    what a loaded program reads: see `_executable_store.Programs`). The result's
+    `_cache_size()` counts the compilations of both variants and the store's (the tests count
+    recompilation)."""
     if fun is None:
         return functools.partial(jit, fingerprint=fingerprint, before_run=before_run, **jit_options)
     classic = jax.jit(fun, compiler_options=CLASSIC_CPU_EMITTERS, **jit_options)

@@ -13,6 +13,7 @@ sums exactly that computation, so two kinds with one jaxpr make one loop."""
 import jax
 
 from .._describe import Undescribable, describe, jaxpr_fingerprint, stable_repr
+from ._buckets import Buckets
 from ._factors import residual_one
 
 
@@ -20,9 +21,10 @@ def loop_fingerprint(graph, options) -> str:
     """The fingerprint of `_solve.make_loop(graph, options)` (`graph` a `FactorGraph` or its
     `_buckets.Buckets`); `lieax._describe.Undescribable` where a part has no name that holds
     across processes (a retraction or loss written outside lieax, a custom derivative rule)."""
-    structure = getattr(graph, "_structure_key", None)
-    if structure is None:  # the buckets' key, less the factor kinds' functions (named below)
+    if isinstance(graph, Buckets):  # the buckets' key, less the factor kinds' functions (below)
         structure = tuple(part[2:] if k == 4 else part for k, part in enumerate(graph.key))
+    else:
+        structure = graph._structure_key
     schur = options["schur"]
     parts = (
         structure,

@@ -96,7 +96,7 @@ class FactorGraph:
       (compiled per structure, as without buckets).
 
     Construction validates everything that can be checked without compiling: index ranges,
-    residual and information shapes (`jax.eval_shape` of one instance), positive-definite
+    residual and information shapes (`jax.make_jaxpr` of one instance), positive-definite
     information, finite data, Jacobian shapes of a `jacobian_fn`.
     """
 

@@ -236,7 +236,9 @@ def make_loop(graph, options, ready=None):
         scalars = jnp.stack([cost, lam, *(a.astype(dtype) for a in (iterations, solves, status))])
         return values, jnp.concatenate([scalars, history]), system
 
-    fingerprint = lambda: loop_fingerprint(graph, options)  # noqa: E731
+    def fingerprint():
+        return loop_fingerprint(graph, options)
+
     return cpu_emitters.jit(loop, fingerprint=fingerprint, before_run=ready)
 
 
