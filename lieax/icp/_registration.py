@@ -178,7 +178,7 @@ def point_to_plane(
       padded rows); `False` compiles for the exact shapes. The results are those of the
       unpadded call (`correspondences` has `n` entries and indexes the unpadded target).
     - `presample`: register every $k$-th source point first, $k$ = `round(1 / presample)`, to
-      looser tolerances (1e-3 for the fitness, 1e-3 `max_correspondence_distance` for the RMSE,
+      looser tolerances (3e-4 for the fitness, 3e-4 `max_correspondence_distance` for the RMSE,
       or the given ones if looser), then the whole source from that pose to the given criteria;
       0 (or a source of fewer than 500 $k$ points, or `max_iterations` below 10) registers the
       whole source from `init` directly. The first iterations, where the pose still slides and every
