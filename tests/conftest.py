@@ -24,6 +24,11 @@ if os.environ.get("LIEAX_TEST_XLA_OPTIMIZE") != "1":
             "--xla_cpu_parallel_codegen_split_count=1",
         ]
     os.environ["XLA_FLAGS"] = " ".join([os.environ.get("XLA_FLAGS", ""), *_flags]).strip()
+# JAX writes the Python traceback of every operation (up to 100 frames) into the program's
+# locations, which only error dumps read; the innermost frame alone is 4-5% less XLA compile
+# time (measured interleaved, December 2026). An environment variable, so that the subprocesses
+# and notebook kernels of the tests inherit it.
+os.environ.setdefault("JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS", "false")
 
 import jax
 
