@@ -123,6 +123,18 @@ def results(name, G):
         differences = rminus(ys, xs)
         round_trip_tangent, rminus_self = rminus(stack(retracted, xs), stack(xs, xs))
         steps = jnp.asarray(STEPS)[:, None] * direction
+        # finite differences in δ at each (X, δ) and at (X0, 0); gradients at δ = 0 for every X
+        # and the identity; Hessians at those and at each (X, δ): one vmapped call each
+        join = lambda *batches: jax.tree_util.tree_map(lambda *u: jnp.concatenate(u), *batches)
+        one = lambda element: jax.tree_util.tree_map(lambda u: u[None], element)
+        fd_delta_and_zero = jax.vmap(lambda x, d: fd(lambda e: rplus(x, e), d))(
+            join(xs, one(x0)), jnp.concatenate([deltas, zero[None]])
+        )
+        at_zero = join(xs, one(G.identity()))
+        grads = jax.vmap(jax.grad(scalar))(jnp.zeros((COUNT + 1, dim)), at_zero)
+        hessians = jax.vmap(jax.hessian(scalar))(
+            jnp.concatenate([jnp.zeros((COUNT + 1, dim)), deltas]), join(at_zero, xs)
+        )
         out = {
             "x": xs.as_matrix(),
             "y": ys.as_matrix(),
@@ -139,11 +151,11 @@ def results(name, G):
             # derivatives at δ = 0: the identity
             "jacobian_zero_fwd": lieax.jacobian(rplus, 1, mode="fwd")(x0, zero),
             "jacobian_zero_rev": lieax.jacobian(rplus, 1, mode="rev")(x0, zero),
-            "fd_zero": fd(lambda d: rplus(x0, d), zero),
+            "fd_zero": fd_delta_and_zero[-1],
             "rminus_jacobian_zero": lieax.jacobian(rminus, 0)(x0, x0),
             # the kernels' rules at δ ≠ 0, against finite differences
             "jacobian": jax.vmap(lieax.jacobian(rplus, (0, 1)))(xs, deltas),
-            "fd_delta": jax.vmap(lambda x, d: fd(lambda e: rplus(x, e), d))(xs, deltas),
+            "fd_delta": fd_delta_and_zero[:-1],
             "fd_x": jax.vmap(lambda x, d: fd(lambda e: rplus(x.rplus(e), d), zero))(xs, deltas),
             "rminus_jacobian": jax.vmap(lieax.jacobian(rminus, (0, 1), mode="rev"))(ys, xs),
             "fd_rminus_y": jax.vmap(fd_rminus)(ys, xs),
@@ -156,13 +168,13 @@ def results(name, G):
                 x0.parameters(), deltas[0]
             ),
             # gradients and Hessians at δ = 0 (also at the identity), and at δ ≠ 0
-            "grad_zero": jax.vmap(jax.grad(scalar), (None, 0))(zero, xs),
-            "hessian_zero": jax.vmap(jax.hessian(scalar), (None, 0))(zero, xs),
-            "grad_identity": jax.grad(scalar)(zero, G.identity()),
-            "hessian_identity": jax.hessian(scalar)(zero, G.identity()),
+            "grad_zero": grads[:COUNT],
+            "hessian_zero": hessians[:COUNT],
+            "grad_identity": grads[COUNT],
+            "hessian_identity": hessians[COUNT],
             "local_grad": jax.vmap(lieax.grad(f))(xs),
             "grad_exp": jax.vmap(jax.grad(scalar_exp), (None, 0))(zero, xs),
-            "hessian_delta": jax.vmap(jax.hessian(scalar))(deltas, xs),
+            "hessian_delta": hessians[COUNT + 1 :],
             "rminus_grad_self": jax.grad(lambda p: jnp.sum(rminus(G(p), x0)))(x0.parameters()),
         }
         return out
