@@ -3,6 +3,7 @@
 The group registry, regimes, operations and tolerances live in `registry.py` next to this file.
 """
 
+import gc
 import importlib.metadata
 import os
 
@@ -29,6 +30,11 @@ if os.environ.get("LIEAX_TEST_XLA_OPTIMIZE") != "1":
 # time (measured interleaved, December 2026). An environment variable, so that the subprocesses
 # and notebook kernels of the tests inherit it.
 os.environ.setdefault("JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS", "false")
+# Tracing and lowering allocate millions of short-lived objects: with Python's default threshold
+# (700) the cyclic collector runs every few hundred of them and walks the young ones each time;
+# 10,000 makes JAX's tracing 10% and lowering 15% faster (CPU time, interleaved processes, the
+# jitted checks of test_jacobians). Collections still run (gc.collect() where a test needs one).
+gc.set_threshold(10_000, 10, 10)
 
 import jax
 
