@@ -5,6 +5,7 @@ BAL file round trips and malformed-file errors, and the synthetic problem genera
 
 import bz2
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -43,8 +44,17 @@ def _case(rotvec, seed, pure_translation=False):
     return pose, jnp.asarray(INTRINSICS), jnp.asarray(point), jnp.asarray(observation)
 
 
-CASES = {name: _case(rotvec, seed) for seed, (name, rotvec) in enumerate(REGIMES.items())}
-CASES["pure-translation"] = _case(np.zeros(3), 10, pure_translation=True)
+CASE_NAMES = [*REGIMES, "pure-translation"]
+
+
+@functools.cache
+def cases():
+    """`{name: (pose, intrinsics, point, observation)}` of every regime (built when a test first
+    needs them, not while pytest collects the file)."""
+    built = {name: _case(rotvec, seed) for seed, (name, rotvec) in enumerate(REGIMES.items())}
+    built["pure-translation"] = _case(np.zeros(3), 10, pure_translation=True)
+    return built
+
 
 closed_form = jax.jit(ba.reprojection_jacobians)
 autodiff = {
@@ -75,9 +85,9 @@ def _relative_error(a, b):
     return np.max(np.abs(np.asarray(a) - np.asarray(b))) / np.max(np.abs(np.asarray(b)))
 
 
-@pytest.mark.parametrize("name", list(CASES))
+@pytest.mark.parametrize("name", CASE_NAMES)
 def test_closed_form_matches_autodiff_and_differences(name):
-    pose, intrinsics, point, observation = CASES[name]
+    pose, intrinsics, point, observation = cases()[name]
     residual, *blocks = closed_form(pose, intrinsics, point, observation)
     J = _stacked(*blocks)
     assert J.shape == (2, 12) and np.all(np.isfinite(J))
@@ -93,7 +103,7 @@ def test_closed_form_matches_autodiff_and_differences(name):
 
 @pytest.mark.parametrize("name", ["identity", "near-pi-1e-6", "random"])
 def test_gradients_are_finite(name):
-    pose, intrinsics, point, observation = CASES[name]
+    pose, intrinsics, point, observation = cases()[name]
 
     def cost(pose, intrinsics, point):
         r = ba.reprojection_residual(pose, intrinsics, point, observation)
@@ -107,9 +117,9 @@ def test_gradients_are_finite(name):
 
 
 def _batch():
-    names = list(CASES)
-    pose = lieax.SE3(jnp.stack([CASES[n][0].parameters() for n in names]))
-    rest = [jnp.stack([CASES[n][i] for n in names]) for i in (1, 2, 3)]
+    names = CASE_NAMES
+    pose = lieax.SE3(jnp.stack([cases()[n][0].parameters() for n in names]))
+    rest = [jnp.stack([cases()[n][i] for n in names]) for i in (1, 2, 3)]
     return names, pose, *rest
 
 
@@ -119,7 +129,7 @@ def test_batched_and_vmapped_match_unbatched():
     vmapped = jax.vmap(ba.reprojection_jacobians)(pose, intrinsics, point, observation)
     auto = {m: jax.vmap(j)(pose, intrinsics, point, observation) for m, j in autodiff.items()}
     for k, name in enumerate(names):
-        single = closed_form(*CASES[name])
+        single = closed_form(*cases()[name])
         for b, v, s in zip(batched, vmapped, single):
             np.testing.assert_allclose(b[k], s, rtol=1e-12, atol=1e-12)
             np.testing.assert_allclose(v[k], s, rtol=1e-12, atol=1e-12)
@@ -131,7 +141,7 @@ def test_batched_and_vmapped_match_unbatched():
 
 def test_one_camera_broadcasts_over_points():
     _, _, _, point, observation = _batch()
-    pose, intrinsics, _, _ = CASES["random"]
+    pose, intrinsics, _, _ = cases()["random"]
     residual, J_pose, J_intrinsics, J_point = closed_form(pose, intrinsics, point, observation)
     assert residual.shape == (len(point), 2) and J_pose.shape == (len(point), 2, 6)
     assert J_intrinsics.shape == J_point.shape == (len(point), 2, 3)
@@ -142,7 +152,7 @@ def test_one_camera_broadcasts_over_points():
 
 def test_points_behind_the_camera_stay_finite():
     """Like Ceres, nothing special for $P_z > 0$: finite values and correct Jacobians."""
-    pose, intrinsics, point, observation = CASES["random"]
+    pose, intrinsics, point, observation = cases()["random"]
     behind = pose.inverse() @ jnp.array([0.3, -0.2, 2.0])
     residual, *blocks = closed_form(pose, intrinsics, behind, observation)
     assert np.all(np.isfinite(residual)) and all(np.all(np.isfinite(b)) for b in blocks)
@@ -177,7 +187,7 @@ def test_bal_camera_converters_match_scipy():
 
 
 def test_bad_inputs_are_named():
-    pose, intrinsics, point, observation = CASES["random"]
+    pose, intrinsics, point, observation = cases()["random"]
     with pytest.raises(TypeError, match="SE3"):
         ba.reprojection_residual(pose.rotation(), intrinsics, point, observation)
     with pytest.raises(ValueError, match="intrinsics"):
@@ -405,7 +415,7 @@ def test_gtsam_reads_our_files_and_projects_alike(small, tmp_path):
 def test_camera_as_one_variable():
     """The `(pose, intrinsics)` camera variable: its 2×9 block is the pose block then the
     intrinsics block, as `lieax.jacobian` orders the pytree's tangent."""
-    pose, intrinsics, point, observation = CASES["random"]
+    pose, intrinsics, point, observation = cases()["random"]
     camera = (pose, intrinsics)
     residual, (J_camera, J_point) = ba.camera_jacobians(camera, point, observation)
     _, J_pose, J_intrinsics, J_point_expected = closed_form(pose, intrinsics, point, observation)

@@ -81,35 +81,66 @@ def test_chunk_sizes():
     assert chunk_size(10, 3) == 3
 
 
-@pytest.mark.parametrize("chunk", [1, 2, 5])
-def test_a_vmapped_batch_in_chunks_gives_each_elements_result(pair, monkeypatch, chunk):
-    """A batch of 5 in chunks of 1 (one at a time), 2 (two chunks and a remainder) and 5 (all in
-    lockstep): every element's result is that of its own call, the derivative with respect to the
-    source too (the chunking applies to the loop only; the implicit derivative is vmapped)."""
-    import jax
+SHIFTS = np.linspace(-0.01, 0.01, 5)
+
+
+def shifted_registration(pair):
+    """`(register, pose_sum)`: point-to-plane ICP of the pair's source moved by a shift, and a
+    weighted sum of its pose's parameters (a shift moves the translation; 1e-3 of it reaches the
+    rotation)."""
     import jax.numpy as jnp
 
-    from lieax.icp import _batch
-
     source, target, normals, _ = pair
-    shifts = jnp.linspace(-0.01, 0.01, 5)
 
-    def register(shift, s=source):
+    def register(shift):
         return icp.point_to_plane(
-            s + shift, target, target_normals=normals, max_correspondence_distance=0.2,
+            source + shift, target, target_normals=normals, max_correspondence_distance=0.2,
             throw=False,
         )  # fmt: skip
 
-    def pose_sum(shift):  # (a shift moves the translation; 1e-3 of it reaches the rotation)
+    def pose_sum(shift):
         return jnp.sum(register(shift).transform.parameters()[1:] * jnp.arange(1.0, 7.0))
 
-    monkeypatch.setattr(_batch, "CHUNK_POINTS", chunk * bucket_size(source.shape[0]))
-    batched = jax.jit(jax.vmap(register))(shifts)
-    derivatives = jax.jit(jax.vmap(jax.grad(pose_sum)))(shifts)
+    return register, pose_sum
+
+
+@pytest.fixture(scope="module")
+def each_elements_result(pair):
+    """Each shift's own (unbatched, so unchunked) call: the pose, the iterations and the
+    derivative (`jax.grad`, op by op) of `pose_sum`; once for the three chunk sizes."""
+    import jax
+
+    register, pose_sum = shifted_registration(pair)
+    results = [register(shift) for shift in SHIFTS]
+    return (
+        [np.asarray(result.transform.parameters()) for result in results],
+        [int(result.iterations) for result in results],
+        [np.asarray(jax.grad(pose_sum)(shift)) for shift in SHIFTS],
+    )
+
+
+@pytest.mark.parametrize("chunk", [1, 2, 5])
+def test_a_vmapped_batch_in_chunks_gives_each_elements_result(
+    pair, each_elements_result, monkeypatch, chunk
+):
+    """A batch of 5 in chunks of 1 (one at a time), 2 (two chunks and a remainder) and 5 (all in
+    lockstep): every element's result is that of its own call, the derivative with respect to the
+    source too (the chunking applies to the loop only; the implicit derivative is vmapped). The
+    batch and its derivatives are one program per chunk size."""
+    import jax
+
+    from lieax.icp import _batch
+
+    register, pose_sum = shifted_registration(pair)
+    monkeypatch.setattr(_batch, "CHUNK_POINTS", chunk * bucket_size(pair[0].shape[0]))
+
+    @jax.jit
+    def batched_and_derivatives(shifts):
+        return jax.vmap(register)(shifts), jax.vmap(jax.grad(pose_sum))(shifts)
+
+    batched, derivatives = batched_and_derivatives(SHIFTS)
+    poses, iterations, gradients = each_elements_result
     for b in range(5):
-        single = register(shifts[b])
-        np.testing.assert_allclose(
-            batched.transform.parameters()[b], single.transform.parameters(), atol=1e-10
-        )
-        assert int(batched.iterations[b]) == int(single.iterations)
-        np.testing.assert_allclose(derivatives[b], jax.grad(pose_sum)(shifts[b]), rtol=1e-8)
+        np.testing.assert_allclose(batched.transform.parameters()[b], poses[b], atol=1e-10)
+        assert int(batched.iterations[b]) == iterations[b]
+        np.testing.assert_allclose(derivatives[b], gradients[b], rtol=1e-8)

@@ -3,6 +3,7 @@ circle (function-level imports included), no function runs past 120 lines, and c
 `lieax.groups` reaches the groups through their public classes and `lieax.groups.kernels` only."""
 
 import ast
+import functools
 import pathlib
 
 import pytest
@@ -17,7 +18,13 @@ def _module_name(path):
 
 
 SOURCES = {_module_name(p): p for p in sorted(PACKAGE.rglob("*.py"))}
-TREES = {name: ast.parse(path.read_text(), str(path)) for name, path in SOURCES.items()}
+
+
+@functools.cache
+def trees():
+    """`{module name: its parsed source}`, parsed when a test first needs it (not while pytest
+    collects this file, on every worker)."""
+    return {name: ast.parse(path.read_text(), str(path)) for name, path in SOURCES.items()}
 
 
 def _imported_modules(name, packages, trees):
@@ -76,7 +83,7 @@ PACKAGES = {name for name, path in SOURCES.items() if path.name == "__init__.py"
 
 
 def test_no_import_circle():
-    assert _cycles(TREES, PACKAGES) == []
+    assert _cycles(trees(), PACKAGES) == []
 
 
 def test_cycle_finder_sees_a_circle():
@@ -94,7 +101,7 @@ def test_cycle_finder_sees_a_circle():
 def test_functions_are_short(name):
     long = [
         f"{node.name} ({node.end_lineno - node.lineno + 1} lines, line {node.lineno})"
-        for node in ast.walk(TREES[name])
+        for node in ast.walk(trees()[name])
         if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef)
         and node.end_lineno - node.lineno + 1 > MAX_FUNCTION_LINES
     ]
@@ -107,7 +114,7 @@ def test_groups_reached_through_their_declared_interface(name):
     (`kernels.element` wraps a kernel's output)."""
     private_imports = [
         f"line {node.lineno}"
-        for node in ast.walk(TREES[name])
+        for node in ast.walk(trees()[name])
         if isinstance(node, ast.ImportFrom)
         and (
             (node.module or "").split(".")[-1].startswith("_")
@@ -118,7 +125,7 @@ def test_groups_reached_through_their_declared_interface(name):
     ]
     private_calls = [
         f"line {node.lineno}"
-        for node in ast.walk(TREES[name])
+        for node in ast.walk(trees()[name])
         if isinstance(node, ast.Attribute) and node.attr == "_wrap"
     ]
     assert private_imports == [] and private_calls == []

@@ -360,7 +360,11 @@ def test_vmap_over_64_problems_equals_a_loop_and_compiles_once():
 
 # ---- derivatives of a solution ------------------------------------------------------------------
 
-DIFF_DATA = similarity_data(jax.random.PRNGKey(6), noise=0.1)  # shapes of the tests above
+
+@functools.cache
+def diff_data():
+    """The derivative tests' data (shapes of the tests above)."""
+    return similarity_data(jax.random.PRNGKey(6), noise=0.1)
 
 
 def solve_parameters(target, differentiation="implicit", loss=None):
@@ -368,7 +372,7 @@ def solve_parameters(target, differentiation="implicit", loss=None):
     sol = ls.least_squares(
         similarity_residual,
         similarity_start(),
-        (DIFF_DATA[0], target),
+        (diff_data()[0], target),
         loss=loss,
         differentiation=differentiation,
         **TIGHT,
@@ -390,12 +394,12 @@ def central_differences(f, x, h=1e-5):
 
 @pytest.fixture(scope="module")
 def implicit_jacobian():
-    return jax.jacfwd(solve_parameters)(DIFF_DATA[1])
+    return jax.jacfwd(solve_parameters)(diff_data()[1])
 
 
 def test_implicit_derivatives_equal_finite_differences(implicit_jacobian):
     jac_value, jac_cost = implicit_jacobian
-    fd = central_differences(lambda t: jnp.append(*solve_parameters(t)), DIFF_DATA[1])
+    fd = central_differences(lambda t: jnp.append(*solve_parameters(t)), diff_data()[1])
     fd_value, fd_cost = fd[:-1], fd[-1]
     np.testing.assert_allclose(jac_value, fd_value, atol=1e-6)
     np.testing.assert_allclose(jac_cost, fd_cost, atol=1e-6)
@@ -407,23 +411,25 @@ def test_implicit_grad_equals_jacfwd(implicit_jacobian):
     weights = jnp.linspace(-1.0, 1.0, 8)
     scalar = lambda t: solve_parameters(t)[0] @ weights + solve_parameters(t)[1]  # noqa: E731
     np.testing.assert_allclose(
-        jax.grad(scalar)(DIFF_DATA[1]), jnp.tensordot(weights, jac_value, 1) + jac_cost, atol=1e-12
+        jax.grad(scalar)(diff_data()[1]),
+        jnp.tensordot(weights, jac_value, 1) + jac_cost,
+        atol=1e-12,
     )
 
 
 def test_unrolled_derivatives_equal_implicit_after_convergence(implicit_jacobian):
     """Reverse mode through the unrolled loop (`jacrev`) against the implicit `jacfwd`."""
     jac_value, _ = implicit_jacobian
-    unrolled = jax.jacrev(lambda t: solve_parameters(t, "unrolled")[0])(DIFF_DATA[1])
+    unrolled = jax.jacrev(lambda t: solve_parameters(t, "unrolled")[0])(diff_data()[1])
     np.testing.assert_allclose(unrolled, jac_value, atol=1e-6)
 
 
 def test_implicit_derivatives_with_a_robust_loss():
     """The exact Hessian (robust second-order terms included) matches finite differences."""
     loss = ls.Cauchy(0.2)
-    direction = jax.random.normal(jax.random.PRNGKey(7), DIFF_DATA[1].shape)
+    direction = jax.random.normal(jax.random.PRNGKey(7), diff_data()[1].shape)
     f = lambda t: solve_parameters(t, loss=loss)[0]  # noqa: E731
-    _, jvp = jax.jvp(f, (DIFF_DATA[1],), (direction,))
+    _, jvp = jax.jvp(f, (diff_data()[1],), (direction,))
     h = 1e-5
-    fd = (f(DIFF_DATA[1] + h * direction) - f(DIFF_DATA[1] - h * direction)) / (2 * h)
+    fd = (f(diff_data()[1] + h * direction) - f(diff_data()[1] - h * direction)) / (2 * h)
     np.testing.assert_allclose(jvp, fd, atol=1e-6)

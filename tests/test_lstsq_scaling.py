@@ -285,13 +285,21 @@ def lieax_results(problem, solver=LEVENBERG_MARQUARDT):
     return list(zip(values, np.asarray(solution.iterations), solution.status_name))
 
 
+@functools.cache
+def model_jacobian(problem):
+    """The jitted Jacobian `(p, s) ↦ ∂/∂p model(p / s)` (one program for the problem's four
+    cases)."""
+    x = np.asarray(problem.x)
+    return jax.jit(jax.jacfwd(lambda p, scale: problem.model(p / scale, x, jnp)))
+
+
 def minpack_result(problem, start, scale):
     """`(b, function evaluations, success)` of MINPACK's `lmder` (SciPy's `method="lm"` with
     `x_scale="jac"`, its mode 1) on the problem in the unknowns $p$."""
     from scipy.optimize import least_squares
 
     x, y = np.asarray(problem.x), np.asarray(problem.y)
-    jac = jax.jit(jax.jacfwd(lambda p: problem.model(p / scale, x, jnp)))
+    jac = model_jacobian(problem)
 
     def fun(p):
         with np.errstate(over="ignore", invalid="ignore"):  # MINPACK's trial points may overflow
@@ -300,7 +308,7 @@ def minpack_result(problem, start, scale):
     result = least_squares(
         fun,
         np.asarray(problem.starts[start - 1]) * scale,
-        jac=lambda p: np.asarray(jac(p)),
+        jac=lambda p: np.asarray(jac(p, scale)),
         method="lm",
         x_scale="jac",
         ftol=1e-10,

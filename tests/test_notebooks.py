@@ -20,11 +20,7 @@ import pathlib
 import sys
 import time
 
-import nbclient
-import nbformat
 import pytest
-from jupyter_client import KernelManager
-from jupyter_client.kernelspec import KernelSpecManager
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 NOTEBOOKS = sorted((ROOT / "notebooks").glob("*.ipynb"))
@@ -75,6 +71,8 @@ def test_every_notebook_is_there():
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda path: path.stem)
 def test_notebook_is_committed_with_outputs(path):
+    import nbformat
+
     assert path.stat().st_size < MAX_BYTES, f"{path.name} is {path.stat().st_size} bytes"
     notebook = nbformat.read(path, as_version=4)
     first = notebook.cells[0]
@@ -88,6 +86,12 @@ def test_notebook_is_committed_with_outputs(path):
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda path: path.stem)
 def test_notebook_runs(path, kernel_specs):
+    # (imported here, not while pytest collects the file on every worker)
+    import nbclient
+    import nbformat
+    from jupyter_client import KernelManager
+    from jupyter_client.kernelspec import KernelSpecManager
+
     notebook = nbformat.read(path, as_version=4)
     manager = KernelManager(
         kernel_name=KERNEL, kernel_spec_manager=KernelSpecManager(kernel_dirs=[str(kernel_specs)])

@@ -123,6 +123,18 @@ def results(name, G):
         differences = rminus(ys, xs)
         round_trip_tangent, rminus_self = rminus(stack(retracted, xs), stack(xs, xs))
         steps = jnp.asarray(STEPS)[:, None] * direction
+        # finite differences in δ at each (X, δ) and at (X0, 0); gradients at δ = 0 for every X
+        # and the identity; Hessians at those and at each (X, δ): one vmapped call each
+        join = lambda *batches: jax.tree_util.tree_map(lambda *u: jnp.concatenate(u), *batches)
+        one = lambda element: jax.tree_util.tree_map(lambda u: u[None], element)
+        fd_delta_and_zero = jax.vmap(lambda x, d: fd(lambda e: rplus(x, e), d))(
+            join(xs, one(x0)), jnp.concatenate([deltas, zero[None]])
+        )
+        at_zero = join(xs, one(G.identity()))
+        grads = jax.vmap(jax.grad(scalar))(jnp.zeros((COUNT + 1, dim)), at_zero)
+        hessians = jax.vmap(jax.hessian(scalar))(
+            jnp.concatenate([jnp.zeros((COUNT + 1, dim)), deltas]), join(at_zero, xs)
+        )
         out = {
             "x": xs.as_matrix(),
             "y": ys.as_matrix(),
@@ -139,11 +151,11 @@ def results(name, G):
             # derivatives at δ = 0: the identity
             "jacobian_zero_fwd": lieax.jacobian(rplus, 1, mode="fwd")(x0, zero),
             "jacobian_zero_rev": lieax.jacobian(rplus, 1, mode="rev")(x0, zero),
-            "fd_zero": fd(lambda d: rplus(x0, d), zero),
+            "fd_zero": fd_delta_and_zero[-1],
             "rminus_jacobian_zero": lieax.jacobian(rminus, 0)(x0, x0),
             # the kernels' rules at δ ≠ 0, against finite differences
             "jacobian": jax.vmap(lieax.jacobian(rplus, (0, 1)))(xs, deltas),
-            "fd_delta": jax.vmap(lambda x, d: fd(lambda e: rplus(x, e), d))(xs, deltas),
+            "fd_delta": fd_delta_and_zero[:-1],
             "fd_x": jax.vmap(lambda x, d: fd(lambda e: rplus(x.rplus(e), d), zero))(xs, deltas),
             "rminus_jacobian": jax.vmap(lieax.jacobian(rminus, (0, 1), mode="rev"))(ys, xs),
             "fd_rminus_y": jax.vmap(fd_rminus)(ys, xs),
@@ -156,13 +168,13 @@ def results(name, G):
                 x0.parameters(), deltas[0]
             ),
             # gradients and Hessians at δ = 0 (also at the identity), and at δ ≠ 0
-            "grad_zero": jax.vmap(jax.grad(scalar), (None, 0))(zero, xs),
-            "hessian_zero": jax.vmap(jax.hessian(scalar), (None, 0))(zero, xs),
-            "grad_identity": jax.grad(scalar)(zero, G.identity()),
-            "hessian_identity": jax.hessian(scalar)(zero, G.identity()),
+            "grad_zero": grads[:COUNT],
+            "hessian_zero": hessians[:COUNT],
+            "grad_identity": grads[COUNT],
+            "hessian_identity": hessians[COUNT],
             "local_grad": jax.vmap(lieax.grad(f))(xs),
             "grad_exp": jax.vmap(jax.grad(scalar_exp), (None, 0))(zero, xs),
-            "hessian_delta": jax.vmap(jax.hessian(scalar))(deltas, xs),
+            "hessian_delta": hessians[COUNT + 1 :],
             "rminus_grad_self": jax.grad(lambda p: jnp.sum(rminus(G(p), x0)))(x0.parameters()),
         }
         return out
@@ -375,7 +387,23 @@ def split_residual(x, data):
 
 TOLERANCES = {"function_tolerance": 0.0, "gradient_tolerance": 1e-13, "parameter_tolerance": 1e-14}
 TIGHT = {"termination": ls.Termination(**TOLERANCES)}
-SOURCE, TARGET = alignment_data(jax.random.PRNGKey(0))
+
+
+@functools.cache
+def alignment_problems():
+    """`(sources, targets)` of the alignment problems (made when a test first needs them, not
+    while pytest collects the file)."""
+    return alignment_data(jax.random.PRNGKey(0))
+
+
+def sources():
+    return alignment_problems()[0]
+
+
+def targets():
+    return alignment_problems()[1]
+
+
 RETRACTIONS = ("exp", "cayley", "first_order")
 
 
@@ -386,7 +414,7 @@ def single_solves():
         name: ls.least_squares(
             se3_residual,
             SE3.identity(),
-            (SOURCE[0], TARGET[0]),
+            (sources()[0], targets()[0]),
             retraction=getattr(retractions, name),
             **TIGHT,
         )
@@ -397,7 +425,7 @@ def single_solves():
 def test_least_squares_reaches_the_same_optimum():
     """An SE3 alignment (rotation 1-2.5 rad from the start) converges to the closed-form optimum
     with every retraction; the paths differ (Cayley's iterates are not Exp's)."""
-    rotation, translation = kabsch(np.asarray(SOURCE[0]), np.asarray(TARGET[0]))
+    rotation, translation = kabsch(np.asarray(sources()[0]), np.asarray(targets()[0]))
     solutions = single_solves()
     for name, solution in solutions.items():
         assert solution.status == ls.Status.CONVERGED, name
@@ -425,11 +453,11 @@ def test_least_squares_under_vmap(name):
             )
         )
     )
-    batch = solve((SOURCE, TARGET))
+    batch = solve((sources(), targets()))
     assert np.all(np.asarray(batch.status) == ls.Status.CONVERGED)
     matrices = np.asarray(batch.value.as_matrix())
-    for i in range(len(SOURCE)):
-        rotation, translation = kabsch(np.asarray(SOURCE[i]), np.asarray(TARGET[i]))
+    for i in range(len(sources())):
+        rotation, translation = kabsch(np.asarray(sources()[i]), np.asarray(targets()[i]))
         np.testing.assert_allclose(matrices[i, :3, :3], rotation, atol=1e-10)
         np.testing.assert_allclose(matrices[i, :3, 3], translation, atol=1e-10)
     single = single_solves()[name]
@@ -442,7 +470,7 @@ def solve_split(target, retraction, differentiation):
     solution = ls.least_squares(
         split_residual,
         {"rotation": SO3.identity(), "translation": jnp.zeros(3)},
-        (SOURCE[1], target),
+        (sources()[1], target),
         retraction=retraction,
         differentiation=differentiation,
         termination=ls.Termination(max_iterations=30, **TOLERANCES),
@@ -455,15 +483,15 @@ def test_unrolled_differentiation_through_a_cayley_solve():
     """Reverse mode through the unrolled Cayley iterations equals the implicit derivative (which
     is taken along Exp: at the optimum the Hessian does not depend on the retraction), and the
     solution is the closed-form one."""
-    value = solve_split(TARGET[1], retractions.cayley, "implicit")
-    rotation, translation = kabsch(np.asarray(SOURCE[1]), np.asarray(TARGET[1]))
+    value = solve_split(targets()[1], retractions.cayley, "implicit")
+    rotation, translation = kabsch(np.asarray(sources()[1]), np.asarray(targets()[1]))
     np.testing.assert_allclose(value, np.r_[rotation.ravel(), translation], atol=1e-10)
     weights = jnp.linspace(-1.0, 1.0, 12)
     unrolled = jax.grad(lambda t: solve_split(t, retractions.cayley, "unrolled") @ weights)(
-        TARGET[1]
+        targets()[1]
     )
     implicit = jax.grad(lambda t: solve_split(t, retractions.cayley, "implicit") @ weights)(
-        TARGET[1]
+        targets()[1]
     )
     assert np.all(np.isfinite(unrolled)) and np.abs(implicit).max() > 1e-3
     np.testing.assert_allclose(unrolled, implicit, atol=1e-8)
@@ -483,10 +511,10 @@ def test_optax_with_a_retraction():
         start,
         adam,
         1500,
-        (SOURCE[2], TARGET[2]),
+        (sources()[2], targets()[2]),
         retraction=retractions.cayley,
     )
-    rotation, translation = kabsch(np.asarray(SOURCE[2]), np.asarray(TARGET[2]))
+    rotation, translation = kabsch(np.asarray(sources()[2]), np.asarray(targets()[2]))
     np.testing.assert_allclose(result.value["rotation"].as_matrix(), rotation, atol=1e-7)
     np.testing.assert_allclose(result.value["translation"], translation, atol=1e-7)
     updates = {"rotation": jnp.array([0.2, -0.4, 0.9]), "translation": jnp.ones(3)}
