@@ -25,6 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _stacked import at_zero_and_steps
 from registry import (
     GROUPS,
     assert_close_to_fd,
@@ -193,15 +194,12 @@ def hessians(spec, x, target):
 
     def one(x_, target_):
         gradient = jax.grad(local_cost)
-        shifts = HESSIAN_STEP * jnp.eye(size)
         zero = jnp.zeros(size)
-        # the gradient at 0 and at ±h e_k in one vmap: one copy of the gradient's program
-        gradients = jax.vmap(lambda s: gradient(s, x_, target_))(
-            jnp.concatenate([zero[None], shifts, -shifts])
+        at_zero, plus, minus = at_zero_and_steps(
+            lambda s: gradient(s, x_, target_), HESSIAN_STEP * jnp.eye(size)
         )
-        plus, minus = jnp.split(gradients[1:], 2)
         return {
-            "gradient": gradients[0],
+            "gradient": at_zero,
             "hessian": jax.hessian(local_cost)(zero, x_, target_),
             "hessian_fd": (plus - minus).T / (2 * HESSIAN_STEP),
         }

@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _stacked import at_zero_and_steps
 from scipy.spatial.transform import Rotation
 
 import lieax
@@ -123,11 +124,7 @@ def checks(name):
 
         n = sum(sizes)
         zero = jnp.zeros(n)
-        # the value at 0 and at ±εe_k in one vmap (one copy of the value's program; likewise the
-        # gradient at 0 and at ±h v below)
-        shifts = STEP * jnp.eye(n)
-        values = jax.vmap(moved)(jnp.concatenate([zero[None], shifts, -shifts]))
-        plus_values, minus_values = jnp.split(values[1:], 2)
+        value_at_zero, plus_values, minus_values = at_zero_and_steps(moved, STEP * jnp.eye(n))
         columns = (plus_values - minus_values) / (2 * STEP)
 
         def cost(delta):
@@ -137,20 +134,18 @@ def checks(name):
         gradient = jax.grad(cost)
         directions = DIRECTIONS[:, :n] / jnp.linalg.norm(DIRECTIONS[:, :n], axis=1, keepdims=True)
         hessian = jax.vmap(lambda v: jax.jvp(gradient, (zero,), (v,))[1])(directions)
-        steps = HESSIAN_STEP * directions
-        gradients = jax.vmap(gradient)(jnp.concatenate([zero[None], steps, -steps]))
-        plus, minus = jnp.split(gradients[1:], 2)
+        gradient_at_zero, plus, minus = at_zero_and_steps(gradient, HESSIAN_STEP * directions)
         hessian_fd = (plus - minus) / (2 * HESSIAN_STEP)
         return dict(
             value=val,
-            value_path=values[0],
+            value_path=value_at_zero,
             closed=closed_J,
             fwd=autodiff[0],
             rev=autodiff[1],
             fd=columns.T,
             hessian=hessian,
             hessian_fd=hessian_fd,
-            gradient=gradients[0],
+            gradient=gradient_at_zero,
         )
 
     out = jax.jit(jax.vmap(one))(ROTVECS, TRANSLATIONS, POINTS, _extra(name))

@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _stacked import stacked, unstacked
 from registry import (
     GROUPS,
     SE2,
@@ -70,24 +71,19 @@ def identities(group_name):
         # Calls of the same operation share one batched call (a leading axis of cases) where
         # their inputs allow it: the values are the same, the program (and its compilation) is
         # about a third smaller than with a copy of the kernel per call.
-        split = lambda stacked, n: [stacked[i] for i in range(n)]  # noqa: E731
-        x, y, z = split(G.exp(jnp.stack([xis, etas, zetas])), 3)
+        x, y, z = unstacked(G.exp(jnp.stack([xis, etas, zetas])), 3)
         identity = G.identity((count,))
         x_inv = x.inverse()
         ad = lambda element: element.adjoint()
-        both = lambda a, b: jax.tree_util.tree_map(lambda u, v: jnp.stack([u, v]), a, b)
-        log_x, identity_log = both(x, identity).log()
-        rminus, rminus_self = both(x, x).rminus(both(y, x))
-        exp_log_x, exp_ad = split(
+        log_x, identity_log = stacked(x, identity).log()
+        rminus, rminus_self = stacked(x, x).rminus(stacked(y, x))
+        exp_log_x, exp_ad = unstacked(
             G.exp(jnp.stack([log_x, jnp.einsum("...ij,...j->...i", ad(x), etas)])), 2
         )
-        rplus, rplus_rminus = split(y.rplus(jnp.stack([xis, rminus])), 2)
+        rplus, rplus_rminus = unstacked(y.rplus(jnp.stack([xis, rminus])), 2)
         # interpolate(X, Y, t) at t = 0, 1, 1/2 and interpolate(Y, X, 1/2)
-        starts = jax.tree_util.tree_map(lambda u, v: jnp.stack([u, u, u, v]), x, y)
-        ends = jax.tree_util.tree_map(lambda u, v: jnp.stack([v, v, v, u]), x, y)
-        interpolated = split(
-            starts.interpolate(ends, jnp.asarray([0.0, 1.0, 0.5, 0.5])[:, None]), 4
-        )
+        t = jnp.asarray([0.0, 1.0, 0.5, 0.5])[:, None]
+        interpolated = unstacked(stacked(x, x, x, y).interpolate(stacked(y, y, y, x), t), 4)
         jr, jr_minus = G.right_jacobian(jnp.stack([xis, -xis]))
         return {
             "x": x.as_matrix(),

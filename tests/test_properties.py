@@ -29,6 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _stacked import stacked, unstacked
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import BroadcastableShapes, mutually_broadcastable_shapes
@@ -136,15 +137,13 @@ def value_checks(name, dtype):
     def evaluate(a):
         # Calls of the same operation share one call on stacked cases (the same values, a
         # program about half the size of one with a copy of the kernel per call).
-        stack = lambda *elements: jax.tree_util.tree_map(lambda *u: jnp.stack(u), *elements)
-        split = lambda stacked, n: [stacked[i] for i in range(n)]
         if spec.is_group:
             G = spec.cls
-            x, y, z = split(G.exp(jnp.stack([a["xi"], a["eta"], a["zeta"]])), 3)
+            x, y, z = unstacked(G.exp(jnp.stack([a["xi"], a["eta"], a["zeta"]])), 3)
         else:
             y = spec.base(a["eta"])
-        moved, y_plus_zero = split(y.rplus(jnp.stack([a["xi"], jnp.zeros_like(a["xi"])])), 2)
-        back, moved_minus_moved = split(stack(moved, moved).rminus(stack(y, moved)), 2)
+        moved, y_plus_zero = unstacked(y.rplus(jnp.stack([a["xi"], jnp.zeros_like(a["xi"])])), 2)
+        back, moved_minus_moved = unstacked(stacked(moved, moved).rminus(stacked(y, moved)), 2)
         pairs = {
             "(Y ⊕ ξ) ⊖ Y = ξ": (back, a["xi"]),
             "Y ⊕ ((Y ⊕ ξ) ⊖ Y) = Y ⊕ ξ": (y.rplus(back).parameters(), moved.parameters()),
@@ -158,7 +157,7 @@ def value_checks(name, dtype):
         m = x.as_matrix()
         eye = jnp.eye(spec.n, dtype=dtype)
         log_x = x.log()
-        exp_log_x, exp_ad = split(G.exp(jnp.stack([log_x, x.adjoint() @ a["eta"]])), 2)
+        exp_log_x, exp_ad = unstacked(G.exp(jnp.stack([log_x, x.adjoint() @ a["eta"]])), 2)
         pairs |= {
             "X X⁻¹ = e": ((x @ x.inverse()).as_matrix(), eye),
             "X⁻¹ X = e": ((x.inverse() @ x).as_matrix(), eye),
@@ -282,8 +281,7 @@ def _scalar(spec, a, xi, params):
     parameters `params` of a point (exp, log, rplus, rminus, act, the right Jacobian)."""
     cls = spec.cls
     if spec.is_group:  # Exp of ξ and η in one call (one copy of the kernel)
-        exps = cls.exp(jnp.stack([xi, a["eta"]]))
-        x, y = exps[0], exps[1]
+        x, y = unstacked(cls.exp(jnp.stack([xi, a["eta"]])), 2)
     else:
         y = spec.base(a["eta"])
     raw = cls(params)

@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _stacked import at_zero_and_steps
 from registry import GROUP_IDS, GROUPS, random_points, random_tangents, regime_tangents, regimes_for
 
 STEP = 1e-5  # central differences of the gradient: error ~ STEP² |∇³c| + rounding / STEP
@@ -51,9 +52,7 @@ def results(name):
         c = functools.partial(cost, spec, xi=xi, y=G.exp(eta), p=p)
         gradient = jax.grad(c)
         zero = jnp.zeros(spec.dim)
-        shifts = STEP * jnp.eye(spec.dim)  # 0 and ± in one vmap: one copy of the gradient's program
-        gradients = jax.vmap(gradient)(jnp.concatenate([zero[None], shifts, -shifts]))
-        plus, minus = jnp.split(gradients[1:], 2)
+        gradient_at_zero, plus, minus = at_zero_and_steps(gradient, STEP * jnp.eye(spec.dim))
 
         def on_raw(params):
             return G(params).normalize() @ p
@@ -64,7 +63,7 @@ def results(name):
             jax.vmap(lambda d: on_raw(params + d))(jnp.concatenate([raw_shifts, -raw_shifts])), 2
         )
         return {
-            "gradient": gradients[0],
+            "gradient": gradient_at_zero,
             "hessian": jax.hessian(c)(zero),
             "hessian_fd": (plus - minus).T / (2.0 * STEP),
             "raw_jacfwd": jax.jacfwd(on_raw)(params),
