@@ -24,6 +24,8 @@ import math
 
 import jax
 import jax.numpy as jnp
+import numpy as np
+from jax import lax
 
 _SERIES_LIMIT = 4.0  # s = θ² below which the series is used
 _SERIES_TERMS = 16
@@ -32,10 +34,13 @@ _SERIES_TERMS = 16
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
 def g(n: int, s: jax.Array) -> jax.Array:
     r"""$g_n(s) = \sum_k (-1)^k s^k / (2k + n)!$ with $s = \theta^2 \ge 0$ (see the module docstring)."""
-    use_series = s < _SERIES_LIMIT
-    s_series = jnp.where(use_series, s, 0.0)
-    s_closed = jnp.where(use_series, _SERIES_LIMIT, s)
-    return jnp.where(use_series, _series(n, s_series), _closed(n, s_closed))
+    # (in `jax.lax` primitives, as `horner`: g is in every closed form, and traced again by
+    # every transformation of one)
+    s = jnp.asarray(s)
+    use_series = lax.lt(s, _constant(_SERIES_LIMIT, s))
+    s_series = lax.select(use_series, s, lax.full_like(s, 0.0))
+    s_closed = lax.select(use_series, lax.full_like(s, _SERIES_LIMIT), s)
+    return lax.select(use_series, _series(n, s_series), _closed(n, s_closed))
 
 
 @g.defjvp
@@ -45,20 +50,21 @@ def _g_jvp(n, primals, tangents):
 
 
 def _series(n: int, s: jax.Array) -> jax.Array:
-    coefficients = [(-1) ** k / math.factorial(2 * k + n) for k in range(_SERIES_TERMS)]
-    result = jnp.full_like(s, coefficients[-1])
-    for c in reversed(coefficients[:-1]):
-        result = result * s + c
-    return result
+    return horner([(-1) ** k / math.factorial(2 * k + n) for k in range(_SERIES_TERMS)], s)
 
 
 def _closed(n: int, s: jax.Array) -> jax.Array:
-    theta = jnp.sqrt(s)
-    even, odd = jnp.cos(theta), jnp.sin(theta) / theta
+    theta = lax.sqrt(s)
+    even, odd = lax.cos(theta), lax.div(lax.sin(theta), theta)
     value = even if n % 2 == 0 else odd
     for k in range(n % 2, n - 1, 2):
-        value = (1.0 / math.factorial(k) - value) / s
+        value = lax.div(lax.sub(_constant(1.0 / math.factorial(k), s), value), s)
     return value
+
+
+def _constant(value: float, like: jax.Array) -> np.ndarray:
+    """`value` as a scalar of `like`'s dtype (a literal that `jax.lax`'s operations broadcast)."""
+    return np.asarray(value, like.dtype)
 
 
 # ---- the half-angle coefficients of SO(3)'s fused closed forms (Exp with J_r, Log with J_r^{-1}) --
@@ -88,10 +94,21 @@ _D = (
 _D_PRIME = tuple(k * c for k, c in enumerate(_D[1:], start=1))  # dD/ds term by term
 
 
-def _horner(coefficients, s, xp=jnp):
-    result = xp.full_like(s, coefficients[-1])
+def horner(coefficients, s, xp=jnp):
+    r"""$\sum_k c_k s^k$ of `coefficients` $(c_0, c_1, \dots)$ by Horner's rule, in the array
+    namespace `xp`. With `jax.numpy`, in `jax.lax` primitives: each `jnp` operator is a small
+    jitted function that every transformation traces again (the series of `g` under
+    `vmap(jacfwd)`: 32 of them), and the series are in every closed form; the same operations in
+    the same order, so the same values."""
+    if xp is not jnp:
+        result = xp.full_like(s, coefficients[-1])
+        for c in reversed(coefficients[:-1]):
+            result = result * s + c
+        return result
+    s = jnp.asarray(s)
+    result = lax.full_like(s, coefficients[-1])
     for c in reversed(coefficients[:-1]):
-        result = result * s + c
+        result = lax.add(lax.mul(result, s), _constant(c, s))
     return result
 
 
@@ -102,11 +119,11 @@ def exp_coefficients(s, xp=jnp):
     small = s < HALF_ANGLE_SERIES_LIMIT
     s_safe = xp.where(small, 1.0, s)
     theta = xp.sqrt(s_safe)
-    half_cos = xp.where(small, _horner(_HALF_COS, s, xp), xp.cos(0.5 * theta))
-    half_sinc = xp.where(small, _horner(_HALF_SINC, s, xp), xp.sin(0.5 * theta) / theta)
+    half_cos = xp.where(small, horner(_HALF_COS, s, xp), xp.cos(0.5 * theta))
+    half_sinc = xp.where(small, horner(_HALF_SINC, s, xp), xp.sin(0.5 * theta) / theta)
     g1 = 2.0 * half_sinc * half_cos
     g2 = 2.0 * half_sinc * half_sinc
-    g3 = xp.where(small, _horner(_G3, s, xp), (1.0 - g1) / s_safe)
+    g3 = xp.where(small, horner(_G3, s, xp), (1.0 - g1) / s_safe)
     return half_cos, half_sinc, g1, g2, g3
 
 
@@ -125,11 +142,11 @@ def jr_inverse_coefficients(s, half_cos, half_sinc, xp=jnp):
     $O(\theta^3)$ terms). In the array namespace `xp`."""
     small = s < HALF_ANGLE_SERIES_LIMIT
     s_safe = xp.where(small, 1.0, s)
-    d = xp.where(small, _horner(_D, s, xp), (1.0 - 0.5 * half_cos / half_sinc) / s_safe)
+    d = xp.where(small, horner(_D, s, xp), (1.0 - 0.5 * half_cos / half_sinc) / s_safe)
     closed_prime = ((1.0 + 2.0 * half_sinc * half_cos) / (8.0 * half_sinc**2) - 1.0) / s_safe**2
-    return d, xp.where(small, _horner(_D_PRIME, s, xp), closed_prime)
+    return d, xp.where(small, horner(_D_PRIME, s, xp), closed_prime)
 
 
 def jr_inverse_d_series(s, xp=jnp):
     r"""The series of $D(\theta)$ of `jr_inverse_coefficients` (below `HALF_ANGLE_SERIES_LIMIT`)."""
-    return _horner(_D, s, xp)
+    return horner(_D, s, xp)

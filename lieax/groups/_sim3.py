@@ -49,6 +49,7 @@ from typing import Protocol, Self
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax import lax
 from jax.typing import ArrayLike
 
 from .._checks import as_float_array, broadcast_batch, check_last_axis, check_positive, match_dtype
@@ -68,7 +69,7 @@ from .._linalg import (
 from . import _generic, _procrustes, _rules
 from . import _so3 as so3
 from ._base import AbstractGroup
-from ._series import g
+from ._series import g, horner
 from ._so3 import SO3
 
 # ---- the coefficients of W = A I + B [ω]x + C [ω]x² ---------------------------------------------
@@ -93,18 +94,12 @@ _B_TABLE = _double_series_table(1)
 _C_TABLE = _double_series_table(2)
 
 
-def _horner(coefficients, x):
-    result = jnp.full_like(x, coefficients[-1])
-    for c in reversed(coefficients[:-1]):
-        result = result * x + c
-    return result
-
-
 def _powers(x, count):
-    r"""$(1, x, \dots, x^{count-1})$ on a new last axis (products only: derivatives NaN-free at 0)."""
+    r"""$(1, x, \dots, x^{count-1})$ on a new last axis (products only: derivatives NaN-free at 0;
+    `jax.lax` products, as `lieax.groups._series.horner`)."""
     powers = [jnp.ones_like(x)]
     for _ in range(count - 1):
-        powers.append(powers[-1] * x)
+        powers.append(lax.mul(powers[-1], x))
     return jnp.stack(powers, axis=-1)
 
 
@@ -121,7 +116,7 @@ def phi1(sigma):
     small = jnp.abs(sigma) < 1.0
     sigma_series = jnp.where(small, sigma, 0.0)
     sigma_closed = jnp.where(small, 1.0, sigma)
-    series = _horner([1.0 / math.factorial(m + 1) for m in range(_SIGMA_TERMS)], sigma_series)
+    series = horner([1.0 / math.factorial(m + 1) for m in range(_SIGMA_TERMS)], sigma_series)
     return jnp.where(small, series, jnp.expm1(sigma_closed) / sigma_closed)
 
 
