@@ -2,15 +2,24 @@
 products as contractions, skew matrices, Hamilton products of wxyz quaternions.
 
 Plain JAX functions (no custom rules: JAX differentiates these polynomials exactly), shared by the
-groups, the conventions converters, ICP and bundle adjustment.
+groups, the conventions converters, ICP and bundle adjustment. Components are taken with
+`components` (`jax.lax` slices, what `x[..., i]` stages, without its indexing machinery: these
+functions are in every group operation and its rules, and are traced again by every
+transformation).
 """
 
 import jax.numpy as jnp
+from jax import lax
+
+
+def components(x, count):
+    """`[x[..., 0], ..., x[..., count - 1]]`, the first `count` entries of the last axis."""
+    return [lax.index_in_dim(x, i, axis=-1, keepdims=False) for i in range(count)]
 
 
 def cross(a, b):
-    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
-    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    a0, a1, a2 = components(a, 3)
+    b0, b1, b2 = components(b, 3)
     return jnp.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
 
 
@@ -26,7 +35,7 @@ def matvec(matrix, x):
 
 def skew(v):
     r"""$[v]_\times$, with $[v]_\times x = v \times x$."""
-    v0, v1, v2 = v[..., 0], v[..., 1], v[..., 2]
+    v0, v1, v2 = components(v, 3)
     zero = jnp.zeros_like(v0)
     rows = [[zero, -v2, v1], [v2, zero, -v0], [-v1, v0, zero]]
     return jnp.stack([jnp.stack(row, axis=-1) for row in rows], axis=-2)
@@ -42,8 +51,8 @@ def unskew(m):
 
 def quat_multiply(a, b):
     r"""Hamilton product $a \otimes b$ of wxyz quaternions."""
-    aw, ax, ay, az = (a[..., i] for i in range(4))
-    bw, bx, by, bz = (b[..., i] for i in range(4))
+    aw, ax, ay, az = components(a, 4)
+    bw, bx, by, bz = components(b, 4)
     return jnp.stack(
         [
             aw * bw - ax * bx - ay * by - az * bz,
@@ -68,7 +77,7 @@ def quat_rotate(q, p):
 
 def quat_to_matrix(q):
     r"""$R(q) = (w^2 - u^\top u) I + 2 u u^\top + 2 w [u]_\times$, written out."""
-    w, x, y, z = (q[..., i] for i in range(4))
+    w, x, y, z = components(q, 4)
     xx, yy, zz = x * x, y * y, z * z
     xy, xz, yz, wx, wy, wz = x * y, x * z, y * z, w * x, w * y, w * z
     rows = [

@@ -116,11 +116,12 @@ def _coupling(v, omega):
     V, W = skew(v), skew(omega)
     WV, VW = W @ V, V @ W
     WVW = WV @ W
+    g4 = g(4, s)
     return (
         0.5 * V
         + g(3, s) * (WV + VW + WVW)
-        + g(4, s) * (W @ WV + VW @ W - 3.0 * WVW)
-        + 0.5 * (g(4, s) - 3.0 * g(5, s)) * (WVW @ W + W @ WVW)
+        + g4 * (W @ WV + VW @ W - 3.0 * WVW)
+        + 0.5 * (g4 - 3.0 * g(5, s)) * (WVW @ W + W @ WVW)
     )
 
 
