@@ -1,5 +1,6 @@
 """Vector and quaternion algebra on the last axis: cross and dot products, matrix-vector
-products as contractions, skew matrices, Hamilton products of wxyz quaternions.
+products as contractions, skew matrices, Hamilton products of wxyz quaternions; and the
+polynomials of the closed forms' series (`horner`).
 
 Plain JAX functions (no custom rules: JAX differentiates these polynomials exactly), shared by the
 groups, the conventions converters, ICP and bundle adjustment. Components are taken with
@@ -9,6 +10,7 @@ transformation).
 """
 
 import jax.numpy as jnp
+import numpy as np
 from jax import lax
 
 
@@ -96,3 +98,21 @@ def rotate_back(rotation, x):
 def blocks(rows):
     """A block matrix from a nested list of `(*batch, n_i, m_j)` blocks (rows of equal height)."""
     return jnp.concatenate([jnp.concatenate(row, axis=-1) for row in rows], axis=-2)
+
+
+def horner(coefficients, s, xp=jnp):
+    r"""$\sum_k c_k s^k$ of `coefficients` $(c_0, c_1, \dots)$ by Horner's rule, in the array
+    namespace `xp`. With `jax.numpy`, in `jax.lax` primitives: each `jnp` operator is a small
+    jitted function that every transformation traces again (the series of
+    `lieax.groups._series.g` under `vmap(jacfwd)`: 32 of them), and the series are in every
+    closed form; the same operations in the same order, so the same values."""
+    if xp is not jnp:
+        result = xp.full_like(s, coefficients[-1])
+        for c in reversed(coefficients[:-1]):
+            result = result * s + c
+        return result
+    s = jnp.asarray(s)
+    result = lax.full_like(s, coefficients[-1])
+    for c in reversed(coefficients[:-1]):
+        result = lax.add(lax.mul(result, s), np.asarray(c, s.dtype))
+    return result

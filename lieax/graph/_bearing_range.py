@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.typing import ArrayLike
 
-from .._linalg import dot
+from .._linalg import dot, horner
 from ..factorgraph import Factor, VarRef
 from ..groups import S2, SE2, SE3, SO2, kernels
 from ..lstsq import AbstractLoss
@@ -69,9 +69,7 @@ def direction_error(measured: ArrayLike, predicted: ArrayLike) -> jax.Array:
     # the series in sin² θ, over |b| = sqrt(|b|² sin² θ + |b|² cos² θ): a function of b's direction
     length_squared = jnp.where(series, sine_squared + cosine**2, 1.0)
     s = jnp.where(series, sine_squared / length_squared, 0.0)
-    summed = jnp.full_like(s, _THETA_OVER_SINE[-1])
-    for coefficient in reversed(_THETA_OVER_SINE[:-1]):
-        summed = summed * s + coefficient
+    summed = horner(_THETA_OVER_SINE, s)
     error = jnp.where(series, summed / jnp.sqrt(length_squared), closed) * projected
     pi_along_first = jnp.zeros_like(projected).at[..., 0].set(jnp.pi)
     return jnp.where(antipode, pi_along_first, error)

@@ -27,6 +27,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from .._linalg import horner
+
 _SERIES_LIMIT = 4.0  # s = θ² below which the series is used
 _SERIES_TERMS = 16
 
@@ -92,24 +94,6 @@ _D = (
     43867 / 5109094217170944000,
 )
 _D_PRIME = tuple(k * c for k, c in enumerate(_D[1:], start=1))  # dD/ds term by term
-
-
-def horner(coefficients, s, xp=jnp):
-    r"""$\sum_k c_k s^k$ of `coefficients` $(c_0, c_1, \dots)$ by Horner's rule, in the array
-    namespace `xp`. With `jax.numpy`, in `jax.lax` primitives: each `jnp` operator is a small
-    jitted function that every transformation traces again (the series of `g` under
-    `vmap(jacfwd)`: 32 of them), and the series are in every closed form; the same operations in
-    the same order, so the same values."""
-    if xp is not jnp:
-        result = xp.full_like(s, coefficients[-1])
-        for c in reversed(coefficients[:-1]):
-            result = result * s + c
-        return result
-    s = jnp.asarray(s)
-    result = lax.full_like(s, coefficients[-1])
-    for c in reversed(coefficients[:-1]):
-        result = lax.add(lax.mul(result, s), _constant(c, s))
-    return result
 
 
 def exp_coefficients(s, xp=jnp):

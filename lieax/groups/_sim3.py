@@ -57,6 +57,7 @@ from .._linalg import (
     blocks,
     cross,
     dot,
+    horner,
     matvec,
     quat_conjugate,
     quat_multiply,
@@ -69,7 +70,7 @@ from .._linalg import (
 from . import _generic, _procrustes, _rules
 from . import _so3 as so3
 from ._base import AbstractGroup
-from ._series import g, horner
+from ._series import g
 from ._so3 import SO3
 
 # ---- the coefficients of W = A I + B [ω]x + C [ω]x² ---------------------------------------------
@@ -96,7 +97,7 @@ _C_TABLE = _double_series_table(2)
 
 def _powers(x, count):
     r"""$(1, x, \dots, x^{count-1})$ on a new last axis (products only: derivatives NaN-free at 0;
-    `jax.lax` products, as `lieax.groups._series.horner`)."""
+    `jax.lax` products, as `lieax._linalg.horner`)."""
     powers = [jnp.ones_like(x)]
     for _ in range(count - 1):
         powers.append(lax.mul(powers[-1], x))
