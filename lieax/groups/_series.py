@@ -9,10 +9,14 @@ $g_3 = (\theta - \sin\theta) / \theta^3$, and in general $g_{n+2} = (1/n! - g_n)
 (These are the coefficients of Solà et al., "A micro Lie theory", eqs. 77, 143, 180, rewritten
 so that none divides by $\theta$.)
 
-Below $\theta = 2$ the series is summed (16 terms reach the float64 rounding error there); above,
-the recurrence runs from $\cos$ and $\sin$ (it divides by $s \ge 4$, so errors do not grow).
-Both branches are evaluated on safe inputs and the other one is masked (the "double where"), so
-neither values nor derivatives of any order are NaN.
+$g_0 = \cos\theta$, $g_1 = \sin\theta/\theta$ and $g_2 = 2\,(\sin(\theta/2)/\theta)^2$ (the
+half-angle form of $(1 - \cos\theta)/\theta^2$) cancel nothing: they are evaluated in closed form
+at every $s$ (a few ulp). For $n \ge 3$ the closed forms cancel as $\theta \to 0$: below $\theta = 2$
+the series is summed, with as many terms as reach the float64 rounding error there (the series
+alternates with falling terms, so the first omitted term, at most $4^K/(2K + n)!$, bounds the
+error: 11 terms for $g_3$, 10 from $g_5$ on); above, the recurrence runs from $\cos$ and $\sin$ (it
+divides by $s \ge 4$, so errors do not grow). Both branches are evaluated on safe inputs and the
+other one is masked (the "double where"), so neither values nor derivatives of any order are NaN.
 
 The derivative is closed-form as well, $g_n'(s) = -(g_{n+1}(s) - n\,g_{n+2}(s)) / 2$ (differentiate
 the series term by term), and is injected with `jax.custom_jvp`: no derivative of any lieax
@@ -29,8 +33,7 @@ from jax import lax
 
 from .._linalg import horner
 
-_SERIES_LIMIT = 4.0  # s = θ² below which the series is used
-_SERIES_TERMS = 16
+_SERIES_LIMIT = 4.0  # s = θ² below which the series of g_n, n >= 3, is used
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
@@ -39,6 +42,8 @@ def g(n: int, s: jax.Array) -> jax.Array:
     # (in `jax.lax` primitives, as `horner`: g is in every closed form, and traced again by
     # every transformation of one)
     s = jnp.asarray(s)
+    if n <= 2:
+        return _without_cancellation(n, s)
     use_series = lax.lt(s, _constant(_SERIES_LIMIT, s))
     s_series = lax.select(use_series, s, lax.full_like(s, 0.0))
     s_closed = lax.select(use_series, lax.full_like(s, _SERIES_LIMIT), s)
@@ -48,11 +53,45 @@ def g(n: int, s: jax.Array) -> jax.Array:
 @g.defjvp
 def _g_jvp(n, primals, tangents):
     (s,), (s_dot,) = primals, tangents
-    return g(n, s), -0.5 * (g(n + 1, s) - n * g(n + 2, s)) * s_dot
+    slope = g(n + 1, s) if n == 0 else g(n + 1, s) - n * g(n + 2, s)
+    return g(n, s), -0.5 * slope * s_dot
+
+
+def _without_cancellation(n: int, s: jax.Array) -> jax.Array:
+    r"""$g_0 = \cos\theta$, $g_1 = \sin\theta/\theta$, $g_2 = 2\,(\sin(\theta/2)/\theta)^2$ at any
+    $s \ge 0$; below $\theta = 10^{-15}$, $g_1 = 1$ and $g_2 = 1/2$ (their next terms, $s/6$ and
+    $s/24$, are below either float's rounding error there; and $\theta/2$ may be subnormal, which
+    XLA flushes to zero). Derivatives come from `g`'s rule, never from these."""
+    theta = lax.sqrt(s)
+    if n == 0:
+        return lax.cos(theta)
+    tiny = lax.lt(theta, _constant(_TINY_ANGLE, s))
+    safe_theta = lax.select(tiny, lax.full_like(s, 1.0), theta)
+    if n == 1:
+        return lax.select(tiny, lax.full_like(s, 1.0), lax.div(lax.sin(safe_theta), safe_theta))
+    half_sinc = lax.div(lax.sin(lax.mul(safe_theta, _constant(0.5, s))), safe_theta)
+    g2 = lax.mul(lax.mul(half_sinc, half_sinc), _constant(2.0, s))
+    return lax.select(tiny, lax.full_like(s, 0.5), g2)
+
+
+_TINY_ANGLE = 1e-15
+
+
+@functools.cache
+def _series_coefficients(n: int) -> tuple:
+    """$(-1)^k/(2k + n)!$ for $k < K$, $K$ the fewest terms whose first omitted one,
+    $4^K/(2K + n)!$, is below $2^{-56} |g_n(4)|$ (an eighth of float64's rounding error)."""
+    value_at_limit = abs(
+        sum((-1) ** k * _SERIES_LIMIT**k / math.factorial(2 * k + n) for k in range(40))
+    )
+    terms = 1
+    while _SERIES_LIMIT**terms / math.factorial(2 * terms + n) >= 2.0**-56 * value_at_limit:
+        terms += 1
+    return tuple((-1) ** k / math.factorial(2 * k + n) for k in range(terms))
 
 
 def _series(n: int, s: jax.Array) -> jax.Array:
-    return horner([(-1) ** k / math.factorial(2 * k + n) for k in range(_SERIES_TERMS)], s)
+    return horner(_series_coefficients(n), s)
 
 
 def _closed(n: int, s: jax.Array) -> jax.Array:

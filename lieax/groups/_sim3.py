@@ -127,6 +127,9 @@ def w_coefficients(sigma, s):
     sigma2 = sigma * sigma
     a = phi1(sigma)
     in_series = (sigma2 < _CLOSED_LIMIT) & (s < _CLOSED_LIMIT)
+    # g_n is finite with finite derivatives at every s >= 0, so each g_n is evaluated once, at s
+    # itself: only the divisors need the masked ("safe") inputs of the double where
+    g0, g1, g2 = g(0, s), g(1, s), g(2, s)
     sigma_series = jnp.where(in_series, sigma, 0.0)
     s_series = jnp.where(in_series, s, 0.0)
 
@@ -134,9 +137,7 @@ def w_coefficients(sigma, s):
     safe_sigma_b = jnp.where(in_series, 1.0, sigma)
     safe_s_b = jnp.where(in_series, 0.0, s)
     e = jnp.exp(safe_sigma_b)
-    b_closed = (e * (safe_sigma_b * g(1, safe_s_b) - g(0, safe_s_b)) + 1.0) / (
-        safe_sigma_b * safe_sigma_b + safe_s_b
-    )
+    b_closed = (e * (safe_sigma_b * g1 - g0) + 1.0) / (safe_sigma_b * safe_sigma_b + safe_s_b)
     b = jnp.where(in_series, _double_series(_B_TABLE, sigma_series, s_series), b_closed)
 
     # C: dividing by σ where σ² >= max(1, s), by s where s >= max(1, σ²) (each without
@@ -146,12 +147,12 @@ def w_coefficients(sigma, s):
     sigma_s = jnp.where(by_s, sigma, 0.0)
     s_s = jnp.where(by_s, s, _CLOSED_LIMIT)
     e_s = jnp.exp(sigma_s)
-    cos_part = (e_s * (sigma_s * g(0, s_s) + s_s * g(1, s_s)) - sigma_s) / (sigma_s * sigma_s + s_s)
-    c_by_s = (phi1(sigma_s) - cos_part) / s_s
+    cos_part = (e_s * (sigma_s * g0 + s_s * g1) - sigma_s) / (sigma_s * sigma_s + s_s)
+    c_by_s = (a - cos_part) / s_s  # (A = phi1(σ) is finite with finite derivatives at every σ)
     sigma_a = jnp.where(by_sigma, sigma, 1.0)
     s_a = jnp.where(by_sigma, s, 0.0)
     e_a = jnp.exp(sigma_a)
-    c_by_sigma = (e_a * (sigma_a * sigma_a * g(2, s_a) + 1.0 - sigma_a * g(1, s_a)) - 1.0) / (
+    c_by_sigma = (e_a * (sigma_a * sigma_a * g2 + 1.0 - sigma_a * g1) - 1.0) / (
         sigma_a * (sigma_a * sigma_a + s_a)
     )
     c_series = _double_series(_C_TABLE, sigma_series, s_series)
