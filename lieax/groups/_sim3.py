@@ -104,12 +104,10 @@ def _powers(x, count):
     return jnp.stack(powers, axis=-1)
 
 
-def _double_series(table, sigma, s):
-    r"""$\sum_{k,m} T_{km} s^k \sigma^m$."""
-    table = jnp.asarray(table, dtype=sigma.dtype)
-    return jnp.einsum(
-        "...k,km,...m->...", _powers(s, table.shape[0]), table, _powers(sigma, table.shape[1])
-    )
+def _double_series(table, s_powers, sigma_powers):
+    r"""$\sum_{k,m} T_{km} s^k \sigma^m$ from the `_powers` of $s$ and $\sigma$."""
+    table = jnp.asarray(table, dtype=sigma_powers.dtype)
+    return jnp.einsum("...k,km,...m->...", s_powers, table, sigma_powers)
 
 
 def phi1(sigma):
@@ -132,13 +130,15 @@ def w_coefficients(sigma, s):
     g0, g1, g2 = g(0, s), g(1, s), g(2, s)
     sigma_series = jnp.where(in_series, sigma, 0.0)
     s_series = jnp.where(in_series, s, 0.0)
+    s_powers = _powers(s_series, _ANGLE_TERMS)
+    sigma_powers = _powers(sigma_series, _SIGMA_TERMS)
 
     # B: closed form wherever σ² + s >= 1 (outside the series square, σ² + s >= 1 holds).
     safe_sigma_b = jnp.where(in_series, 1.0, sigma)
     safe_s_b = jnp.where(in_series, 0.0, s)
     e = jnp.exp(safe_sigma_b)
     b_closed = (e * (safe_sigma_b * g1 - g0) + 1.0) / (safe_sigma_b * safe_sigma_b + safe_s_b)
-    b = jnp.where(in_series, _double_series(_B_TABLE, sigma_series, s_series), b_closed)
+    b = jnp.where(in_series, _double_series(_B_TABLE, s_powers, sigma_powers), b_closed)
 
     # C: dividing by σ where σ² >= max(1, s), by s where s >= max(1, σ²) (each without
     # cancellation there), else the series.
@@ -155,7 +155,7 @@ def w_coefficients(sigma, s):
     c_by_sigma = (e_a * (sigma_a * sigma_a * g2 + 1.0 - sigma_a * g1) - 1.0) / (
         sigma_a * (sigma_a * sigma_a + s_a)
     )
-    c_series = _double_series(_C_TABLE, sigma_series, s_series)
+    c_series = _double_series(_C_TABLE, s_powers, sigma_powers)
     c = jnp.where(by_s, c_by_s, jnp.where(by_sigma, c_by_sigma, c_series))
     return a, b, c
 
