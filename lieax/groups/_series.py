@@ -11,12 +11,13 @@ so that none divides by $\theta$.)
 
 $g_0 = \cos\theta$, $g_1 = \sin\theta/\theta$ and $g_2 = 2\,(\sin(\theta/2)/\theta)^2$ (the
 half-angle form of $(1 - \cos\theta)/\theta^2$) cancel nothing: they are evaluated in closed form
-at every $s$ (a few ulp). For $n \ge 3$ the closed forms cancel as $\theta \to 0$: below $\theta = 2$
-the series is summed, with as many terms as reach the float64 rounding error there (the series
-alternates with falling terms, so the first omitted term, at most $4^K/(2K + n)!$, bounds the
-error: 11 terms for $g_3$, 10 from $g_5$ on); above, the recurrence runs from $\cos$ and $\sin$ (it
-divides by $s \ge 4$, so errors do not grow). Both branches are evaluated on safe inputs and the
-other one is masked (the "double where"), so neither values nor derivatives of any order are NaN.
+at every $s$ (a few ulp). For $n \ge 3$ the closed forms cancel as $\theta \to 0$: below
+$\theta = 2$ the series is summed, with as many terms as reach the float64 rounding error there
+(the series alternates with falling terms, so the first omitted term, at most $4^K/(2K + n)!$,
+bounds the error: 11 terms for $g_3$ and $g_4$, 10 for $g_5$ to $g_8$); above, the recurrence
+runs from $\cos$ and $\sin$ (it divides by $s \ge 4$, so errors do not grow). Both branches are
+evaluated on safe inputs and the other one is masked (the "double where"), so neither values nor
+derivatives of any order are NaN.
 
 The derivative is closed-form as well, $g_n'(s) = -(g_{n+1}(s) - n\,g_{n+2}(s)) / 2$ (differentiate
 the series term by term), and is injected with `jax.custom_jvp`: no derivative of any lieax
@@ -34,6 +35,7 @@ from jax import lax
 from .._linalg import horner
 
 _SERIES_LIMIT = 4.0  # s = θ² below which the series of g_n, n >= 3, is used
+_TINY_ANGLE = 1e-15  # θ below which g_1 = 1 and g_2 = 1/2 to either float's rounding error
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
@@ -74,13 +76,10 @@ def _without_cancellation(n: int, s: jax.Array) -> jax.Array:
     return lax.select(tiny, lax.full_like(s, 0.5), g2)
 
 
-_TINY_ANGLE = 1e-15
-
-
 @functools.cache
 def _series_coefficients(n: int) -> tuple:
     """$(-1)^k/(2k + n)!$ for $k < K$, $K$ the fewest terms whose first omitted one,
-    $4^K/(2K + n)!$, is below $2^{-56} |g_n(4)|$ (an eighth of float64's rounding error)."""
+    $4^K/(2K + n)!$, is below $2^{-56} |g_n(4)|$ (an eighth of float64's unit roundoff)."""
     value_at_limit = abs(
         sum((-1) ** k * _SERIES_LIMIT**k / math.factorial(2 * k + n) for k in range(40))
     )
