@@ -28,14 +28,23 @@ Workflows (the peer in brackets):
         gicp,imu] [--rounds 5] [--json PATH]
 
 `--quick`: two pose-graph sets, 201 IMU keyframes, 3 rounds. Needs the `bench` extra.
+
+`--processes N`: the whole measurement again in N fresh processes, and a second table of the
+spread over them (lowest, median and highest of each row's loaded / idle times). A warm call under
+load is not one number: with the same compiled program, some processes run it nearly as fast as
+idle and others at 2-3x (XLA's CPU runtime hands each loop iteration between its pool threads, and
+a woken thread under a spinning load sometimes waits a time slice and sometimes does not; the mode
+holds for a process's life more often than not). One process samples one mode; several show both.
 """
 
 import argparse
 import contextlib
+import json
 import os
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -291,12 +300,19 @@ def main(argv=None):
     parser.add_argument("--load-seconds", type=float, default=600.0,
                         help="the longest a load process lives (each phase stops its own)")  # fmt: skip
     parser.add_argument("--json", default=None, help="also write the records to this file")
+    parser.add_argument("--processes", type=int, default=1,
+                        help="repeat the measurement in this many fresh processes and add a table "
+                        "of the spread over them")  # fmt: skip
     args = parser.parse_args(argv)
     only = [w for w in args.only.split(",") if w]
     unknown = [w for w in only if w not in BUILDERS]
     if unknown:
         parser.error(f"--only: unknown workflows {unknown}; choose from {list(WORKFLOWS)}.")
     rounds = args.rounds or (3 if args.quick else 5)
+    if args.processes < 1:
+        parser.error(f"--processes must be at least 1, got {args.processes}.")
+    if args.processes > 1:
+        return over_processes(args, argv if argv is not None else sys.argv[1:], rounds)
     print(f"# lieax and its peers, idle and under load\n\n{machine_description()}, "
           f"{os.cpu_count()} CPUs, load {os.getloadavg()[0]:.1f} at the start; background load: "
           f"{os.cpu_count()} spinning processes; {rounds} rounds; "
@@ -319,6 +335,82 @@ def main(argv=None):
         )
         tables = [{"title": title, "columns": HEADERS, "rows": [row(r) for r in records]}]
         _results.write(args.json, "under_load", tables, notes=notes, raw=records)
+
+
+# ---- the spread over fresh processes --------------------------------------------------------------
+
+
+def _without_option(argv, name):
+    """`argv` without the option `name` and its value (`--name V` or `--name=V`)."""
+    out, skip = [], False
+    for item in argv:
+        if skip:
+            skip = False
+        elif item == name:
+            skip = True
+        elif not item.startswith(name + "="):
+            out.append(item)
+    return out
+
+
+def over_processes(args, argv, rounds):
+    """Run this benchmark `args.processes` times, each in a fresh process (its own compilation,
+    its own threads), print each process's table and the spread of every row over them."""
+    child_argv = _without_option(_without_option(argv, "--processes"), "--json")
+    runs = []
+    with tempfile.TemporaryDirectory() as folder:
+        for index in range(args.processes):
+            path = os.path.join(folder, f"run{index}.json")
+            print(f"## process {index + 1} of {args.processes}", flush=True)
+            subprocess.run([sys.executable, os.path.abspath(__file__), *child_argv, "--json", path],
+                           check=True)  # fmt: skip
+            with open(path, encoding="utf-8") as file:
+                runs.append(json.load(file)["raw"])
+    labels = [record["workflow"] for record in runs[0]]
+    spread = [spread_row(label, [r for run in runs for r in run if r["workflow"] == label])
+              for label in labels]  # fmt: skip
+    print(f"\n## Spread over {args.processes} fresh processes ({rounds} rounds each)\n")
+    print(markdown_table(SPREAD_HEADERS, spread))
+    if args.json:
+        notes = (
+            f"Each of {args.processes} fresh processes measured every row idle and under a "
+            f"background load of {os.cpu_count()} spinning processes ({settings()}); lowest / "
+            "median / highest over the processes."
+        )
+        table = {"title": f"Loaded / idle over {args.processes} fresh processes",
+                 "columns": SPREAD_HEADERS, "rows": spread}  # fmt: skip
+        _results.write(args.json, "under_load", [table], notes=notes, raw=runs)
+
+
+SPREAD_HEADERS = [
+    "workflow", "peer", "lieax idle (median)", "lieax loaded / idle: low / median / high",
+    "peer loaded / idle: low / median / high", "ratio loaded / ratio idle: low / median / high",
+    "processes with lieax loaded > 2× idle",
+]  # fmt: skip
+
+
+def spread_row(label, records):
+    def triple(values):
+        return " / ".join(
+            f"{v:.2f}×" for v in (min(values), statistics.median(values), max(values))
+        )
+
+    ours = [r["loaded"]["lieax_s"] / r["idle"]["lieax_s"] for r in records]
+    theirs = [r["loaded"]["peer_s"] / r["idle"]["peer_s"] for r in records]
+    ratios = [
+        (r["loaded"]["lieax_s"] / r["loaded"]["peer_s"])
+        / (r["idle"]["lieax_s"] / r["idle"]["peer_s"])
+        for r in records
+    ]
+    return [
+        label,
+        records[0]["peer"],
+        format_seconds(statistics.median(r["idle"]["lieax_s"] for r in records)),
+        triple(ours),
+        triple(theirs),
+        triple(ratios),
+        f"{sum(v > 2.0 for v in ours)} of {len(records)}",
+    ]
 
 
 if __name__ == "__main__":
