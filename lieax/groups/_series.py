@@ -9,15 +9,16 @@ $g_3 = (\theta - \sin\theta) / \theta^3$, and in general $g_{n+2} = (1/n! - g_n)
 (These are the coefficients of Solà et al., "A micro Lie theory", eqs. 77, 143, 180, rewritten
 so that none divides by $\theta$.)
 
-$g_0 = \cos\theta$, $g_1 = \sin\theta/\theta$ and $g_2 = 2\,(\sin(\theta/2)/\theta)^2$ (the
-half-angle form of $(1 - \cos\theta)/\theta^2$) cancel nothing: they are evaluated in closed form
-at every $s$ (a few ulp). For $n \ge 3$ the closed forms cancel as $\theta \to 0$: below
-$\theta = 2$ the series is summed, with as many terms as reach the float64 rounding error there
-(the series alternates with falling terms, so the first omitted term, at most $4^K/(2K + n)!$,
-bounds the error: 11 terms for $g_3$ and $g_4$, 10 for $g_5$ to $g_8$); above, the recurrence
-runs from $\cos$ and $\sin$ (it divides by $s \ge 4$, so errors do not grow). Both branches are
-evaluated on safe inputs and the other one is masked (the "double where"), so neither values nor
-derivatives of any order are NaN.
+All are written with the sine and cosine of $\theta/2$ (`_closed`): $g_0 = 1 -
+2\sin^2\tfrac\theta2$, $g_1 = 2\sin\tfrac\theta2\cos\tfrac\theta2/\theta$ and $g_2 =
+2\,(\sin(\theta/2)/\theta)^2$ cancel nothing and are used at every $s$ (a few ulp). For $n \ge 3$
+the closed forms cancel as $\theta \to 0$: below $\theta = 2$ the series is summed, with as many
+terms as reach the float64 rounding error there (the series alternates with falling terms, so the
+first omitted term, at most $4^K/(2K + n)!$, bounds the error: 11 terms for $g_3$ and $g_4$, 10 for
+$g_5$ to $g_8$); above, the recurrence runs from $g_1$ or $g_2$ (it divides by $s \ge 4$, so errors
+do not grow). Every value of both branches is finite (the series on a masked $s$), so neither
+values nor derivatives of any order are NaN; every $g_n$ of one $s$ shares one sine and one cosine
+once XLA merges common subexpressions.
 
 The derivative is closed-form as well, $g_n'(s) = -(g_{n+1}(s) - n\,g_{n+2}(s)) / 2$ (differentiate
 the series term by term), and is injected with `jax.custom_jvp`: no derivative of any lieax
@@ -35,7 +36,7 @@ from jax import lax
 from .._linalg import horner
 
 _SERIES_LIMIT = 4.0  # s = θ² below which the series of g_n, n >= 3, is used
-_TINY_ANGLE = 1e-15  # θ below which g_1 = 1 and g_2 = 1/2 to either float's rounding error
+_TINY_ANGLE = 1e-15  # θ below which g_0 = g_1 = 1 and g_2 = 1/2 to either float's rounding error
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
@@ -45,11 +46,10 @@ def g(n: int, s: jax.Array) -> jax.Array:
     # every transformation of one)
     s = jnp.asarray(s)
     if n <= 2:
-        return _without_cancellation(n, s)
+        return _closed(n, s)
     use_series = lax.lt(s, _constant(_SERIES_LIMIT, s))
     s_series = lax.select(use_series, s, lax.full_like(s, 0.0))
-    s_closed = lax.select(use_series, lax.full_like(s, _SERIES_LIMIT), s)
-    return lax.select(use_series, _series(n, s_series), _closed(n, s_closed))
+    return lax.select(use_series, _series(n, s_series), _closed(n, s))
 
 
 @g.defjvp
@@ -59,21 +59,35 @@ def _g_jvp(n, primals, tangents):
     return g(n, s), -0.5 * slope * s_dot
 
 
-def _without_cancellation(n: int, s: jax.Array) -> jax.Array:
-    r"""$g_0 = \cos\theta$, $g_1 = \sin\theta/\theta$, $g_2 = 2\,(\sin(\theta/2)/\theta)^2$ at any
-    $s \ge 0$; below $\theta = 10^{-15}$, $g_1 = 1$ and $g_2 = 1/2$ (their next terms, $s/6$ and
-    $s/24$, are below either float's rounding error there; and $\theta/2$ may be subnormal, which
-    XLA flushes to zero). Derivatives come from `g`'s rule, never from these."""
+def _closed(n: int, s: jax.Array) -> jax.Array:
+    r"""$g_n$ from the sine $h_s$ and cosine $h_c$ of $\theta/2$: $g_0 = 1 - 2h_s^2$,
+    $g_1 = 2h_s h_c/\theta$, $g_2 = 2(h_s/\theta)^2$ (the half-angle identities; nothing
+    cancels), and for $n \ge 3$ the recurrence $g_{k+2} = (1/k! - g_k)/s$ from $g_1$ or $g_2$
+    (accurate where `g` uses it, $s \ge 4$). Below $\theta = 10^{-15}$, $g_0 = 1$, $g_1 = 1$ and
+    $g_2 = 1/2$ (their next terms are below either float's rounding error; and $\theta/2$ may be
+    subnormal, which XLA flushes to zero); $s$ and $\theta$ are replaced by 1 there, so that every
+    value is finite. Every `g_n` of one `s` shares the same two sines and cosines (XLA's common
+    subexpressions); derivatives come from `g`'s rule, never from these."""
     theta = lax.sqrt(s)
-    if n == 0:
-        return lax.cos(theta)
     tiny = lax.lt(theta, _constant(_TINY_ANGLE, s))
-    safe_theta = lax.select(tiny, lax.full_like(s, 1.0), theta)
-    if n == 1:
-        return lax.select(tiny, lax.full_like(s, 1.0), lax.div(lax.sin(safe_theta), safe_theta))
-    half_sinc = lax.div(lax.sin(lax.mul(safe_theta, _constant(0.5, s))), safe_theta)
-    g2 = lax.mul(lax.mul(half_sinc, half_sinc), _constant(2.0, s))
-    return lax.select(tiny, lax.full_like(s, 0.5), g2)
+    one = lax.full_like(s, 1.0)
+    safe_theta = lax.select(tiny, one, theta)
+    half = lax.mul(safe_theta, _constant(0.5, s))
+    half_sin, half_cos = lax.sin(half), lax.cos(half)
+    if n == 0:
+        cosine = lax.sub(one, lax.mul(_constant(2.0, s), lax.mul(half_sin, half_sin)))
+        return lax.select(tiny, one, cosine)
+    if n % 2:
+        value = lax.div(lax.mul(_constant(2.0, s), lax.mul(half_sin, half_cos)), safe_theta)
+        value, start = lax.select(tiny, one, value), 1
+    else:
+        half_sinc = lax.div(half_sin, safe_theta)
+        value = lax.mul(_constant(2.0, s), lax.mul(half_sinc, half_sinc))
+        value, start = lax.select(tiny, lax.full_like(s, 0.5), value), 2
+    safe_s = lax.select(tiny, one, s)
+    for m in range(start, n - 1, 2):  # g_{m+2} from g_m
+        value = lax.div(lax.sub(_constant(1.0 / math.factorial(m), s), value), safe_s)
+    return value
 
 
 @functools.cache
@@ -91,15 +105,6 @@ def _series_coefficients(n: int) -> tuple:
 
 def _series(n: int, s: jax.Array) -> jax.Array:
     return horner(_series_coefficients(n), s)
-
-
-def _closed(n: int, s: jax.Array) -> jax.Array:
-    theta = lax.sqrt(s)
-    even, odd = lax.cos(theta), lax.div(lax.sin(theta), theta)
-    value = even if n % 2 == 0 else odd
-    for k in range(n % 2, n - 1, 2):
-        value = lax.div(lax.sub(_constant(1.0 / math.factorial(k), s), value), s)
-    return value
 
 
 def _constant(value: float, like: jax.Array) -> np.ndarray:
