@@ -103,7 +103,7 @@ def blocks(rows):
 def horner(coefficients, s, xp=jnp):
     r"""$\sum_k c_k s^k$ of `coefficients` $(c_0, c_1, \dots)$ by Horner's rule, in the array
     namespace `xp`. With `jax.numpy`, in `jax.lax` primitives: each `jnp` operator is a small
-    jitted function that every transformation traces again (a series of 11 terms: 20 of
+    jitted function that every transformation traces again (an 11-term series stages 20 of
     them), and the series are in every closed form; the same operations in the same order, so
     the same values."""
     if xp is not jnp:

@@ -66,7 +66,7 @@ def _closed(n: int, s: jax.Array) -> jax.Array:
     (accurate where `g` uses it, $s \ge 4$). Below $\theta = 10^{-15}$, $g_0 = 1$, $g_1 = 1$ and
     $g_2 = 1/2$ (their next terms are below either float's rounding error; and $\theta/2$ may be
     subnormal, which XLA flushes to zero); $s$ and $\theta$ are replaced by 1 there, so that every
-    value is finite. Every `g_n` of one `s` shares the same two sines and cosines (XLA's common
+    value is finite. Every `g_n` of one `s` shares the same sine and cosine (XLA merges common
     subexpressions); derivatives come from `g`'s rule, never from these."""
     theta = lax.sqrt(s)
     tiny = lax.lt(theta, _constant(_TINY_ANGLE, s))
