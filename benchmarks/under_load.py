@@ -12,6 +12,13 @@ processes up as scripts, `benchmarks/_environment.py`); lieax as installed, with
 library's threads or paths (`SETTINGS`). A sample is one warm call, the medians over `--rounds`
 are compared, and lieax's first call (compilation) is reported separately.
 
+The floor: a load slows every program down, by as much as the machine's scheduler decides, and
+that changes from one phase to the next. Each row also times a single-threaded NumPy workload
+(sorts of one array, calibrated to lieax's idle time) in the same rounds, so the table shows what
+the scheduler gave one busy thread in that phase (`floor loaded / idle`) and lieax's slowdown
+against it (`lieax / floor`, its loaded / idle divided by the floor's). On this 2-core machine
+with two spinners the floor itself went from 1.0x to 2.0x from phase to phase (December 2026).
+
 Workflows (the peer in brackets):
 - pose graphs, `pgo.py`'s g2o sets, `lieax.graph.optimize` [GTSAM's LM];
 - bundle adjustment at Ladybug-49 size (`lieax.ba.SYNTHETIC_PRESETS`), 20 iterations at most,
@@ -123,6 +130,22 @@ def timed_call(fn):
         return out[1]
     jax.block_until_ready(out)
     return elapsed
+
+
+def floor_workload(seconds):
+    """A single-threaded workload of about `seconds` on an idle machine: sorts of one array of
+    16,384 doubles (NumPy's sort runs on the calling thread and wakes no other), as many as take
+    `seconds` (at least one)."""
+    values = np.random.default_rng(0).random(16384)
+    np.sort(values)
+    unit = statistics.median(timed_call(lambda: np.sort(values)) for _ in range(21))
+    repeats = max(1, round(seconds / unit))
+
+    def work():
+        for _ in range(repeats):
+            np.sort(values)
+
+    return work
 
 
 def interleaved(variants, rounds):
@@ -242,25 +265,37 @@ def measure(label, ours, peer, theirs, rounds, load_seconds):
     timed_call(ours)
     first = time.perf_counter() - start
     timed_call(theirs)
-    variants = {"lieax": ours, peer: theirs}
+    variants = {"lieax": ours, peer: theirs, "floor": floor_workload(timed_call(ours))}
     idle, idle_load = interleaved(variants, rounds)
     with background_load(os.cpu_count(), load_seconds):
         timed_call(ours)  # one call to settle under the load
         timed_call(theirs)
         busy, busy_load = interleaved(variants, rounds)
+
+    def phase(times, load):
+        return {"lieax_s": times["lieax"], "peer_s": times[peer], "floor_s": times["floor"],
+                "load_average": load}  # fmt: skip
+
     return {
         "workflow": label,
         "peer": peer,
         "lieax_first_call_s": first,
-        "idle": {"lieax_s": idle["lieax"], "peer_s": idle[peer], "load_average": idle_load},
-        "loaded": {"lieax_s": busy["lieax"], "peer_s": busy[peer], "load_average": busy_load},
+        "idle": phase(idle, idle_load),
+        "loaded": phase(busy, busy_load),
     }
+
+
+def slowdowns(record):
+    """`(lieax, peer, floor)`: each one's loaded / idle time in `record`."""
+    idle, busy = record["idle"], record["loaded"]
+    return tuple(busy[key] / idle[key] for key in ("lieax_s", "peer_s", "floor_s"))
 
 
 def row(record):
     idle, busy = record["idle"], record["loaded"]
     idle_ratio = idle["lieax_s"] / idle["peer_s"]
     busy_ratio = busy["lieax_s"] / busy["peer_s"]
+    ours, theirs, floor = slowdowns(record)
     return [
         record["workflow"],
         record["peer"],
@@ -270,8 +305,10 @@ def row(record):
         format_seconds(busy["lieax_s"]),
         format_seconds(busy["peer_s"]),
         f"{busy_ratio:.2f}×",
-        f"{busy['lieax_s'] / idle['lieax_s']:.2f}×",
-        f"{busy['peer_s'] / idle['peer_s']:.2f}×",
+        f"{ours:.2f}×",
+        f"{theirs:.2f}×",
+        f"{floor:.2f}×",
+        f"{ours / floor:.2f}×",
         f"{busy_ratio / idle_ratio:.2f}×",
         f"{idle['load_average']:.1f} / {busy['load_average']:.1f}",
         format_seconds(record["lieax_first_call_s"]),
@@ -280,7 +317,8 @@ def row(record):
 
 HEADERS = [
     "workflow", "peer", "lieax idle", "peer idle", "ratio idle", "lieax loaded", "peer loaded",
-    "ratio loaded", "lieax loaded / idle", "peer loaded / idle", "ratio loaded / ratio idle",
+    "ratio loaded", "lieax loaded / idle", "peer loaded / idle", "floor loaded / idle",
+    "lieax / floor", "ratio loaded / ratio idle",
     "load avg idle / loaded", "lieax first call",
 ]  # fmt: skip
 
@@ -384,7 +422,8 @@ def over_processes(args, argv, rounds):
 
 SPREAD_HEADERS = [
     "workflow", "peer", "lieax idle (median)", "lieax loaded / idle: low / median / high",
-    "peer loaded / idle: low / median / high", "ratio loaded / ratio idle: low / median / high",
+    "peer loaded / idle: low / median / high", "floor loaded / idle: low / median / high",
+    "lieax / floor: low / median / high", "ratio loaded / ratio idle: low / median / high",
     "processes with lieax loaded > 2× idle",
 ]  # fmt: skip
 
@@ -397,8 +436,7 @@ def spread_row(label, records):
             f"{v:.2f}×" for v in (min(values), statistics.median(values), max(values))
         )
 
-    ours = [r["loaded"]["lieax_s"] / r["idle"]["lieax_s"] for r in records]
-    theirs = [r["loaded"]["peer_s"] / r["idle"]["peer_s"] for r in records]
+    ours, theirs, floors = zip(*(slowdowns(r) for r in records))
     ratios = [
         (r["loaded"]["lieax_s"] / r["loaded"]["peer_s"])
         / (r["idle"]["lieax_s"] / r["idle"]["peer_s"])
@@ -410,6 +448,8 @@ def spread_row(label, records):
         format_seconds(statistics.median(r["idle"]["lieax_s"] for r in records)),
         triple(ours),
         triple(theirs),
+        triple(floors),
+        triple([a / b for a, b in zip(ours, floors)]),
         triple(ratios),
         f"{sum(v > 2.0 for v in ours)} of {len(records)}",
     ]

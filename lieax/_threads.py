@@ -5,9 +5,10 @@ Three kinds of lieax's work run on thread pools that XLA does not manage:
   call (SciPy's OpenBLAS for the larger fronts; the count is set per call on the calling thread
   from the setting passed through `on_change`), or without the native library NumPy's
   OpenBLAS, and SciPy's LAPACK for the small fronts, inside a host callback;
-- the k-d tree's queries of `lieax.icp`: the native library's `std::thread`s (started per call
-  from `PARALLEL_NEIGHBOURS` neighbours asked for, capped by the setting passed through
-  `on_change`), or without it the host tree's (pykdtree's OpenMP), inside a host callback;
+- the k-d tree's builds and queries of `lieax.icp`: the native library's helper threads (from
+  `PARALLEL_NEIGHBOURS` neighbours asked for, capped by the setting passed through `on_change`;
+  asleep between calls, and a call never waits for one to wake: `csrc/parallel.h`), or without
+  it the host tree's (pykdtree's OpenMP), inside a host callback;
 - the dense Cholesky of `lieax.factorgraph`'s `linear_solver="dense"` (bundle adjustment's reduced camera
   system), which XLA's CPU backend runs through LAPACK: jaxlib takes its LAPACK from SciPy's
   bundled OpenBLAS (`threadpoolctl.threadpool_info()` lists no other BLAS after a

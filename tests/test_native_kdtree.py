@@ -262,6 +262,53 @@ def test_a_tree_built_on_several_threads_is_the_tree_built_on_one(dtype):
     np.testing.assert_array_equal(np.asarray(one_knn), np.asarray(several_knn))
 
 
+def test_calls_from_several_threads_share_the_helpers_and_agree_with_one_thread():
+    """Parallel loops started at once (Python threads here; XLA's own threads in a program) take
+    helper threads from one pool (`csrc/parallel.h`): each call's answers are those of a call on
+    one thread, for queries (40,000 of them, past `PARALLEL_NEIGHBOURS`) and for a batch of two
+    builds of 40,000 points (spread over the trees)."""
+    import threading
+
+    import lieax
+
+    rng = np.random.default_rng(11)
+    points = _cloud(rng, 40_000, np.float64, repeats=0)
+    clouds = np.stack([points, _cloud(rng, 40_000, np.float64, repeats=0)])
+    queries = points + rng.normal(0.0, 0.01, points.shape)
+    active = np.ones(len(queries), bool)
+    build = jax.jit(_native_kdtree.build)
+    builds = jax.jit(jax.vmap(_native_kdtree.build))
+    nearest = jax.jit(_native_kdtree.nearest)
+    valid = np.ones(clouds.shape[:2], bool)
+    with lieax.threads(1):
+        tree = build(points, valid[0])
+
+    def answer():
+        found = (nearest(tree, queries, 0.05, active), builds(clouds, valid))
+        return jax.tree.map(np.asarray, found)
+
+    with lieax.threads(1):
+        expected = answer()
+    answers, errors = [], []
+
+    def call():
+        try:
+            answers.append(answer())
+        except Exception as error:  # (reported below: an assertion in a thread is lost)
+            errors.append(error)
+
+    with lieax.threads(4):
+        callers = [threading.Thread(target=call) for _ in range(4)]
+        for caller in callers:
+            caller.start()
+        for caller in callers:
+            caller.join()
+    assert not errors and len(answers) == len(callers)
+    for answer in answers:
+        for a, b in zip(jax.tree.leaves(expected), jax.tree.leaves(answer)):
+            np.testing.assert_array_equal(a, b)
+
+
 CHILD = textwrap.dedent(
     """
     import sys, jax

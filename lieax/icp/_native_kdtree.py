@@ -24,10 +24,14 @@ from each node's two bounds along its axis: the largest coordinate of the left c
 smallest of the right one. Distances between points are computed in the points' dtype (as
 pykdtree's are), the cell distances in float64; the answers are exact, ties aside.
 
-A batch (leading axes, `vmap`) is one call; the queries of a call run on `std::thread`s when they
-ask for at least `lieax._threads.PARALLEL_NEIGHBOURS` neighbours in all (lieax's thread setting,
-`lieax.set_threads`, caps them; no thread outlives the call), and a batch of builds of at least
-65536 points in all spreads its trees over threads.
+A batch (leading axes, `vmap`) is one call; the queries of a call are shared with helper threads
+when they ask for at least `lieax._threads.PARALLEL_NEIGHBOURS` neighbours in all (lieax's thread
+setting, `lieax.set_threads`, caps them), and builds of at least 65536 points in all share their
+trees and top subtrees. The helpers sleep between calls, and the calling thread works through the
+queries itself, waiting only for those a helper has taken, never for a helper to wake
+(`csrc/parallel.h`): on a busy machine, where a woken thread may wait for a time slice, a call
+runs as on one thread, and the 130k queries of the Kinect 1 cm pair stopped waiting on threads
+started and joined per call (issue 31).
 """
 
 from typing import NamedTuple
