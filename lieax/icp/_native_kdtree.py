@@ -43,6 +43,10 @@ import numpy as np
 from .. import _native
 
 LEAF_SIZE = 8
+# The leaves of the trees that `neighbours` and `covariance_entries` build for their k-nearest
+# queries: larger leaves suit more neighbours (GICP's 20 nearest on the scan pairs' targets of 14k,
+# 37k and 181k points, one thread: 4-8% less time than leaves of 8).
+NEIGHBOURHOOD_LEAF_SIZE = 16
 _DTYPES = (np.dtype(np.float32), np.dtype(np.float64))
 
 
@@ -138,7 +142,10 @@ def neighbours(points, valid, k):
     """`(n, k)` int32: the `k` nearest valid rows of each valid row of `points` `(n, 3)`, itself
     among them, nearest first; `-1` where there are fewer valid rows and in rows not `valid`."""
     result = jax.ShapeDtypeStruct((points.shape[0], k), jnp.int32)
-    return _call("lieax_kdtree_neighbours", result, points, valid, leaf_size=np.int64(LEAF_SIZE))
+    return _call(
+        "lieax_kdtree_neighbours", result, points, valid,
+        leaf_size=np.int64(NEIGHBOURHOOD_LEAF_SIZE),
+    )  # fmt: skip
 
 
 def covariance_entries(points, valid, k):
@@ -149,5 +156,5 @@ def covariance_entries(points, valid, k):
     result = jax.ShapeDtypeStruct((points.shape[0], 6), points.dtype)
     return _call(
         "lieax_kdtree_covariances", result, points, valid, k=np.int64(k),
-        leaf_size=np.int64(LEAF_SIZE),
+        leaf_size=np.int64(NEIGHBOURHOOD_LEAF_SIZE),
     )  # fmt: skip
