@@ -421,7 +421,8 @@ def over_processes(args, argv, rounds):
 
 
 SPREAD_HEADERS = [
-    "workflow", "peer", "lieax idle (median)", "lieax loaded / idle: low / median / high",
+    "workflow", "peer", "lieax idle (median)", "lieax / peer idle: low / median / high",
+    "lieax / peer loaded: low / median / high", "lieax loaded / idle: low / median / high",
     "peer loaded / idle: low / median / high", "floor loaded / idle: low / median / high",
     "lieax / floor: low / median / high", "ratio loaded / ratio idle: low / median / high",
     "processes with lieax loaded > 2× idle",
@@ -437,20 +438,19 @@ def spread_row(label, records):
         )
 
     ours, theirs, floors = zip(*(slowdowns(r) for r in records))
-    ratios = [
-        (r["loaded"]["lieax_s"] / r["loaded"]["peer_s"])
-        / (r["idle"]["lieax_s"] / r["idle"]["peer_s"])
-        for r in records
-    ]
+    idle = [r["idle"]["lieax_s"] / r["idle"]["peer_s"] for r in records]
+    loaded = [r["loaded"]["lieax_s"] / r["loaded"]["peer_s"] for r in records]
     return [
         label,
         records[0]["peer"],
         format_seconds(statistics.median(r["idle"]["lieax_s"] for r in records)),
+        triple(idle),
+        triple(loaded),
         triple(ours),
         triple(theirs),
         triple(floors),
         triple([a / b for a, b in zip(ours, floors)]),
-        triple(ratios),
+        triple([b / a for a, b in zip(idle, loaded)]),
         f"{sum(v > 2.0 for v in ours)} of {len(records)}",
     ]
 

@@ -474,10 +474,13 @@ ffi::Error NearestTyped(const TreeBuffers& tree, ffi::AnyBuffer queries, ffi::An
   return ffi::Error::Success();
 }
 
-// track_in_kdtree's query (lieax/icp/_host_kdtree.py): for each active row the nearest valid
-// point within twice the radius, its row or -1, and the allowance (min(d2, 2r) - d1) / 2 from the
-// nearest and second-nearest distances when `pairs` (0 for a match found alone; r for none);
-// rows not active get (-1, -inf).
+// track_in_kdtree's query (lieax/icp/_host_kdtree.py): for each active row its nearest valid
+// point, its row or -1, and an allowance. With `pairs`, the nearest within twice the radius r and
+// the allowance (min(d2, 2r) - d1) / 2 from the nearest and second-nearest distances (r for
+// none); without, the nearest within r alone and the allowance 0 (a query far from the target then
+// stops early: no point within r is looked for in the shell out to 2r); with one valid point in
+// the tree, (2r - d1) / 2 for a match either way, and with none, r. Rows not active get
+// (-1, -inf).
 template <typename T>
 ffi::Error TrackTyped(const TreeBuffers& tree, ffi::AnyBuffer queries, ffi::AnyBuffer radius,
                       ffi::Buffer<ffi::PRED> active, ffi::Buffer<ffi::PRED> pairs,
@@ -491,6 +494,7 @@ ffi::Error TrackTyped(const TreeBuffers& tree, ffi::AnyBuffer queries, ffi::AnyB
     const bool* active;
     double radius, bound;
     int k;
+    bool pairs;
   };
   std::vector<Element> elements;
   int64_t work = 0;
@@ -500,11 +504,13 @@ ffi::Error TrackTyped(const TreeBuffers& tree, ffi::AnyBuffer queries, ffi::AnyB
     e.queries = static_cast<const T*>(queries.untyped_data()) + batch.Offset(qd, 2, b) * 3 * m;
     e.active = active.typed_data() + batch.Offset(active.dimensions(), 1, b) * m;
     e.radius = static_cast<const T*>(radius.untyped_data())[batch.Offset(radius.dimensions(), 0, b)];
-    // The host tree's rule: found when d < 2r (1 + 8 eps), eps of T.
-    const double reach = 2 * e.radius * (1 + 8 * double(std::numeric_limits<T>::epsilon()));
-    e.bound = reach * reach;
     const bool two = pairs.typed_data()[batch.Offset(pairs.dimensions(), 0, b)];
     e.k = std::min<int>(two ? 2 : 1, e.tree.count());
+    e.pairs = two;
+    // The host tree's rule: found when d < reach (1 + 8 eps), eps of T.
+    const double reach = (two ? 2 : 1) * e.radius;
+    const double widened = reach * (1 + 8 * double(std::numeric_limits<T>::epsilon()));
+    e.bound = widened * widened;
     work += m * std::max(e.k, 1);
     elements.push_back(e);
   }
@@ -523,8 +529,9 @@ ffi::Error TrackTyped(const TreeBuffers& tree, ffi::AnyBuffer queries, ffi::AnyB
       const double r = e.radius, reach = 2 * r;
       KNearest result(std::max(e.k, 1), e.bound, d2, position);
       Query(e.tree, e.queries + 3 * i, result);
-      if (result.found == 0) {
-        slots[g] = -1, allowances[g] = static_cast<T>(r);
+      if (result.found == 0) {  // none within 2r (or at all) stays none within r for moves below r
+        const bool far = e.pairs || e.tree.count() == 0;
+        slots[g] = -1, allowances[g] = static_cast<T>(far ? r : 0.0);
         continue;
       }
       // distances as the host tree reports them: square roots in T

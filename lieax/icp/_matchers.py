@@ -30,8 +30,9 @@ def _no_state(n, dtype):
 
 
 def _track(index, queries, max_distance, mask, warm):
-    """Matches within twice the radius (the loop tests the distances against the radius). The
-    tree's distances go unused: XLA drops their gather, a pass over the rows per iteration."""
+    """Matches within the radius, or twice it when the tree is asked for two neighbours (the
+    loop tests the distances against the radius). The tree's distances go unused: XLA drops
+    their gather, a pass over the rows per iteration."""
     slot, _, warm = _host_kdtree.track_in_kdtree(index, queries, max_distance, warm, mask=mask)
     return slot, warm.slot >= 0, warm
 
