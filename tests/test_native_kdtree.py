@@ -5,7 +5,9 @@ float32 and float64, batched under `vmap` (one custom call), on empty, fully mas
 targets; ICP with either tree; and the ICP demo's registration and a GICP served from JAX's
 persistent compilation cache in a second process."""
 
+import os
 import textwrap
+import time
 
 import jax
 import jax.numpy as jnp
@@ -266,7 +268,7 @@ def test_calls_from_several_threads_share_the_helpers_and_agree_with_one_thread(
     """Parallel loops started at once (Python threads here; XLA's own threads in a program) take
     helper threads from one pool (`csrc/parallel.h`): each call's answers are those of a call on
     one thread, for queries (40,000 of them, past `PARALLEL_NEIGHBOURS`) and for a batch of two
-    builds of 40,000 points (spread over the trees)."""
+    builds of 40,000 points (spread over the trees). Afterwards no thread spins."""
     import threading
 
     import lieax
@@ -307,6 +309,33 @@ def test_calls_from_several_threads_share_the_helpers_and_agree_with_one_thread(
     for answer in answers:
         for a, b in zip(jax.tree.leaves(expected), jax.tree.leaves(answer)):
             np.testing.assert_array_equal(a, b)
+    _assert_no_thread_spins()
+
+
+def _assert_no_thread_spins():
+    """No thread of this process uses CPU time while nothing runs: the helpers sleep (Linux's
+    per-thread CPU times, in clock ticks, over 0.3 s after a 0.1 s rest)."""
+    if not os.path.isdir("/proc/self/task"):
+        pytest.skip("per-thread CPU times are read from Linux's /proc")
+
+    def ticks():
+        out = {}
+        for tid in os.listdir("/proc/self/task"):
+            try:
+                with open(f"/proc/self/task/{tid}/stat") as stat:
+                    fields = stat.read().rsplit(")", 1)[1].split()
+            except FileNotFoundError:  # (a thread that ended meanwhile)
+                continue
+            out[tid] = int(fields[11]) + int(fields[12])  # utime + stime
+        return out
+
+    time.sleep(0.1)
+    before = ticks()
+    time.sleep(0.3)
+    after = ticks()
+    used = {tid: after[tid] - before.get(tid, 0) for tid in after}
+    # 0.3 s is 30 ticks at the usual 100 per second: a spinning thread would show about that many.
+    assert sum(used.values()) <= 3, used
 
 
 CHILD = textwrap.dedent(
