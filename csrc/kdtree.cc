@@ -51,7 +51,8 @@ int ThreadsFor(int64_t work, int64_t parallel_from) {
 template <typename F>
 void ParallelFor(int64_t n, int threads, const F& f) {
   const int64_t chunks = (n + kChunk - 1) / kChunk;
-  lieax::Helpers::For(chunks, threads, [&](int64_t c) { f(c * kChunk, std::min(n, (c + 1) * kChunk)); });
+  lieax::Helpers::For(chunks, threads,
+                      [&](int64_t c) { f(c * kChunk, std::min(n, (c + 1) * kChunk)); });
 }
 
 // The leading (batch) dimensions of the call: those of a result with `core` trailing dimensions;

@@ -417,8 +417,9 @@ def track_in_kdtree(index: KDTreeIndex, queries, radius, warm: KDTreeWarmStart, 
     is about 28% cheaper (pykdtree on the benchmark's scans). While the queries move far (ICP's
     first iterations), an allowance would not be used, so the tree is asked for the nearest
     point within $r$ alone (exact all the same; the allowance of a match, or of none, is then 0;
-    a query far from the target stops early, not looking for its nearest point out to $2r$: ICP
-    on the Kinect, LiDAR and bunny pairs 3-13% faster, December 2026). It is asked for two when at least `_PAIR_SHARE` of the queries sent moved less
+    a query far from the target stops early, not looking for its nearest point out to $2r$:
+    point-to-plane on `benchmarks/icp.py`'s Kinect and bunny pairs 3-18% faster, December 2026).
+    It is asked for two when at least `_PAIR_SHARE` of the queries sent moved less
     than `gap`, the mean allowance of the last call that asked for two: the moves have become
     small enough for many answers to stand in the next call. (Replayed on the ICP iterates of the
     benchmark's LiDAR, Kinect and full bunny pairs: 32-37% fewer neighbours asked for than always
