@@ -30,8 +30,8 @@ setting, `lieax.set_threads`, caps them), and builds of at least 65536 points in
 trees and top subtrees. The helpers sleep between calls, and the calling thread works through the
 queries itself, waiting only for those a helper has taken, never for a helper to wake
 (`csrc/parallel.h`): on a busy machine, where a woken thread may wait for a time slice, a call
-runs as on one thread, and the 130k queries of the Kinect 1 cm pair stopped waiting on threads
-started and joined per call (issue 31).
+then runs as on one thread, where threads started and joined per call (before December 2026)
+made it wait for each of them (issue 31).
 """
 
 from typing import NamedTuple
