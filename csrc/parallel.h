@@ -13,8 +13,7 @@
 // threads per loop, and 1.3-1.5x with one (issue 31).
 //
 // Loops may run at once (two XLA threads in custom calls, a loop inside a chunk of another):
-// helpers take chunks from any open loop with a free seat. After a fork(), the child has no
-// helpers and its loops run on the caller alone.
+// helpers take chunks from any open loop with a free seat.
 #ifndef LIEAX_PARALLEL_H_
 #define LIEAX_PARALLEL_H_
 
