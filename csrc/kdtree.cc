@@ -508,9 +508,9 @@ ffi::Error TrackTyped(const TreeBuffers& tree, ffi::AnyBuffer queries, ffi::AnyB
     const bool two = pairs.typed_data()[batch.Offset(pairs.dimensions(), 0, b)];
     e.k = std::min<int>(two ? 2 : 1, e.tree.count());
     e.pairs = two;
-    // The host tree's rule: found when d < reach (1 + 8 eps), eps of T.
-    const double reach = (two ? 2 : 1) * e.radius;
-    const double widened = reach * (1 + 8 * double(std::numeric_limits<T>::epsilon()));
+    // The host tree's rule: found when d < searched (1 + 8 eps), eps of T.
+    const double searched = (two ? 2 : 1) * e.radius;
+    const double widened = searched * (1 + 8 * double(std::numeric_limits<T>::epsilon()));
     e.bound = widened * widened;
     work += m * std::max(e.k, 1);
     elements.push_back(e);
