@@ -24,6 +24,7 @@ import numpy as np
 
 from ._factors import linearize_one, residual_one
 from ._gram import gram_sum, small_tmatmul
+from ._segments import segment_sum
 from ._variables import instance
 
 
@@ -175,25 +176,14 @@ def assemble(layout, plans, parts):
             per_pair[j][1].append(slots)
     for k, (pieces, indices) in enumerate(per_kind):
         if pieces:
-            indices = _joined(indices)
-            ordered = isinstance(indices, np.ndarray) and bool(np.all(indices[1:] >= indices[:-1]))
             summed[k].append(
-                jax.ops.segment_sum(
-                    jnp.concatenate(pieces), indices, layout.counts[k], indices_are_sorted=ordered
-                )
+                segment_sum(jnp.concatenate(pieces), _joined(indices), layout.counts[k])
             )
         if summed[k]:
             both = sum(summed[k][1:], summed[k][0])
             diag[k], grad[k] = both[..., :-1], both[..., -1]
     for j, (pieces, slots) in enumerate(per_pair):
-        slots = _joined(slots)
-        count = off[j].shape[0]
-        if isinstance(slots, np.ndarray) and len(slots) == count and _one_each(slots, count):
-            # one term per slot (bundle adjustment's camera-point blocks): a gather, where XLA
-            # CPU's scatter is a serial loop
-            off[j] = jnp.concatenate(pieces)[np.argsort(slots)]
-        else:
-            off[j] = jax.ops.segment_sum(jnp.concatenate(pieces), slots, count)
+        off[j] = segment_sum(jnp.concatenate(pieces), _joined(slots), off[j].shape[0])
     for k, free in enumerate(layout.free):
         if not _all(free):
             eye = jnp.eye(layout.dims[k], dtype=dtype)
@@ -204,7 +194,3 @@ def assemble(layout, plans, parts):
         if not _all(pair_free):
             off[j] = jnp.where(pair_free[:, None, None], off[j], 0.0)
     return tuple(diag), tuple(off), tuple(grad)
-
-
-def _one_each(slots, count):
-    return np.bincount(slots, minlength=count).max(initial=1) == 1

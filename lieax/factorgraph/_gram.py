@@ -14,10 +14,11 @@ complement and normal equations of Triggs et al. ("Bundle adjustment — a moder
 
 import dataclasses
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
+
+from ._segments import segment_sum
 
 # longest contraction `small_matmul` and the like write out as elementwise sums
 _UNROLLED = 8
@@ -130,4 +131,4 @@ def gram_sum(plan, x, y):
 
     _, blocks = lax.scan(products, None, (left, right))
     blocks = blocks.reshape(steps * block, a, b)[:n]
-    return jax.ops.segment_sum(blocks, plan.segment, plan.count, indices_are_sorted=True)
+    return segment_sum(blocks, plan.segment, plan.count)

@@ -26,6 +26,7 @@ import numpy as np
 from ._dense_solve import dense_solve
 from ._gram import gram_sum, small_matmul, small_matvec
 from ._pcg import pcg
+from ._segments import segment_sum
 
 
 def to_padded(layout, diag, off, rhs):
@@ -44,11 +45,11 @@ def to_padded(layout, diag, off, rhs):
             r = jnp.pad(r, ((0, 0), (0, pad)))
         diags.append(block)
         rhss.append(r)
-    padded_off = jnp.zeros((layout.pattern.num_pairs, D, D), dtype)
-    for key, block in zip(layout.pairs, off):
-        da, db = block.shape[1:]
-        block = jnp.pad(block, ((0, 0), (0, D - da), (0, D - db)))
-        padded_off = padded_off.at[layout.slots[key]].set(block)
+    # each slot holds one block: a gather (`segment_sum`), where XLA CPU's scatter is a loop
+    blocks = [jnp.zeros((0, D, D), dtype)]
+    blocks += [jnp.pad(b, ((0, 0), (0, D - b.shape[1]), (0, D - b.shape[2]))) for b in off]
+    slots = np.concatenate([np.zeros(0, np.int64), *(layout.slots[key] for key in layout.pairs)])
+    padded_off = segment_sum(jnp.concatenate(blocks), slots, layout.pattern.num_pairs)
     return jnp.concatenate(diags), padded_off, jnp.concatenate(rhss)
 
 
@@ -138,7 +139,7 @@ def schur_solve(layout, plan, method, diag, off, rhs, **options):
     ]
     for key, (rkey, slots) in plan.original.items():
         j = red_keys.index(rkey)
-        s_off[j] = s_off[j].at[slots].add(off[keys.index(key)])
+        s_off[j] = s_off[j] + segment_sum(off[keys.index(key)], slots, len(s_off[j]))
     for r1, r2, rkey, fill in plan.fill:
         j = red_keys.index(rkey)
         s_off[j] = s_off[j] - gram_sum(fill, qbt[r1], bt[r2])
@@ -147,7 +148,7 @@ def schur_solve(layout, plan, method, diag, off, rhs, **options):
     x_kept = solve_system(red, method, tuple(s_diag), tuple(s_off), tuple(s_rhs), **options)
     back = b_e
     for r, (_, _, inst, point, _) in plan.links.items():
-        back = back - jax.ops.segment_sum(small_matvec(bt[r], x_kept[new[r]][inst]), point, n_e)
+        back = back - segment_sum(small_matvec(bt[r], x_kept[new[r]][inst]), point, n_e)
     x_e = small_matvec(q, back)
     x = [None] * len(layout.dims)
     for k, xk in zip(plan.kept, x_kept):
