@@ -2,7 +2,7 @@
 against `lieax.graph.optimize`, landmarks (two variable kinds, three factor kinds), a small
 bundle adjustment with every linear solver and the Schur complement, the assembled gradient
 against finite differences, bad input, marginal covariances (dense inverse, GTSAM), `vmap` over
-problems and implicit derivatives with respect to factor data.
+problems, implicit derivatives with respect to factor data, and the segment sums of the assembly.
 
 Real data from `$LIEAX_DATA_DIR/g2o` is optional (those cases skip without it). Problems are
 built once per module (fixtures) so that each structure compiles its loop once.
@@ -22,6 +22,7 @@ from lieax import graph as lg
 from lieax.factorgraph import Factor, FactorGraph, Var, marginal_covariances
 from lieax.factorgraph._block_pattern import dense_matrix
 from lieax.factorgraph._linear import to_padded
+from lieax.factorgraph._segments import segment_sum
 from lieax.factorgraph._solve import retract
 from lieax.lstsq import Termination
 
@@ -1093,3 +1094,24 @@ def test_partial_priors_match_gtsam():
             [expected.x(), expected.y(), expected.theta()],
             atol=1e-7,
         )
+
+
+@pytest.mark.parametrize(
+    "indices, count, gathered",
+    [
+        (np.array([0, 2, 2, 1, 0, 2, 4, 1]), 5, True),  # balanced, slot 3 empty
+        (np.arange(6)[::-1].copy(), 6, True),  # one term per slot
+        (np.r_[np.zeros(40, int), np.arange(1, 8)], 8, False),  # one slot holds most terms
+    ],
+)
+def test_segment_sums_gather_where_slots_are_balanced(indices, count, gathered):
+    """`_segments.segment_sum` equals `jax.ops.segment_sum` (to rounding), as one gather with no
+    scatter (XLA CPU's serial loop) where the slots hold similar numbers of terms, a scatter
+    otherwise; traced indices scatter."""
+    terms = np.random.default_rng(0).normal(size=(len(indices), 3, 2))
+    expected = jax.ops.segment_sum(terms, indices, count)
+    program = jax.jit(lambda t: segment_sum(t, indices, count))
+    np.testing.assert_allclose(program(terms), expected, rtol=0, atol=1e-13)
+    assert ("scatter" not in program.lower(terms).as_text()) == gathered
+    traced = jax.jit(lambda t, i: segment_sum(t, i, count))
+    np.testing.assert_allclose(traced(terms, indices), expected, rtol=0, atol=1e-13)
