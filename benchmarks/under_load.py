@@ -95,7 +95,7 @@ SETTINGS = (
 
 WORKFLOWS = ("pgo", "ba", "icp", "gicp", "imu")
 ICP_SCANS = ("LiDAR", "Kinect", "LiDAR 0.25 m", "Kinect 1 cm", "Kinect 3 cm")
-PGO_SETS = ("smallGrid3D", "intel", "M3500", "parking-garage", "sphere2500")
+PGO_SETS = ("tinyGrid3D", "smallGrid3D", "intel", "M3500", "parking-garage", "sphere2500")
 PGO_QUICK = ("smallGrid3D", "sphere2500")
 _SPIN = "import time\nend = time.monotonic() + {seconds}\nwhile time.monotonic() < end:\n    pass\n"
 

@@ -154,8 +154,8 @@ _CACHE_SIZE = 8
 
 def _structure_key(*arrays):
     """The index arrays of a structure as a hashable value (the cache key of `_factor_graph`):
-    their dtypes, shapes and bytes (hashing the bytes took 2 us on tinyGrid3D against 5 for a
-    blake2b digest, a sixtieth of a warm `optimize` there)."""
+    their dtypes, shapes and bytes (2 us on tinyGrid3D's arrays, against 5 for a blake2b digest
+    of them; a warm `optimize` there takes about 330 us)."""
     return tuple((a.dtype.str, a.shape, a.tobytes()) for a in map(np.asarray, arrays))
 
 
