@@ -278,19 +278,24 @@ def openmp_limited(threads):
                 pool.set_num_threads(count)
 
 
-@contextlib.contextmanager
 def lapack_limited(threads):
-    """Every BLAS pool at `threads` threads, process-wide, inside the block (`None`: unchanged),
-    restored when the last such block of the process closes (`_enter_blas`'s counting): the scope
-    of a compiled program whose LAPACK calls (XLA's CPU Cholesky calls SciPy's OpenBLAS) run on
-    XLA's threads, not the caller's, so the calling thread's own count would not reach them. The
-    block must wait for the program's results. It is set around the compiled call, not inside
-    the program: host callbacks in the program would keep JAX's persistent cache from storing it
-    and are refused under `vmap` of a `cond` (IO effects). Under the caller's own `jit` the scope
-    is not applied (the caller owns the threads of its program)."""
-    if threads is None:
-        yield
-        return
+    """Every BLAS pool at `threads` threads, process-wide, inside the block (`None`: unchanged,
+    a shared empty context, cheaper than a generator's), restored when the last such block of the
+    process closes (`_enter_blas`'s counting): the scope of a compiled program whose LAPACK calls
+    (XLA's CPU Cholesky calls SciPy's OpenBLAS) run on XLA's threads, not the caller's, so the
+    calling thread's own count would not reach them. The block must wait for the program's
+    results. It is set around the compiled call, not inside the program: host callbacks in the
+    program would keep JAX's persistent cache from storing it and are refused under `vmap` of a
+    `cond` (IO effects). Under the caller's own `jit` the scope is not applied (the caller owns
+    the threads of its program)."""
+    return _UNCHANGED if threads is None else _lapack_scope(threads)
+
+
+_UNCHANGED = contextlib.nullcontext()
+
+
+@contextlib.contextmanager
+def _lapack_scope(threads):
     prepare()
     _enter_blas(threads)
     try:

@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import to_device
+from .._executable_store import traced as staged
 from .._runtime_error import raise_if
 from .._threads import lapack_limited
 from .._typing import PyTree
@@ -364,12 +365,12 @@ class FactorGraph:
         params = self._parameters(
             solver, termination, cg_tolerance, np.result_type(*(x.dtype for x in leaves))
         )
-        traced = any(isinstance(x, jax.core.Tracer) for x in leaves) or any(
-            isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(data)
-        )
         if self._buckets is not None:  # padded to the buckets, the structure an operand
             loop = self._buckets.runner(loop, method)
-        if traced:  # under a transformation: the solve with its implicit derivatives
+        # under a transformation or a staging (values or data traced, or a `jit` of a function
+        # that solves with concrete ones): the solve with its implicit derivatives, whose
+        # results may be traced
+        if staged((values, data), {}):
             result = _result(*solve_implicit(self, loop, values, data, params))
         else:  # one dispatch, one transfer of the scalars: they come back as NumPy values
             threads = dense_threads(layout.pattern) if method == "dense" else None
@@ -607,7 +608,7 @@ class FactorGraph:
         dtypes of the `Var`s' (one flatten); otherwise `_check_values` names the problem."""
         leaves, treedef = jax.tree_util.tree_flatten(values)
         if treedef == self._initial_treedef and all(
-            getattr(x, "dtype", None) is not None and x.dtype.kind == "f" and np.shape(x) == shape
+            getattr(x, "dtype", None) is not None and x.dtype.kind == "f" and x.shape == shape
             for x, shape in zip(leaves, self._initial_shapes)
         ):
             return leaves

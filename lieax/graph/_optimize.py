@@ -22,6 +22,7 @@ import dataclasses
 import jax
 import numpy as np
 
+from .._executable_store import traced as staged
 from ..groups import SE2, SE3
 from ..lstsq import AbstractSolver, LevenbergMarquardt, Status, Termination
 from ..lstsq._solution import SolverResult
@@ -117,6 +118,12 @@ def optimize(
     **Returns:** an `OptimizeResult`.
     """
     refuse_sightings(graph, "optimize")
+    if staged((), {}):
+        raise TypeError(
+            "graph.optimize returns concrete NumPy values and cannot run under jit, vmap or grad: "
+            "solve graph.to_factor_graph(graph)[0] with FactorGraph.solve inside them (its "
+            "values and data may be traced and differentiated)."
+        )
     if linear_solver not in _LINEAR_SOLVERS:
         raise ValueError(f"linear_solver must be one of {_LINEAR_SOLVERS}, got {linear_solver!r}.")
     if jacobian not in ("exact", "approximate"):
