@@ -786,6 +786,19 @@ def test_nonfinite_start_raises_or_reports(gps_graph):
     assert int(result.status) == lstsq.Status.NONFINITE
 
 
+def test_solve_staged_by_jit_with_concrete_values(gps_graph):
+    """A `jit` of a function that solves from concrete values (the graph's own start, closed
+    over) stages the solve: the same result as the eager solve, not a NumPy conversion of a
+    traced summary (`TracerArrayConversionError`, before the solve asked JAX's trace state)."""
+    graph = gps_graph[0]
+    eager = graph.solve()
+    cost, values = jax.jit(lambda: (lambda r: (r.cost, r.values))(graph.solve()))()
+    assert float(cost) == pytest.approx(float(eager.cost), rel=1e-12)
+    np.testing.assert_allclose(
+        values[0].parameters(), eager.values[0].parameters(), rtol=0, atol=1e-12
+    )
+
+
 def test_bundle_adjustment_with_lieax_ba():
     ba = pytest.importorskip("lieax.ba")
     problem = ba.synthetic_bal(5, 24, 80, seed=2).problem

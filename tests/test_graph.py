@@ -402,6 +402,14 @@ def test_optimize_generated_2d_cholesky_and_cg_agree():
     assert len(_optimize._CACHE) == count and again.iterations <= 3
 
 
+def test_optimize_refuses_transformations():
+    """`optimize` returns concrete values: under `jit` it says so and names the traceable
+    solve, before any work."""
+    graph, _ = noisy_graph(SE2, n=6, loops=2, seed=4)
+    with pytest.raises(TypeError, match="cannot run under jit.*FactorGraph.solve"):
+        jax.jit(lambda: lg.optimize(graph).cost)()
+
+
 def test_optimize_generated_3d_with_prior_and_robust_loss():
     from lieax.lstsq import Huber
 
