@@ -114,6 +114,8 @@ def optimize(
     first pose is. A graph with several connected components must anchor each one (a prior or
     a fixed pose), else `ValueError`: a disconnected graph is reported, not silently optimized.
     A solve that ends `DIVERGED` or `NONFINITE` is returned, not raised: read `status`.
+    Its results are concrete, so it refuses `jit`, `vmap` and `grad` (`TypeError`): inside them,
+    solve `to_factor_graph(graph)[0]` with `FactorGraph.solve`.
 
     **Returns:** an `OptimizeResult`.
     """
@@ -121,8 +123,8 @@ def optimize(
     if staged((), {}):
         raise TypeError(
             "graph.optimize returns concrete NumPy values and cannot run under jit, vmap or grad: "
-            "solve graph.to_factor_graph(graph)[0] with FactorGraph.solve inside them (its "
-            "values and data may be traced and differentiated)."
+            "solve lieax.graph.to_factor_graph(graph)[0] with FactorGraph.solve inside them "
+            "(its values and data may be traced and differentiated)."
         )
     if linear_solver not in _LINEAR_SOLVERS:
         raise ValueError(f"linear_solver must be one of {_LINEAR_SOLVERS}, got {linear_solver!r}.")
