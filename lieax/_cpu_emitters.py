@@ -1,5 +1,5 @@
 """`jit`: `jax.jit` compiled with XLA's classic CPU fusion emitters, for the point-cloud programs
-and the factor-graph loop.
+and the factor-graph loop, and with single-threaded dots for the factor-graph loop.
 
 XLA's CPU backend emits each fused kernel through its newer MLIR "fusion emitters" by default.
 The point-cloud programs (the ICP loop, the normals, the GICP covariances) are long chains of
@@ -22,7 +22,19 @@ classic / default: the docs' five-pose factor graph 1.8-2.1 / 3.8 s; intel 2.8 /
 1.6 / 2.6 s, 0.15 s both. An earlier measurement, on the pose-graph loop of that time, had
 found tinyGrid3D 0.78 -> 1.01x GTSAM's time and sphere2500 0.66 -> 0.74x).
 
-The option is one of XLA's debug options, and an XLA that does not know it refuses to compile
+The factor-graph loop also computes its dots on the thread that runs the program
+(`SOLVER_LOOP_OPTIONS`: `xla_cpu_multi_thread_eigen=False`). Its dots are small (per-factor
+Jacobian products, 3x3 to 15x15 blocks, batched), and XLA's multi-threaded Eigen path hands each
+to its intra-op pool: on the 2-core machine the loop ran, warm, in one process against the same
+loop with XLA's default (2026-12-05, medians of 5 interleaved rounds), tinyGrid3D 281 -> 226 us
+pinned and 311 -> 239 us unpinned, smallGrid3D 7.69 -> 6.32 ms and 8.58 -> 7.32 ms, sphere2500
+161 -> 139 ms and 155 -> 144 ms, intel 5.19 -> 5.17 ms and 5.98 -> 6.07 ms; `under_load.py`'s
+bundle adjustment at Ladybug-49 size 187-200 -> 159-195 ms idle and the IMU smoother 61-96 ->
+54-58 ms (three processes each, alternating). The point-cloud programs measured the same either
+way (`under_load.py`'s ICP and GICP rows within noise), so they keep XLA's default. The dense and
+multifrontal factorizations call LAPACK, whose threads `lieax._threads` sets, not Eigen.
+
+The options are XLA's debug options, and an XLA that does not know one refuses to compile
 ("No such compile option"): the first program compiled with it finds that out, and from then on
 the programs compile with XLA's defaults (`known()`; an empty program compiled as a probe cost
 every process 0.1 s). Other backends do not use it (not measured on one here). JAX takes compile
@@ -38,9 +50,10 @@ import jax
 from . import _executable_store as executable_store
 
 CLASSIC_CPU_EMITTERS = {"xla_cpu_use_fusion_emitters": False}
+SOLVER_LOOP_OPTIONS = {**CLASSIC_CPU_EMITTERS, "xla_cpu_multi_thread_eigen": False}
 
 
-_REFUSED = set()  # the options of `CLASSIC_CPU_EMITTERS` this XLA refused
+_REFUSED = set()  # the options this XLA refused
 
 
 def known() -> bool:
@@ -49,30 +62,35 @@ def known() -> bool:
     return not _REFUSED.intersection(CLASSIC_CPU_EMITTERS)
 
 
-def jit(fun=None, *, fingerprint=None, before_run=None, **jit_options):
-    """`jax.jit(fun, **jit_options)` with `CLASSIC_CPU_EMITTERS` where this XLA knows them (as a
+def jit(fun=None, *, options=None, fingerprint=None, before_run=None, **jit_options):
+    """`jax.jit(fun, **jit_options)` compiled with XLA's `options` (default
+    `CLASSIC_CPU_EMITTERS`) where this XLA knows them all, else with XLA's defaults (as a
     decorator too, with or without arguments), its programs kept by `lieax._executable_store`
     while that is on (`fingerprint()` names what `fun` closes over, `before_run()` prepares
     what a loaded program reads: see `_executable_store.Programs`). The result's
     `_cache_size()` counts the compilations of both variants and the store's (the tests count
     recompilation)."""
     if fun is None:
-        return functools.partial(jit, fingerprint=fingerprint, before_run=before_run, **jit_options)
-    classic = jax.jit(fun, compiler_options=CLASSIC_CPU_EMITTERS, **jit_options)
+        return functools.partial(
+            jit, options=options, fingerprint=fingerprint, before_run=before_run, **jit_options
+        )
+    options = dict(CLASSIC_CPU_EMITTERS if options is None else options)
+    chosen = jax.jit(fun, compiler_options=options, **jit_options)
     default = jax.jit(fun, **jit_options)
-    options = dict(jit_options, compiler_options=CLASSIC_CPU_EMITTERS)
-    stored = executable_store.Programs(classic, fun, options, fingerprint, before_run)
+    stored = executable_store.Programs(
+        chosen, fun, dict(jit_options, compiler_options=options), fingerprint, before_run
+    )
     refusals = []
 
     @functools.wraps(fun)
     def call(*args, **kwargs):
-        if executable_store.traced(args, kwargs) or not known():
+        if executable_store.traced(args, kwargs) or not known() or _REFUSED.intersection(options):
             return default(*args, **kwargs)
         try:
             result = stored.run(args, kwargs)
-            return classic(*args, **kwargs) if result is executable_store.NOT_SERVED else result
+            return chosen(*args, **kwargs) if result is executable_store.NOT_SERVED else result
         except jax.errors.JaxRuntimeError as error:  # raised by the compilation, before any run
-            refused = {o for o in CLASSIC_CPU_EMITTERS if f"compile option: '{o}'" in str(error)}
+            refused = {o for o in options if f"compile option: '{o}'" in str(error)}
             if not refused:
                 raise
             _REFUSED.update(refused)
@@ -81,6 +99,6 @@ def jit(fun=None, *, fingerprint=None, before_run=None, **jit_options):
 
     # (JAX keeps an entry for the refused compilation too: not a program)
     call._cache_size = lambda: (
-        classic._cache_size() - len(refusals) + default._cache_size() + stored.compiled
+        chosen._cache_size() - len(refusals) + default._cache_size() + stored.compiled
     )
     return call

@@ -1,5 +1,6 @@
 """`lieax._cpu_emitters`: the point-cloud programs compile with XLA's classic CPU fusion emitters
-where this XLA knows the option, and with XLA's defaults where it does not, to the same results."""
+(the factor-graph loop also with single-threaded dots) where this XLA knows the options, and with
+XLA's defaults where it does not, to the same results."""
 
 import jax
 import jax.numpy as jnp
@@ -16,10 +17,26 @@ def unknown_option(monkeypatch):
     monkeypatch.setattr(_cpu_emitters, "_REFUSED", set())
 
 
-def test_this_xla_knows_the_option():
-    # The faster programs are the ones CI measures; if an XLA upgrade drops the option, this says so.
+def test_this_xla_knows_the_options():
+    # The faster programs are the ones CI measures; if an XLA upgrade drops an option, this says so.
     _cpu_emitters.jit(lambda x: x + 1)(jnp.arange(2.0))
     assert _cpu_emitters.known()
+    solver_like = _cpu_emitters.jit(
+        lambda a, b: a @ b, options=_cpu_emitters.SOLVER_LOOP_OPTIONS
+    )  # (the factor-graph loop's options: single-threaded dots too)
+    a = jnp.arange(24.0).reshape(2, 3, 4)
+    np.testing.assert_allclose(solver_like(a, a.swapaxes(1, 2)), a @ a.swapaxes(1, 2), rtol=1e-12)
+    assert not _cpu_emitters._REFUSED
+    assert solver_like._cache_size() == 1  # compiled with the options, not the fallback
+
+
+def test_a_program_with_an_unknown_option_of_its_own_falls_back_alone(monkeypatch):
+    monkeypatch.setattr(_cpu_emitters, "_REFUSED", set())
+    own = _cpu_emitters.jit(lambda x: x - 1, options={"xla_lieax_no_such_option": 1})
+    np.testing.assert_array_equal(own(jnp.arange(2.0)), [-1.0, 0.0])
+    assert _cpu_emitters._REFUSED == {"xla_lieax_no_such_option"}
+    assert _cpu_emitters.known()  # the other programs keep the classic emitters
+    assert own(jnp.arange(2.0)).tolist() == [-1.0, 0.0] and own._cache_size() == 1
 
 
 def test_an_unknown_option_falls_back_to_the_defaults(unknown_option):

@@ -239,7 +239,9 @@ def make_loop(graph, options, ready=None):
     def fingerprint():
         return loop_fingerprint(graph, options)
 
-    return cpu_emitters.jit(loop, fingerprint=fingerprint, before_run=ready)
+    return cpu_emitters.jit(
+        loop, options=cpu_emitters.SOLVER_LOOP_OPTIONS, fingerprint=fingerprint, before_run=ready
+    )
 
 
 class _Phases:
