@@ -120,7 +120,7 @@ def optimize(
     **Returns:** an `OptimizeResult`.
     """
     refuse_sightings(graph, "optimize")
-    if staged((), {}):
+    if staged((graph.poses,), {}):
         raise TypeError(
             "graph.optimize returns concrete NumPy values and cannot run under jit, vmap or grad: "
             "solve lieax.graph.to_factor_graph(graph)[0] with FactorGraph.solve inside them "
