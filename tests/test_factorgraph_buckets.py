@@ -12,7 +12,7 @@ import pytest
 from _compilations import _COMPILED
 
 from lieax import SE2
-from lieax.factorgraph import Factor, FactorGraph, Var, _graph, marginal_covariances
+from lieax.factorgraph import Factor, FactorGraph, Var, _graph, _multifrontal, marginal_covariances
 from lieax.factorgraph._buckets import bucket_size
 from lieax.graph import between_error, prior_error
 from lieax.lstsq import Cauchy, Huber
@@ -106,9 +106,13 @@ def test_growing_window_compiles_once_per_bucket(solver, references):
     assert len(events) == start
 
 
-def test_auto_and_bad_options():
-    """`"auto"` picks by the bucketed size; an explicit elimination is refused, naming why."""
+def test_auto_and_bad_options(monkeypatch):
+    """`"auto"` picks by the bucketed size (the multifrontal Cholesky at every size where the
+    native library runs it); an explicit elimination is refused, naming why."""
     graph = window(10, True)
+    expected = "cholesky" if _multifrontal.native() else "dense"
+    assert graph._loop(_graph.GTSAM, "auto", "auto", 100, None, False, None)[2] == expected
+    monkeypatch.setattr(_multifrontal, "native", lambda: False)
     assert graph._loop(_graph.GTSAM, "auto", "auto", 100, None, False, None)[2] == "dense"
     with pytest.raises(ValueError, match="buckets=True.*eliminate="):
         graph.solve(eliminate=graph.variables[1])

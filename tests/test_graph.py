@@ -461,22 +461,20 @@ def test_retractions_reach_the_same_optimum():
 
 
 def test_dense_and_multifrontal_steps_agree(monkeypatch):
-    # small graphs factor the dense matrix in JAX; larger ones call the host's multifrontal
-    # Cholesky: the same iterates either way
+    # the dense matrix in JAX (what `optimize` picks for small graphs where the multifrontal
+    # Cholesky has no native library) and the multifrontal Cholesky: the same iterates either way
+    from lieax.factorgraph import _multifrontal
     from lieax.lstsq import Huber
 
     graph, _ = noisy_graph(SE3, n=30, loops=40, sigma=0.02, init_sigma=0.05, seed=4)
     graph = graph.with_loss(Huber(3.0))
     assert graph.num_poses * 6 <= factorgraph_module._DENSE_LIMIT
-    dense = lg.optimize(
-        graph,
-        termination=Termination.gtsam(function_tolerance=1e-10, absolute_function_tolerance=1e-10),
-    )
+    tight = Termination.gtsam(function_tolerance=1e-10, absolute_function_tolerance=1e-10)
+    with monkeypatch.context() as patch:
+        patch.setattr(_multifrontal, "native", lambda: False)
+        dense = lg.optimize(graph, termination=tight)
     monkeypatch.setattr(factorgraph_module, "_DENSE_LIMIT", 0)
-    sparse = lg.optimize(
-        graph,
-        termination=Termination.gtsam(function_tolerance=1e-10, absolute_function_tolerance=1e-10),
-    )
+    sparse = lg.optimize(graph, termination=tight)
     methods = {key[2] for key in _optimize._factor_graph(graph, exact=True)._loops}
     assert methods == {"dense", "cholesky"}
     assert sparse.iterations == dense.iterations

@@ -111,6 +111,29 @@ def test_vmap_is_one_call_for_the_batch_and_float32():
     np.testing.assert_allclose(x32, expected, rtol=2e-4, atol=2e-5)
 
 
+def test_auto_factors_a_few_poses_by_the_multifrontal(monkeypatch):
+    """`linear_solver="auto"` factors even a graph of nine poses (tinyGrid3D's size) by the
+    native multifrontal Cholesky, which is faster than the dense matrix at every size measured
+    (`lieax.factorgraph._graph._DENSE_LIMIT`); without the native library it factors the dense
+    matrix. Both reach the same iterates."""
+    from test_graph import noisy_graph
+
+    from lieax import SE3
+    from lieax import graph as lg
+    from lieax.factorgraph import _graph
+
+    graph, _ = noisy_graph(SE3, n=9, loops=2, seed=1)
+    factor_graph = lg.to_factor_graph(graph)[0]
+    assert _graph._auto_method(factor_graph.layout) == "cholesky"
+    multifrontal = factor_graph.solve(linear_solver="auto")
+    monkeypatch.setattr(_multifrontal, "native", lambda: False)
+    assert _graph._auto_method(factor_graph.layout) == "dense"
+    dense = factor_graph.solve(linear_solver="auto")
+    assert {"dense", "cholesky"} <= {key[2] for key in factor_graph._loops}
+    assert int(dense.iterations) == int(multifrontal.iterations)
+    np.testing.assert_allclose(dense.cost_history, multifrontal.cost_history, rtol=1e-10)
+
+
 def test_unknown_and_collected_keys_are_clear_errors():
     pattern, diag, off, _, rhs = system("chain", 10, 3, seed=7)
     with pytest.raises(Exception, match="no plan is registered under key 12345"):

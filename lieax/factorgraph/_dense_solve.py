@@ -1,6 +1,7 @@
 r"""The dense solver of the block normal equations (`_block_pattern`): the dense matrix and its
-Cholesky factor inside JAX, for graphs of a few hundred unknowns (`lieax.graph.optimize` and
-`linear_solver="auto"` pick it below a measured crossover), and the BLAS threads for it.
+Cholesky factor inside JAX, for nearly dense systems of a few hundred unknowns, and for graphs of
+up to 300 unknowns where the multifrontal Cholesky has no native library (`linear_solver="auto"`
+picks it there: `lieax.factorgraph._graph._auto_method`), and the BLAS threads for it.
 """
 
 import jax
@@ -12,8 +13,7 @@ from ._block_pattern import dense_matrix
 
 
 def dense_solve(pattern, diag, off, rhs):
-    """$H^{-1}$ `rhs` through the dense matrix and its Cholesky factor, in JAX (for graphs of a
-    few poses, where the host's multifrontal factorization costs more than the dense one); NaN
+    """$H^{-1}$ `rhs` through the dense matrix and its Cholesky factor, in JAX; NaN
     when $H$ is not positive definite. The matrix is one gather from the blocks (indices built
     in numpy at trace time), or, for a bucketed graph whose pattern's pairs are operands
     (`_buckets`), sums of the blocks into place (`dense_matrix`)."""

@@ -31,6 +31,7 @@ from ..lstsq import (
 )
 from ..lstsq._solution import SolveResult, is_failure, nonfinite_leaves
 from ..retractions import Retraction, exp
+from . import _multifrontal
 from ._buckets import Buckets
 from ._dense_solve import dense_threads
 from ._elimination import (
@@ -48,8 +49,13 @@ from ._solve import PARAMETERS, make_loop, numeric_options, static_options
 from ._structure import analyze, digest, schur_layout
 from ._variables import Var, instance
 
-# padded unknowns up to which `linear_solver="auto"` factors the dense matrix in JAX (the crossover
-# `lieax.graph.optimize` measured for its pose graphs)
+# padded unknowns up to which `linear_solver="auto"` factors the dense matrix in JAX where the
+# multifrontal Cholesky runs its NumPy path (no native library, or not on the CPU): the crossover
+# `lieax.graph.optimize` measured against that path's per-front costs. The native library's
+# custom call is faster at every size measured (whole solves on prefixes of the g2o sets, one
+# process, one pinned core, 2026-12-05: dense / multifrontal 1.06-1.09 at 30 unknowns, 1.1-1.3
+# at 54-60, 1.4-2.0 at 90-120, 2.8-6.8 at 300), so with it "auto" is dense only for nearly dense
+# factors (below)
 _DENSE_LIMIT = 300
 # ... and up to which it does so when the sparse factor would be nearly dense anyway (its
 # multiply-adds at least `_DENSE_FILL` of the dense factorization's): a reduced camera system,
@@ -90,7 +96,8 @@ class FactorGraph:
       equals the unbucketed one to rounding (sums in another order). Default `False`: a fixed
       structure's loop keeps its constants, which XLA specializes (measured in
       `benchmarks/sliding_window.py`). `linear_solver` `"dense"`, `"cg"` and `"cholesky"` are
-      bucketed (`"auto"`: dense up to 300 padded unknowns of the buckets, else cholesky);
+      bucketed (`"auto"`: cholesky, or without the native library dense up to 300 padded
+      unknowns of the buckets);
       `eliminate` (the Schur complement) is not: an explicit `Var` is a `ValueError`, `"auto"`
       eliminates nothing. `vmap` and implicit derivatives work; the derivatives' tangent
       program, `cost`, `linearize` and `marginal_covariances` keep the graph's own structure
@@ -317,9 +324,9 @@ class FactorGraph:
           `counting="outer"` and runs no gradient or step test (`gradient_tolerance` and
           `parameter_tolerance` 0); it refuses other settings with a `ValueError`.
         - `linear_solver`: `"dense"`, `"cholesky"` (host multifrontal), `"cg"` (block-Jacobi
-          PCG) or `"auto"` (dense up to 300 padded unknowns, or up to 800 when the sparse factor
-          would be at least half dense, else cholesky); with `eliminate`, the solver of the
-          reduced system.
+          PCG) or `"auto"` (dense up to 800 padded unknowns when the sparse factor would be at
+          least half dense, else cholesky; without the native library, dense up to 300 padded
+          unknowns too); with `eliminate`, the solver of the reduced system.
         - `eliminate`: a `Var` to eliminate by the Schur complement (its instances must not
           share factors: points in bundle adjustment), `None` for none, or `"auto"`: the kind
           whose elimination makes a linear solve cheapest by the cost model of
@@ -633,13 +640,15 @@ class FactorGraph:
 
 
 def _auto_method(layout):
-    """The solver `linear_solver="auto"` picks for `layout`: `"dense"` when it is small, or small enough
-    and its factor nearly dense (see `_DENSE_FILLED_LIMIT`), else `"cholesky"`; for a bucketed
-    graph (`Buckets`) by its bucketed size alone, the same for every graph of its buckets."""
+    """The solver `linear_solver="auto"` picks for `layout`: `"dense"` when its factor is nearly
+    dense and it is small enough (see `_DENSE_FILLED_LIMIT`), or, without the native multifrontal
+    Cholesky, when it is small (`_DENSE_LIMIT`); else `"cholesky"`. For a bucketed graph
+    (`Buckets`) by its bucketed size alone, the same for every graph of its buckets."""
     n = layout.padded_unknowns
+    limit = 0 if _multifrontal.native() else _DENSE_LIMIT
     if isinstance(layout, Buckets):
-        return "dense" if n <= _DENSE_LIMIT else "cholesky"
-    if n <= _DENSE_LIMIT or (
+        return "dense" if n <= limit else "cholesky"
+    if n <= limit or (
         n <= _DENSE_FILLED_LIMIT and layout.plan().stats["flops"] >= _DENSE_FILL * n**3 / 3
     ):
         return "dense"

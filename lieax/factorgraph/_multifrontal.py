@@ -274,7 +274,7 @@ def cholesky_solve(plan, diag, off, rhs, *, pattern=None):
             f"cholesky_solve: diag {diag.shape} and rhs {rhs.shape} do not match the pattern's "
             f"{pattern.num_blocks} blocks of size {pattern.block_size}."
         )
-    if _native_cholesky.available() and jax.default_backend() == "cpu":
+    if native():
         if not isinstance(plan, CholeskyPlan):
             plan = plan()  # the analysis, waited for here (`Layout.start_plan` began it)
         return _native_cholesky.solve(plan.native_key(), diag, off, rhs)
@@ -282,6 +282,12 @@ def cholesky_solve(plan, diag, off, rhs, *, pattern=None):
     result = jax.ShapeDtypeStruct(rhs.shape, rhs.dtype)
     _threads.prepare()  # (the thread pools listed here, not in the callback)
     return host_call(lambda *system: _host_solve(plan_of(), *system), result, diag, off, rhs)
+
+
+def native() -> bool:
+    """Whether `cholesky_solve` runs the native library's custom call (built, and JAX on the
+    CPU), not the host callback of its NumPy path."""
+    return _native_cholesky.available() and jax.default_backend() == "cpu"
 
 
 # plans named by key for `cholesky_solve_keyed`'s host path (the native path's registry is the
@@ -304,7 +310,7 @@ def cholesky_solve_keyed(key, diag, off, rhs):
     plan's pattern (its first `num_pairs` are the plan's). One compiled program serves every
     plan of the shapes of `diag`, `off` and `rhs` (`_buckets`). The native custom call on the
     CPU, else the host callback of `plan.solve`."""
-    if _native_cholesky.available() and jax.default_backend() == "cpu":
+    if native():
         return _native_cholesky.solve_keyed(key, diag, off, rhs)
 
     def solve(words, diag, off, rhs):

@@ -84,17 +84,18 @@ def optimize(
     - `termination`: when to stop (default `lieax.lstsq.Termination.gtsam()`: GTSAM's
       `maxIterations` 100, `relativeErrorTol` and `absoluteErrorTol` $10^{-5}$), as
       `FactorGraph.solve`'s.
-    - `linear_solver`: `"cholesky"` (default): exact steps, so the iterates follow GTSAM's.
-      Graphs of more than 300 unknowns (poses × tangent dimension) use the host's multifrontal
-      block Cholesky (numpy and LAPACK, called from the jitted loop); smaller ones factor the
-      dense matrix inside JAX, which skips the host call and the per-front overheads
-      (`FactorGraph.solve(linear_solver="auto")`). The crossover is measured (one CPU thread,
-      whole `optimize` calls on prefixes of smallGrid3D and intel): dense / multifrontal time
-      0.3-0.4 at 60-120 unknowns, 0.5-0.7 at 180-240, 0.9 at 300, 1.0-1.3 at 360, 2.1 at 540,
-      2.3 at 600 (the dense factorization's $O((nd)^3)$ work overtakes the fronts' fixed costs
-      early). `"cg"`: block-Jacobi preconditioned conjugate gradients, all in JAX, for
-      accelerators (no host round trip; inexact steps, slower to converge on poorly
-      conditioned graphs).
+    - `linear_solver`: `"cholesky"` (default): exact steps, so the iterates follow GTSAM's,
+      from the multifrontal block Cholesky (`FactorGraph.solve(linear_solver="auto")`): the
+      native library's, called from the jitted loop, at every size, since it is faster than
+      factoring the dense matrix inside JAX at every size measured (one pinned core, whole
+      solves on prefixes of the g2o sets, 2026-12-05: dense / multifrontal time 1.06-1.09 at
+      30 unknowns, 1.1-1.3 at 54-60, 1.4-2.0 at 90-120, 2.8-6.8 at 300, 4-17 at 600).
+      Without the native library the multifrontal runs on NumPy through a host callback, whose
+      per-front costs make the dense matrix faster up to 300 unknowns (poses × tangent
+      dimension), which then use it (measured on that path: dense / multifrontal 0.3-0.4 at
+      60-120 unknowns, 0.9 at 300, 2.1 at 540). `"cg"`: block-Jacobi preconditioned conjugate
+      gradients, all in JAX, for accelerators (no host round trip; inexact steps, slower to
+      converge on poorly conditioned graphs).
     - `jacobian`: `"exact"` (default) differentiates the residual $\mathrm{Log}(Z^{-1}X_i^{-1}X_j)$
       exactly (with $J_r^{-1}(e)$), so the optimizer converges to a stationary point of the cost.
       GTSAM 4.3's iterates match these (same iteration counts, final costs equal to 1e-12 on the
