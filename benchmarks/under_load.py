@@ -9,8 +9,9 @@ run interleaved in one process, each with its default settings (no pinning, no t
 unlike `pgo.py`, `ba.py`, `imu.py` and `icp.py`, whose builders this reuses, and which set their
 processes up as scripts, `benchmarks/_environment.py`); lieax as installed, with its native library
 (k-d tree, Cholesky) where it is built; the header names every variable set that would change a
-library's threads or paths (`SETTINGS`). A sample is one warm call, the medians over `--rounds`
-are compared, and lieax's first call (compilation) is reported separately.
+library's threads or paths (`SETTINGS`). A sample is one warm call (after a quarter second of
+calls of each, `warm_up`), the medians over `--rounds` are compared, and lieax's first call
+(compilation) is reported separately.
 
 The floor: a load slows every program down, by as much as the machine's scheduler decides, and
 that changes from one phase to the next. Each row also times a single-threaded NumPy workload
@@ -148,6 +149,17 @@ def floor_workload(seconds):
     return work
 
 
+def warm_up(fn, seconds=0.25):
+    """Calls of `fn` until `seconds` have passed (at least two): a compiled program's first calls
+    run slower than its later ones (tinyGrid3D's `optimize`, alternating with GTSAM's, in two
+    processes: 0.6-0.9 ms per call over its first 20 calls, 0.4 ms from the 100th on), which a
+    median of five single calls right after the first would report as its warm time."""
+    start, calls = time.perf_counter(), 0
+    while calls < 2 or time.perf_counter() - start < seconds:
+        timed_call(fn)
+        calls += 1
+
+
 def interleaved(variants, rounds):
     """Median seconds of each variant (name -> callable, already warm) over `rounds`, one call each
     per round in an order rotated from round to round; and the load average over the rounds."""
@@ -264,7 +276,8 @@ def measure(label, ours, peer, theirs, rounds, load_seconds):
     start = time.perf_counter()
     timed_call(ours)
     first = time.perf_counter() - start
-    timed_call(theirs)
+    warm_up(ours)
+    warm_up(theirs)
     variants = {"lieax": ours, peer: theirs, "floor": floor_workload(timed_call(ours))}
     idle, idle_load = interleaved(variants, rounds)
     with background_load(os.cpu_count(), load_seconds):
