@@ -165,7 +165,7 @@ class CholeskyPlan:
             symbolic = _Symbolic.of_order(pattern, order, max_pivots, zero_fraction)
         plan = cls(pattern, symbolic, ordering)
         plan.key = _native_cholesky.analysis_key(pattern, (given, max_pivots, zero_fraction))
-        if _native_cholesky.available():
+        if native():
             plan.native_key()
         else:  # the NumPy path's structures, here where the analysis overlaps the compilation
             plan._numpy_structures()
@@ -296,9 +296,10 @@ _KEYED = weakref.WeakValueDictionary()
 
 
 def keep_keyed(plan):
-    """`plan.native_key()` where the native library serves `cholesky_solve_keyed`, else `plan.key`
-    with the plan kept for its host path; the key stays valid while `plan` lives."""
-    if _native_cholesky.available():
+    """`plan.native_key()` where the native library serves `cholesky_solve_keyed` (`native()`),
+    else `plan.key` with the plan kept for its host path; the key stays valid while `plan`
+    lives."""
+    if native():
         return plan.native_key()
     _KEYED[plan.key] = plan
     return plan.key
