@@ -37,10 +37,11 @@ multifrontal factorizations call LAPACK, whose threads `lieax._threads` sets, no
 The options are XLA's debug options, and an XLA that does not know one refuses to compile
 ("No such compile option"): the first program compiled with it finds that out, and from then on
 the programs that ask for it compile with XLA's defaults (`known()` tells for the classic
-emitters; an empty program compiled as a probe cost every process 0.1 s). Other backends do not use it (not measured on one here). JAX takes compile
-options only for a program compiled on its own, not one staged into an enclosing `jit` or loop
-(whose own options then apply) or transformed (`grad`, `vmap`, which may stage it): a call on
-traced values, or made while a program is being staged, runs a plain `jax.jit`.
+emitters; an empty program compiled as a probe cost every process 0.1 s). Other backends do not
+use them (not measured on one here). JAX takes compile options only for a program compiled on its
+own, not one staged into an enclosing `jit` or loop (whose own options then apply) or transformed
+(`grad`, `vmap`, which may stage it): a call on traced values, or made while a program is being
+staged, runs a plain `jax.jit`.
 """
 
 import functools
