@@ -103,6 +103,20 @@ def test_a_program_is_stored_loaded_and_bypassed_while_jax_checks(store):
     assert len(list(store.glob("*.bin"))) == 1
 
 
+def test_a_signature_reads_shapes_dtypes_and_weak_types(monkeypatch):
+    x, weak = jnp.ones(3), jnp.asarray(1.0)
+    for one_device in (True, False):  # with several devices, each leaf's device is checked
+        monkeypatch.setattr(_executable_store, "_one_device", lambda one=one_device: one)
+        avals = _executable_store._avals([x, np.ones(3), weak, np.float64(1.0), 1.0, True])
+        assert avals[0] == avals[1] == ((3,), np.dtype("float64"), False)
+        assert avals[2] == ((), np.dtype("float64"), True) != avals[3]
+        assert avals[4:] == (((), "float", True), ((), "bool", True))
+        assert _executable_store._avals([x, "text"]) is None  # not an array: not served
+    traced = []
+    jax.jit(lambda x: traced.append(_executable_store._avals([x])) or x)(x)
+    assert traced == [None]  # a tracer: not served
+
+
 def _graph(offset):
     rng = np.random.default_rng(0)
     poses = Var(SE2.exp(0.1 * rng.normal(size=(6, 3))), name="poses")
