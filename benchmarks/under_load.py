@@ -10,8 +10,9 @@ unlike `pgo.py`, `ba.py`, `imu.py` and `icp.py`, whose builders this reuses, and
 processes up as scripts, `benchmarks/_environment.py`); lieax as installed, with its native library
 (k-d tree, Cholesky) where it is built; the header names every variable set that would change a
 library's threads or paths (`SETTINGS`). A sample is one warm call (after a quarter second of
-calls of each, `warm_up`), the medians over `--rounds` are compared, and lieax's first call
-(compilation) is reported separately.
+calls of each, `warm_up`), the medians over `--rounds` are compared (more rounds for a workflow
+whose calls are short, as many as fit in half a second, at most 201: `rounds_for`), and lieax's
+first call (compilation) is reported separately.
 
 The floor: a load slows every program down, by as much as the machine's scheduler decides, and
 that changes from one phase to the next. Each row also times a single-threaded NumPy workload
@@ -150,14 +151,25 @@ def floor_workload(seconds):
 
 
 def warm_up(fn, seconds=0.25):
-    """Calls of `fn` until `seconds` have passed (at least two): a compiled program's first calls
-    run slower than its later ones (tinyGrid3D's `optimize`, alternating with GTSAM's, in two
-    processes: 0.6-0.9 ms per call over its first 20 calls, 0.4 ms from the 100th on), which a
-    median of five single calls right after the first would report as its warm time."""
+    """Calls of `fn` until `seconds` have passed (at least two); returns the seconds per call. A
+    compiled program's first calls run slower than its later ones (tinyGrid3D's `optimize`,
+    alternating with GTSAM's, in two processes: 0.6-0.9 ms per call over its first 20 calls, 0.4
+    ms from the 100th on), which a median of five single calls right after the first would report
+    as its warm time."""
     start, calls = time.perf_counter(), 0
     while calls < 2 or time.perf_counter() - start < seconds:
         timed_call(fn)
         calls += 1
+    return (time.perf_counter() - start) / calls
+
+
+def rounds_for(seconds_per_round, rounds, budget=0.5, most=201):
+    """`rounds`, or more for a short workflow: as many as fit in `budget` seconds idle (at most
+    `most`). Under load a call of under a millisecond either runs within its time slice or waits
+    out a spinner's (a few ms): the median of five such calls is the luck of five draws
+    (tinyGrid3D, alternating with GTSAM under load, 0.9-1.2x its idle time in four processes,
+    3.0x and 6.5x in two; over 200 rounds 1.0-1.16x in six)."""
+    return max(rounds, min(most, int(budget / seconds_per_round)))
 
 
 def interleaved(variants, rounds):
@@ -276,8 +288,8 @@ def measure(label, ours, peer, theirs, rounds, load_seconds):
     start = time.perf_counter()
     timed_call(ours)
     first = time.perf_counter() - start
-    warm_up(ours)
-    warm_up(theirs)
+    per_round = 2 * warm_up(ours) + warm_up(theirs)  # lieax, the peer and the floor
+    rounds = rounds_for(per_round, rounds)
     variants = {"lieax": ours, peer: theirs, "floor": floor_workload(timed_call(ours))}
     idle, idle_load = interleaved(variants, rounds)
     with background_load(os.cpu_count(), load_seconds):
@@ -292,6 +304,7 @@ def measure(label, ours, peer, theirs, rounds, load_seconds):
     return {
         "workflow": label,
         "peer": peer,
+        "rounds": rounds,
         "lieax_first_call_s": first,
         "idle": phase(idle, idle_load),
         "loaded": phase(busy, busy_load),
@@ -366,7 +379,7 @@ def main(argv=None):
         return over_processes(args, argv if argv is not None else sys.argv[1:], rounds)
     print(f"# lieax and its peers, idle and under load\n\n{machine_description()}, "
           f"{os.cpu_count()} CPUs, load {os.getloadavg()[0]:.1f} at the start; background load: "
-          f"{os.cpu_count()} spinning processes; {rounds} rounds; "
+          f"{os.cpu_count()} spinning processes; at least {rounds} rounds (short calls more); "
           f"{time.strftime('%Y-%m-%d %H:%M')}; {settings()}\n", flush=True)  # fmt: skip
     records = []
     for workflow in only:
@@ -376,7 +389,7 @@ def main(argv=None):
     print()
     print(markdown_table(HEADERS, [row(r) for r in records]))
     if args.json:
-        title = f"Warm times idle and under load, {rounds} rounds" + (
+        title = f"Warm times idle and under load, at least {rounds} rounds" + (
             " (--quick)" if args.quick else ""
         )
         notes = (
@@ -420,7 +433,7 @@ def over_processes(args, argv, rounds):
     labels = [record["workflow"] for record in runs[0]]
     spread = [spread_row(label, [r for run in runs for r in run if r["workflow"] == label])
               for label in labels]  # fmt: skip
-    print(f"\n## Spread over {args.processes} fresh processes ({rounds} rounds each)\n")
+    print(f"\n## Spread over {args.processes} fresh processes (at least {rounds} rounds each)\n")
     print(markdown_table(SPREAD_HEADERS, spread))
     if args.json:
         notes = (
