@@ -62,11 +62,12 @@ from jax.experimental import serialize_executable
 
 try:  # JAX internals the store needs; a JAX that moved them runs without the store
     from jax._src import compiler as jax_compiler
+    from jax._src import xla_bridge
     from jax._src.array import ArrayImpl
     from jax._src.config import trace_context as _trace_context
     from jax._src.lax.linalg import initialize_lapack as _initialize_lapack
 except ImportError:  # pragma: no cover
-    jax_compiler = ArrayImpl = _trace_context = _initialize_lapack = None
+    jax_compiler = xla_bridge = ArrayImpl = _trace_context = _initialize_lapack = None
 
 from ._describe import Undescribable, describe, lieax_code
 
@@ -343,8 +344,8 @@ def _avals(leaves):
     """`(shape, dtype, weak_type)` of each leaf, or None when one is not a concrete array on the
     default device (a traced, sharded or committed-elsewhere value: not stored). Every warm call
     pays for this: a concrete array's `aval` holds all three (0.1 us, where its `shape`, `dtype`
-    and `weak_type` properties took 1 us), and with one device there is no other to be on
-    (`devices()` took 0.9 us a leaf)."""
+    and `weak_type` properties took 1 us), and where the process has one device (every backend's
+    together) there is no other to be on (`devices()` took 0.9 us a leaf)."""
     device = None if _one_device() else jax.devices()[0]
     avals = []
     for leaf in leaves:
@@ -364,8 +365,10 @@ def _avals(leaves):
 
 @functools.cache
 def _one_device() -> bool:
-    """Whether JAX has a single device (fixed once its backends have started)."""
-    return jax.device_count() == 1
+    """Whether the process has a single device over all of JAX's backends (fixed once they have
+    started; a CPU array may be passed to a program of a GPU's, which `jax.jit` then runs on the
+    CPU)."""
+    return sum(len(backend.devices()) for backend in xla_bridge.backends().values()) == 1
 
 
 def _check_nodes(treedef):
