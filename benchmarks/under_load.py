@@ -167,8 +167,8 @@ def rounds_for(seconds_per_round, rounds, budget=0.5, most=201):
     """`rounds`, or more for a short workflow: as many as fit in `budget` seconds idle (at most
     `most`). Under load a call of under a millisecond either runs within its time slice or waits
     out a spinner's (a few ms): the median of five such calls is the luck of five draws
-    (tinyGrid3D, alternating with GTSAM under load, 0.9-1.2x its idle time in four processes,
-    3.0x and 6.5x in two; over 200 rounds 1.0-1.16x in six)."""
+    (tinyGrid3D under load, alternating with GTSAM: 0.9-1.2x GTSAM's time in four processes,
+    3.0x and 6.5x in two; over 200 rounds 0.9-1.2x in each of eleven)."""
     return max(rounds, min(most, int(budget / seconds_per_round)))
 
 
